@@ -1,0 +1,48 @@
+# Two entry points for a newcomer: `make demo` and `make test`. Both do all set-up themselves,
+# idempotently (a stamp file records the installed state), and are fast once set up.
+SHELL := /bin/bash
+VENV ?= .venv
+PY := $(VENV)/bin/python
+STAMP := $(VENV)/.ms3d-installed
+APT_STAMP := $(VENV)/.ms3d-apt
+DEMO_OUT ?= ms3d-work/demo-input
+DEMO_WORK ?= ms3d-work/demo
+APT_PACKAGES := libusb-1.0-0 libgl1 libgomp1
+
+.PHONY: install demo test bench clean-demo lint
+
+$(APT_STAMP):
+	@missing=""; for p in $(APT_PACKAGES); do dpkg -s $$p >/dev/null 2>&1 || missing="$$missing $$p"; done; \
+	if [ -n "$$missing" ]; then \
+	  echo "installing Debian packages:$$missing"; \
+	  SUDO=""; [ "$$(id -u)" = 0 ] || SUDO=sudo; \
+	  $$SUDO apt-get update -qq && DEBIAN_FRONTEND=noninteractive $$SUDO apt-get install -y -qq $$missing; \
+	fi
+	@mkdir -p $(VENV) && touch $@
+
+$(PY):
+	python3 -m venv $(VENV)
+
+$(STAMP): pyproject.toml $(APT_STAMP) | $(PY)
+	$(PY) -m pip install -q --upgrade pip
+	$(PY) -m pip install -q -e ".[dev]"
+	$(PY) -c "import open3d, torch, prefect, laspy; print('ms3d environment ready: torch', torch.__version__, 'open3d', open3d.__version__, 'prefect', prefect.__version__)"
+	@touch $@
+
+install: $(STAMP)
+
+demo: $(STAMP)
+	$(VENV)/bin/ms3d demo --out $(DEMO_OUT) --work $(DEMO_WORK)
+
+test: $(STAMP)
+	$(PY) -m pytest -q tests
+
+bench: $(STAMP)
+	$(PY) benchmarks/synth_bench.py
+	$(PY) benchmarks/partition_bench.py
+
+lint: $(STAMP)
+	$(VENV)/bin/ruff check .
+
+clean-demo:
+	rm -rf ms3d-work

@@ -1,0 +1,1 @@
+"""ms3d.storage"""

@@ -1,0 +1,115 @@
+"""Typed run configuration (pydantic), loaded from YAML and overridable from the CLI.
+
+Every parameter the paper names carries the paper's value in its description.
+"""
+
+from __future__ import annotations
+
+from pathlib import Path
+from typing import Literal
+
+import yaml
+from pydantic import BaseModel, ConfigDict, Field, field_validator
+
+
+class _Model(BaseModel):
+    model_config = ConfigDict(extra="forbid")
+
+
+class InputsConfig(_Model):
+    mesh: list[str] = Field(default_factory=list, description="mesh files or folders (OBJ+MTL / PLY / GLB); a folder is read as ContextCapture-style tiles")
+    points: list[str] = Field(default_factory=list, description="MLS point clouds (LAS / LAZ / PLY / PCD / XYZ)")
+    crs: str | None = Field(None, description="projected CRS of the campus, e.g. 'EPSG:32650'; read from the LAS VLRs when absent")
+    mesh_offset: tuple[float, float, float] = Field((0.0, 0.0, 0.0), description="added to mesh coordinates (ContextCapture SRSOrigin) to get world metres")
+    units_scale: float = Field(1.0, description="multiplies input coordinates into metres (e.g. 0.3048 for US feet)")
+    labels: str | None = Field(None, description="patch labels: a synth defects.json or a CSV of bad patch ids (i,j,k[,label])")
+
+
+class RegistrationConfig(_Model):
+    enabled: bool = Field(True, description="False for inputs that are already co-registered (a check still warns)")
+    voxel_m: float = Field(0.3, description="voxel size for the coarse stage (downsampling before FPFH)")
+    fine_voxel_m: float = Field(0.05, description="voxel size for Scale-ICP")
+    max_points: int = Field(400_000, description="cap on MLS points sampled for registration")
+    sac_iterations: int = Field(1000, description="SAC-IA iterations (paper: 1000)")
+    sac_threshold_m: float = Field(0.10, description="SAC-IA inlier distance (paper: 10 cm)")
+    icp_iterations: int = Field(1000, description="Scale-ICP iterations (paper: 1000)")
+    icp_threshold_m: float = Field(0.001, description="final Scale-ICP correspondence distance / convergence (paper: 1 mm)")
+    with_scale: bool = Field(True, description="estimate a similarity (rotation, translation, scale)")
+    seed: int = 0
+
+
+class TilingConfig(_Model):
+    tile_size_m: float = Field(100.0, gt=1.0, description="ground tile edge length")
+    chunk_points: int = Field(2_000_000, gt=1000, description="points per ingest chunk (bounds memory)")
+
+
+class PartitionConfig(_Model):
+    patch_size_m: tuple[float, float, float] = Field(
+        (2.3, 1.0, 0.7), description="patch cuboid (paper: 23 x 10 x 7, read as metres x 0.1)"
+    )
+    outlier_sigma_low: float = Field(2.0, ge=0, description="patches with log-count below mean - k*sigma are flagged (paper: histogram + normal fit)")
+    outlier_sigma_high: float = Field(3.0, ge=0, description="patches with log-count above mean + k*sigma are flagged")
+    min_faces: int = Field(1, description="a pair needs at least this many faces to be graded")
+    min_points: int = Field(1, description="a pair needs at least this many points to be graded")
+
+    @field_validator("patch_size_m")
+    @classmethod
+    def _positive(cls, v):
+        if min(v) <= 0:
+            raise ValueError("patch sizes must be positive")
+        return v
+
+
+class ClusterConfig(_Model):
+    address: str | None = Field(None, description="scheduler address of an existing Dask cluster; None starts a local one")
+    n_workers: int = Field(2, ge=1)
+    threads_per_worker: int = Field(1, ge=1)
+    memory_limit: str = Field("auto")
+    prefect_api_url: str | None = Field(None, description="an existing Prefect API; None starts one embedded server")
+    tiles_per_task: int = Field(1, ge=1, description="tiles handled by one Prefect task run")
+
+
+class CampusConfig(_Model):
+    name: str = "campus"
+    work_dir: str = "ms3d-work/campus"
+    inputs: InputsConfig = Field(default_factory=InputsConfig)
+    registration: RegistrationConfig = Field(default_factory=RegistrationConfig)
+    tiling: TilingConfig = Field(default_factory=TilingConfig)
+    partition: PartitionConfig = Field(default_factory=PartitionConfig)
+    cluster: ClusterConfig = Field(default_factory=ClusterConfig)
+    runner: Literal["dask", "local"] = Field("dask", description="'local' runs tasks in the flow process (debugging)")
+
+    @classmethod
+    def from_yaml(cls, path: str | Path, overrides: dict | None = None) -> "CampusConfig":
+        path = Path(path)
+        data = yaml.safe_load(path.read_text()) or {}
+        base = path.parent
+        inputs = data.get("inputs", {})
+        for key in ("mesh", "points"):  # relative input paths are relative to the config file
+            inputs[key] = [str((base / p) if not Path(p).is_absolute() else p) for p in inputs.get(key, [])]
+        if inputs.get("labels") and not Path(inputs["labels"]).is_absolute():
+            inputs["labels"] = str(base / inputs["labels"])
+        data["inputs"] = inputs
+        if "work_dir" in data and not Path(data["work_dir"]).is_absolute():
+            data["work_dir"] = str(base / data["work_dir"])
+        for dotted, value in (overrides or {}).items():
+            _set_dotted(data, dotted, value)
+        return cls.model_validate(data)
+
+    def to_yaml(self) -> str:
+        return yaml.safe_dump(self.model_dump(mode="json"), sort_keys=False)
+
+    def stage_params(self, stage: str) -> dict:
+        """The parameters that decide a stage's output (hashed into the manifest)."""
+        return {
+            "register": self.registration.model_dump(mode="json") | {"inputs": self.inputs.model_dump(mode="json")},
+            "ingest": self.tiling.model_dump(mode="json") | {"patch": list(self.partition.patch_size_m)},
+            "partition": self.partition.model_dump(mode="json"),
+        }.get(stage, {})
+
+
+def _set_dotted(d: dict, dotted: str, value) -> None:
+    keys = dotted.split(".")
+    for k in keys[:-1]:
+        d = d.setdefault(k, {})
+    d[keys[-1]] = value
