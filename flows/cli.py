@@ -1,0 +1,148 @@
+"""The ``ms3d`` command line: a thin layer over Python functions that tests call too.
+
+    ms3d synth --preset demo --seed 7 --out DIR     generate a synthetic campus with ground truth
+    ms3d run CONFIG [--dask-address tcp://...]      reprocess a campus (embedded Prefect + Dask)
+    ms3d status WORKDIR                             tiles done / failed / pending, with errors
+    ms3d demo                                       synth demo campus + run + print where things are
+    ms3d ui WORKDIR                                 show the run history in the Prefect UI
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import logging
+import os
+import sys
+from pathlib import Path
+
+
+def _cmd_synth(a) -> int:
+    from synth.generate import generate
+
+    out = generate(a.preset, seed=a.seed, out=a.out, overwrite=a.overwrite, scale=a.scale)
+    print(f"synthetic campus '{a.preset}' (seed {a.seed}) written to {out}")
+    return 0
+
+
+def _overrides(a) -> dict:
+    o = {}
+    if getattr(a, "dask_address", None):
+        o["cluster.address"] = a.dask_address
+    if getattr(a, "workers", None):
+        o["cluster.n_workers"] = a.workers
+    if getattr(a, "work_dir", None):
+        o["work_dir"] = str(Path(a.work_dir).absolute())
+    for kv in getattr(a, "set", None) or []:
+        k, _, v = kv.partition("=")
+        try:
+            o[k] = json.loads(v)
+        except json.JSONDecodeError:
+            o[k] = v
+    return o
+
+
+def _cmd_run(a) -> int:
+    from flows.campus import CampusRunFailed, run_campus
+    from tasks.config import CampusConfig
+
+    cfg = CampusConfig.from_yaml(a.config, _overrides(a))
+    try:
+        summary = run_campus(cfg, progress=sys.stderr.isatty())
+    except CampusRunFailed as e:
+        print(str(e), file=sys.stderr)
+        _print_status(cfg.work_dir)
+        return 1
+    _print_summary(summary)
+    return 0
+
+
+def _print_summary(s: dict) -> None:
+    print(f"work dir: {s['work_dir']}")
+    print(f"tiles: {len(s['tiles_done'])} done, {len(s['tiles_empty'])} empty, {len(s['tiles_failed'])} failed")
+    print(f"wall {s['wall_seconds']:.1f} s, sum of task times {s['task_seconds']:.1f} s")
+
+
+def _print_status(work_dir: str) -> None:
+    from flows.status import campus_status, format_status
+
+    print(format_status(campus_status(work_dir)))
+
+
+def _cmd_status(a) -> int:
+    from flows.status import campus_status, format_status
+
+    st = campus_status(a.work_dir)
+    print(format_status(st))
+    return 0 if not st["failed"] else 1
+
+
+def _cmd_demo(a) -> int:
+    from flows.demo import run_demo
+
+    return run_demo(Path(a.out), Path(a.work), seed=a.seed, preset=a.preset)
+
+
+def _cmd_ui(a) -> int:
+    import subprocess
+
+    from flows.runtime import prefect_env
+    from storage.workdir import WorkDir
+
+    env = {**os.environ, **prefect_env(WorkDir(a.work_dir).prefect_dir)}
+    env.pop("PREFECT_API_URL", None)
+    return subprocess.call([sys.executable, "-m", "prefect", "server", "start"], env=env)
+
+
+def build_parser() -> argparse.ArgumentParser:
+    p = argparse.ArgumentParser(prog="ms3d", description="MLS + photogrammetric mesh fusion for 3D building models")
+    p.add_argument("-v", "--verbose", action="store_true")
+    sub = p.add_subparsers(dest="cmd", required=True)
+
+    s = sub.add_parser("synth", help="generate a synthetic campus with ground truth")
+    s.add_argument("--preset", choices=("tiny", "demo", "campus"), default="tiny")
+    s.add_argument("--seed", type=int, default=0)
+    s.add_argument("--out", required=True)
+    s.add_argument("--overwrite", action="store_true", help="replace the contents of a non-empty --out")
+    s.add_argument("--scale", type=float, default=1.0, help="campus preset: side length multiplier")
+    s.set_defaults(func=_cmd_synth)
+
+    r = sub.add_parser("run", help="reprocess a campus described by a YAML config")
+    r.add_argument("config")
+    r.add_argument("--dask-address", help="scheduler address of an existing Dask cluster")
+    r.add_argument("--workers", type=int, help="local Dask worker processes")
+    r.add_argument("--work-dir")
+    r.add_argument("--set", action="append", metavar="KEY=VALUE", help="override a config field, e.g. tiling.tile_size_m=50")
+    r.set_defaults(func=_cmd_run)
+
+    st = sub.add_parser("status", help="tiles done, failed and pending of a work dir")
+    st.add_argument("work_dir")
+    st.set_defaults(func=_cmd_status)
+
+    d = sub.add_parser("demo", help="generate the demo campus and run the pipeline on it")
+    d.add_argument("--out", default="ms3d-work/demo-input")
+    d.add_argument("--work", default="ms3d-work/demo")
+    d.add_argument("--seed", type=int, default=7)
+    d.add_argument("--preset", default="demo")
+    d.set_defaults(func=_cmd_demo)
+
+    u = sub.add_parser("ui", help="start a Prefect server on the work dir's run history")
+    u.add_argument("work_dir")
+    u.set_defaults(func=_cmd_ui)
+    return p
+
+
+def main(argv: list[str] | None = None) -> int:
+    a = build_parser().parse_args(argv)
+    logging.basicConfig(level=logging.INFO if a.verbose else logging.WARNING, format="%(levelname)s %(name)s: %(message)s")
+    from storage.errors import InputError
+
+    try:
+        return a.func(a)
+    except InputError as e:
+        print(f"ms3d: error: {e}", file=sys.stderr)
+        return 2
+
+
+if __name__ == "__main__":
+    sys.exit(main())

@@ -1,0 +1,635 @@
+"""Mesh readers (OBJ+MTL, PLY, GLB/glTF, folders of tiles) and OBJ / PLY writers.
+
+Readers form a registry keyed by extension (``READERS``). Each returns the file's faces in file order,
+after the same checks: missing file, no faces, NaN/inf vertices (counted), face indices out of range,
+missing MTL or texture image, corrupt or truncated GLB all raise :class:`storage.errors.InputError`
+naming the file. Degenerate faces (a repeated vertex id, or area < 1e-12 m²) and duplicate faces
+(same three vertex ids) are dropped and counted; non-manifold edges are only counted.
+
+OBJ is parsed here rather than by trimesh: trimesh splits an OBJ by material and re-indexes vertices
+on UV seams, whereas we keep the face order and count of the file, the per-corner UVs and the texture
+*paths*. PLY and glTF go through trimesh (``process=False``).
+
+Coordinates: ``vertices`` are float64 WORLD metres = file coordinates * ``units_scale`` + ``offset``
+(``offset`` is e.g. ContextCapture's SRSOrigin when the tiles are stored relative to it).
+UVs follow the OBJ convention (origin bottom-left, v up).
+"""
+
+from __future__ import annotations
+
+import itertools
+import re
+import shutil
+import struct
+from collections.abc import Callable, Iterable, Iterator, Sequence
+from dataclasses import dataclass, field, replace
+from pathlib import Path
+
+import numpy as np
+
+from .atomic import atomic_path
+from .errors import InputError
+
+DEGENERATE_AREA_M2 = 1e-12
+
+
+@dataclass
+class MeshData:
+    """A triangle mesh with optional texture and colours.
+
+    vertices: (n, 3) float64 world metres. faces: (m, 3) int64 indices into vertices.
+    uv: (m, 3, 2) float32 per-corner texture coordinates (OBJ convention) or None.
+    face_texture: (m,) int16 index into ``textures``, -1 for an untextured face, or None.
+    textures: image references: absolute file paths, or "<file.glb>#image<k>" for images embedded in
+        a GLB, whose pixels are in ``embedded_textures`` under the same key ((H, W, 3) uint8).
+    face_colors / vertex_colors: (m, 3) / (n, 3) uint8 RGB or None.
+    n_degenerate_dropped, n_duplicate_dropped: faces removed on reading; n_nonmanifold_edges: edges
+        shared by more than two of the kept faces (kept, only counted).
+    """
+
+    vertices: np.ndarray
+    faces: np.ndarray
+    uv: np.ndarray | None = None
+    face_texture: np.ndarray | None = None
+    textures: list[str] = field(default_factory=list)
+    face_colors: np.ndarray | None = None
+    vertex_colors: np.ndarray | None = None
+    source: str = ""
+    n_degenerate_dropped: int = 0
+    n_duplicate_dropped: int = 0
+    n_nonmanifold_edges: int = 0
+    embedded_textures: dict[str, np.ndarray] = field(default_factory=dict)
+
+    @property
+    def n_faces(self) -> int:
+        return len(self.faces)
+
+    def select_faces(self, keep: np.ndarray) -> MeshData:
+        """The same mesh with only faces ``keep`` (boolean mask or indices); vertices untouched."""
+        pick = lambda a: None if a is None else a[keep]
+        return replace(
+            self, faces=self.faces[keep], uv=pick(self.uv), face_texture=pick(self.face_texture),
+            face_colors=pick(self.face_colors),
+        )  # fmt: skip
+
+    @staticmethod
+    def concat(meshes: Iterable[MeshData], source: str = "") -> MeshData:
+        """One mesh of all ``meshes``: face indices and texture indices shifted, identical texture
+        references merged, drop/non-manifold counts summed. A colour array survives only if every
+        part has one; UVs of parts without any are zero with face_texture -1."""
+        meshes = list(meshes)
+        textures: dict[str, int] = {}
+        verts, faces, uvs, ftex, base = [], [], [], [], 0
+        any_uv = any(m.uv is not None for m in meshes)
+        any_tex = any(m.face_texture is not None for m in meshes)
+        for m in meshes:
+            verts.append(m.vertices)
+            faces.append(m.faces + base)
+            base += len(m.vertices)
+            if any_uv:
+                uvs.append(m.uv if m.uv is not None else np.zeros((m.n_faces, 3, 2), np.float32))
+            if any_tex:
+                remap = np.array([textures.setdefault(t, len(textures)) for t in m.textures] + [-1], np.int16)
+                local = m.face_texture if m.face_texture is not None else np.full(m.n_faces, -1, np.int16)
+                ftex.append(remap[local])  # -1 indexes the trailing -1
+        cat = lambda name: (
+            np.concatenate([getattr(m, name) for m in meshes])
+            if meshes and all(getattr(m, name) is not None for m in meshes) else None
+        )  # fmt: skip
+        return MeshData(
+            vertices=np.concatenate(verts) if verts else np.zeros((0, 3)),
+            faces=np.concatenate(faces) if faces else np.zeros((0, 3), np.int64),
+            uv=np.concatenate(uvs) if any_uv else None,
+            face_texture=np.concatenate(ftex) if any_tex else None,
+            textures=list(textures),
+            face_colors=cat("face_colors"),
+            vertex_colors=cat("vertex_colors"),
+            source=source,
+            n_degenerate_dropped=sum(m.n_degenerate_dropped for m in meshes),
+            n_duplicate_dropped=sum(m.n_duplicate_dropped for m in meshes),
+            n_nonmanifold_edges=sum(m.n_nonmanifold_edges for m in meshes),
+            embedded_textures={k: v for m in meshes for k, v in m.embedded_textures.items()},
+        )
+
+
+# --- pure face checks ------------------------------------------------------------------------------
+
+
+def degenerate_faces(vertices: np.ndarray, faces: np.ndarray, min_area_m2: float = DEGENERATE_AREA_M2):
+    """(m,) bool: faces with a repeated vertex id or area below ``min_area_m2``.
+
+    vertices: (n, 3) float64 metres; faces: (m, 3) int64. Edges are differenced before the cross
+    product, so large world coordinates do not cost precision.
+    """
+    f = faces
+    repeated = (f[:, 0] == f[:, 1]) | (f[:, 1] == f[:, 2]) | (f[:, 0] == f[:, 2])
+    v0 = vertices[f[:, 0]]
+    area = 0.5 * np.linalg.norm(np.cross(vertices[f[:, 1]] - v0, vertices[f[:, 2]] - v0), axis=1)
+    return repeated | ~(area >= min_area_m2)
+
+
+def duplicate_faces(faces: np.ndarray) -> np.ndarray:
+    """(m,) bool: faces whose vertex-id set already appeared earlier (either winding)."""
+    if len(faces) == 0:
+        return np.zeros(0, bool)
+    _, first = np.unique(np.sort(faces, axis=1), axis=0, return_index=True)
+    dup = np.ones(len(faces), bool)
+    dup[first] = False
+    return dup
+
+
+def count_nonmanifold_edges(faces: np.ndarray) -> int:
+    """Number of undirected edges used by more than two faces. faces: (m, 3) int64."""
+    if len(faces) == 0:
+        return 0
+    edges = np.sort(faces[:, [0, 1, 1, 2, 2, 0]].reshape(-1, 2), axis=1)
+    _, counts = np.unique(edges, axis=0, return_counts=True)
+    return int((counts > 2).sum())
+
+
+def _finish(path: Path, mesh: MeshData, offset, units_scale: float) -> MeshData:
+    """Validate a mesh in file coordinates, move it to world metres, drop and count bad faces."""
+    v, f = mesh.vertices, mesh.faces
+    bad = ~np.isfinite(v).all(axis=1)
+    if bad.any():
+        raise InputError(path, f"{int(bad.sum()):,} of {len(v):,} vertices are NaN or infinite")
+    if len(f) == 0:
+        raise InputError(path, "empty mesh (no faces)")
+    out = (f < 0) | (f >= len(v))
+    if out.any():
+        rows = np.flatnonzero(out.any(axis=1))
+        raise InputError(
+            path,
+            f"{len(rows):,} faces index vertices out of range (mesh has {len(v):,} vertices; first bad face "
+            f"#{rows[0]} = {f[rows[0]].tolist()})",
+        )
+    mesh.vertices = v * float(units_scale) + np.asarray(offset, dtype=np.float64)
+    degenerate = degenerate_faces(mesh.vertices, f)
+    mesh = mesh.select_faces(~degenerate)
+    duplicate = duplicate_faces(mesh.faces)
+    mesh = mesh.select_faces(~duplicate)
+    if mesh.n_faces == 0:
+        raise InputError(path, f"all {len(f):,} faces are degenerate or duplicates")
+    mesh.n_degenerate_dropped = int(degenerate.sum())
+    mesh.n_duplicate_dropped = int(duplicate.sum())
+    mesh.n_nonmanifold_edges = count_nonmanifold_edges(mesh.faces)
+    mesh.source = str(path)
+    return mesh
+
+
+# --- OBJ + MTL --------------------------------------------------------------------------------------
+
+_MAP_OPTION_ARGS = {"-blendu": 1, "-blendv": 1, "-cc": 1, "-clamp": 1, "-texres": 1, "-bm": 1, "-boost": 1,
+                    "-imfchan": 1, "-mm": 2, "-o": 3, "-s": 3, "-t": 3}  # fmt: skip
+
+
+def _map_file_name(args: str) -> str:
+    """The file name of a ``map_Kd [options] file`` statement (options skipped, spaces in names kept)."""
+    words = args.split()
+    i = 0
+    while i < len(words) and words[i] in _MAP_OPTION_ARGS:
+        n = _MAP_OPTION_ARGS[words[i]]
+        i += 1
+        while n and i < len(words) and re.fullmatch(r"[-+.\deE]+", words[i]):
+            i, n = i + 1, n - 1
+    return " ".join(words[i:]).replace("\\", "/")
+
+
+@dataclass(frozen=True)
+class _Material:
+    texture: Path | None
+    kd: tuple[float, float, float] | None
+
+
+def _read_mtl(obj: Path, mtl: Path) -> dict[str, _Material]:
+    materials, name, tex, kd = {}, None, None, None
+    for line in mtl.read_text(errors="replace").replace("\t", " ").splitlines():
+        key, _, rest = line.strip().partition(" ")
+        if key == "newmtl":
+            if name is not None:
+                materials[name] = _Material(tex, kd)
+            name, tex, kd = rest.strip(), None, None
+        elif key == "map_Kd" and rest.strip():
+            tex = (mtl.parent / _map_file_name(rest)).resolve()
+        elif key == "Kd":
+            kd = tuple(float(x) for x in rest.split()[:3])
+    if name is not None:
+        materials[name] = _Material(tex, kd)
+    return materials
+
+
+def _parse_corner_tokens(path: Path, corners: list[str]) -> tuple[np.ndarray, np.ndarray | None]:
+    """'v', 'v/vt', 'v//vn', 'v/vt/vn' tokens -> raw (1-based or negative) v and vt ids; vt 0 = none."""
+    if not corners:
+        return np.zeros(0, np.int64), None
+    slashes = corners[0].count("/")
+    uniform = sum(t.count("/") for t in corners) == slashes * len(corners)
+    try:
+        if uniform and not any("//" in t for t in corners):
+            ids = np.array("/".join(corners).split("/"), dtype=np.int64).reshape(len(corners), slashes + 1)
+            return ids[:, 0], (ids[:, 1] if slashes >= 1 else None)
+        parts = [t.split("/") for t in corners]
+        v = np.array([p[0] for p in parts], dtype=np.int64)
+        vt = np.array([int(p[1]) if len(p) > 1 and p[1] else 0 for p in parts], dtype=np.int64)
+        return v, (vt if vt.any() else None)
+    except ValueError as err:
+        raise InputError(path, f"malformed face statement ({err})") from err
+
+
+def _resolve_ids(raw: np.ndarray, seen: np.ndarray) -> np.ndarray:
+    """OBJ ids (1-based, or negative = relative to the ``seen`` elements so far) -> 0-based; 0 -> -1."""
+    return np.where(raw > 0, raw - 1, np.where(raw < 0, raw + seen, -1))
+
+
+def _read_obj(path: Path) -> MeshData:
+    v_rows, vt_rows, f_rows, f_mat, f_seen_v, f_seen_vt, mtllibs = [], [], [], [], [], [], []
+    material_ids: dict[str, int] = {}
+    current = -1
+    for line in path.read_text(errors="replace").replace("\t", " ").splitlines():
+        key, _, rest = line.strip().partition(" ")
+        if key == "v":
+            v_rows.append(rest)
+        elif key == "vt":
+            vt_rows.append(rest)
+        elif key == "f":
+            f_rows.append(rest.split())
+            f_mat.append(current)
+            f_seen_v.append(len(v_rows))
+            f_seen_vt.append(len(vt_rows))
+        elif key == "usemtl":
+            current = material_ids.setdefault(rest.strip(), len(material_ids))
+        elif key == "mtllib":
+            mtllibs.append(rest.strip())
+
+    try:
+        values = [row.split() for row in v_rows]
+        width = min((len(r) for r in values), default=3)
+        ncol = 6 if width >= 6 else 3
+        xyzc = np.array([r[:ncol] for r in values], dtype=np.float64).reshape(-1, ncol)
+        vt = np.array([r.split()[:2] for r in vt_rows], dtype=np.float64).reshape(-1, 2)
+    except ValueError as err:
+        raise InputError(path, f"malformed vertex statement ({err})") from err
+
+    counts = np.array([len(r) for r in f_rows], dtype=np.int64)
+    if (counts < 3).any():
+        raise InputError(path, f"{int((counts < 3).sum())} face statements have fewer than 3 vertices")
+    raw_v, raw_vt = _parse_corner_tokens(path, list(itertools.chain.from_iterable(f_rows)))
+    v_idx = _resolve_ids(raw_v, np.repeat(np.array(f_seen_v, np.int64), counts))
+    # fan-triangulate polygons: corners (s, s+j, s+j+1) for j = 1 .. c-2
+    ntri = counts - 2
+    tri_face = np.repeat(np.arange(len(counts)), ntri)
+    j = np.arange(len(tri_face)) - np.repeat(np.cumsum(ntri) - ntri, ntri) + 1
+    first = (np.cumsum(counts) - counts)[tri_face]
+    corner = np.stack([first, first + j, first + j + 1], axis=1)
+    mesh = MeshData(vertices=xyzc[:, :3], faces=v_idx[corner] if len(corner) else np.zeros((0, 3), np.int64))
+    if xyzc.shape[1] == 6:
+        rgb = xyzc[:, 3:6]
+        rgb = rgb * 255.0 if rgb.max() <= 1.0 else rgb  # 0..1 floats by convention, else 0..255
+        mesh.vertex_colors = np.clip(np.round(rgb), 0, 255).astype(np.uint8)
+    if raw_vt is not None:
+        vt_idx = _resolve_ids(raw_vt, np.repeat(np.array(f_seen_vt, np.int64), counts))[corner]
+        if (vt_idx >= len(vt)).any() or ((vt_idx < 0) & (raw_vt[corner] != 0)).any():
+            raise InputError(path, f"texture coordinate ids out of range (file has {len(vt):,} vt)")
+        valid = vt_idx >= 0  # corners without a vt get (0, 0)
+        mesh.uv = np.zeros((*vt_idx.shape, 2), np.float32)
+        mesh.uv[valid] = vt[vt_idx[valid]]
+    _apply_materials(path, mesh, mtllibs, material_ids, np.array(f_mat, np.int64)[tri_face])
+    return mesh
+
+
+def _apply_materials(path: Path, mesh: MeshData, mtllibs: list[str], material_ids: dict, tri_mat: np.ndarray):
+    """Per-face texture index and (for untextured materials) face colours from the MTL libraries."""
+    materials: dict[str, _Material] = {}
+    for lib in mtllibs:
+        candidates = [lib] if (path.parent / lib).exists() else lib.split()
+        for name in candidates:
+            mtl = path.parent / name
+            if not mtl.is_file():
+                raise InputError(path, f"material library {mtl} (mtllib) not found")
+            materials.update(_read_mtl(path, mtl))
+    if not material_ids:
+        return
+    textures: dict[Path, int] = {}
+    tex_of_material = np.full(len(material_ids) + 1, -1, np.int16)  # last slot: faces before any usemtl
+    kd_of_material = np.full((len(material_ids) + 1, 3), 255, np.uint8)
+    needs_colour = False
+    mtl_order = {name: i for i, name in enumerate(materials)}
+    # textures are numbered in MTL definition order, so write_obj's tex<k> read back as k
+    for name in sorted(material_ids, key=lambda n: mtl_order.get(n, len(mtl_order))):
+        mid = material_ids[name]
+        mat = materials.get(name, _Material(None, None))
+        if mat.texture is not None:
+            if not mat.texture.is_file():
+                raise InputError(path, f"texture image {mat.texture} (map_Kd of material {name!r}) not found")
+            tex_of_material[mid] = textures.setdefault(mat.texture, len(textures))
+        else:
+            needs_colour |= bool((tri_mat == mid).any())
+        if mat.kd is not None:
+            kd_of_material[mid] = np.clip(np.round(np.array(mat.kd) * 255), 0, 255)
+    mesh.textures = [str(t) for t in textures]
+    if textures:
+        mesh.face_texture = tex_of_material[tri_mat]
+    if needs_colour:
+        mesh.face_colors = kd_of_material[tri_mat]
+
+
+# --- PLY and glTF through trimesh ------------------------------------------------------------------
+
+
+def _read_ply(path: Path) -> MeshData:
+    import trimesh
+
+    try:
+        loaded = trimesh.load(str(path), process=False)
+    except Exception as err:
+        raise InputError(path, f"unreadable PLY ({type(err).__name__}: {err})") from err
+    if not isinstance(loaded, trimesh.Trimesh):
+        raise InputError(path, "empty mesh (no faces; a point cloud?)")
+    mesh = MeshData(vertices=np.asarray(loaded.vertices, np.float64), faces=np.asarray(loaded.faces, np.int64))
+    kind = loaded.visual.kind
+    if kind == "face":
+        mesh.face_colors = np.asarray(loaded.visual.face_colors)[:, :3].astype(np.uint8)
+    elif kind == "vertex":
+        mesh.vertex_colors = np.asarray(loaded.visual.vertex_colors)[:, :3].astype(np.uint8)
+    return mesh
+
+
+def _check_glb_header(path: Path) -> None:
+    with open(path, "rb") as f:
+        head = f.read(12)
+    if len(head) < 12 or head[:4] != b"glTF":
+        raise InputError(path, "not a GLB file (missing 'glTF' magic)")
+    declared = struct.unpack("<I", head[8:12])[0]
+    size = path.stat().st_size
+    if size < declared:
+        raise InputError(path, f"truncated GLB: header says {declared:,} bytes, file has {size:,}")
+
+
+def _natural_key(name: str):
+    return [int(t) if t.isdigit() else t for t in re.split(r"(\d+)", name)]
+
+
+def _read_gltf(path: Path) -> MeshData:
+    import trimesh
+
+    if path.suffix.lower() == ".glb":
+        _check_glb_header(path)
+    try:
+        scene = trimesh.load_scene(str(path), process=False)
+    except Exception as err:
+        raise InputError(path, f"corrupt or truncated glTF ({type(err).__name__}: {err})") from err
+    parts, images = [], {}
+    for node in sorted(scene.graph.nodes_geometry, key=_natural_key):
+        transform, geom_name = scene.graph[node]
+        geom = scene.geometry[geom_name]
+        if not isinstance(geom, trimesh.Trimesh) or len(geom.faces) == 0:
+            continue
+        faces = np.asarray(geom.faces, np.int64)
+        vertices = trimesh.transform_points(np.asarray(geom.vertices, np.float64), transform)
+        part = MeshData(vertices=vertices, faces=faces)
+        visual = geom.visual
+        if visual.kind == "texture" and visual.uv is not None and len(visual.uv):
+            part.uv = np.asarray(visual.uv, np.float32)[faces]
+            material = visual.material
+            image = getattr(material, "baseColorTexture", None) or getattr(material, "image", None)
+            if image is not None:
+                ref = images.setdefault(id(image), (f"{path.resolve()}#image{len(images)}", image))[0]
+                part.textures = [ref]
+                part.embedded_textures = {ref: np.asarray(image.convert("RGB"))}
+                part.face_texture = np.zeros(len(faces), np.int16)
+        elif visual.kind == "face":
+            part.face_colors = np.asarray(visual.face_colors)[:, :3].astype(np.uint8)
+        elif visual.kind == "vertex":
+            part.vertex_colors = np.asarray(visual.vertex_colors)[:, :3].astype(np.uint8)
+        parts.append(part)
+    return MeshData.concat(parts)
+
+
+READERS: dict[str, Callable[[Path], MeshData]] = {
+    ".obj": _read_obj, ".ply": _read_ply, ".glb": _read_gltf, ".gltf": _read_gltf,
+}  # fmt: skip
+
+
+# --- public reading API ----------------------------------------------------------------------------
+
+
+def read_mesh(path: str | Path, offset=(0.0, 0.0, 0.0), units_scale: float = 1.0) -> MeshData:
+    """Read one mesh file (OBJ, PLY, GLB, glTF), or every mesh file under a folder, concatenated.
+
+    vertices = file coordinates * units_scale + offset, float64 world metres.
+    """
+    path = Path(path)
+    if path.is_dir():
+        return read_mesh_dir(path, offset, units_scale)
+    if not path.exists():
+        raise InputError(path, "file not found")
+    reader = READERS.get(path.suffix.lower())
+    if reader is None:
+        supported = ", ".join(sorted(READERS))
+        raise InputError(path, f"unsupported mesh format {path.suffix!r}; supported: {supported}")
+    if path.stat().st_size == 0:
+        raise InputError(path, "empty file (0 bytes)")
+    return _finish(path, reader(path), offset, units_scale)
+
+
+def mesh_files(folder: str | Path) -> list[Path]:
+    """Mesh files under ``folder`` (recursively, sorted; hidden and temporary files skipped)."""
+    folder = Path(folder)
+    return sorted(
+        p for p in folder.rglob("*")
+        if p.is_file() and p.suffix.lower() in READERS and not p.name.startswith(".")
+    )  # fmt: skip
+
+
+def iter_meshes(path: str | Path, offset=(0.0, 0.0, 0.0), units_scale: float = 1.0) -> Iterator[MeshData]:
+    """One MeshData per mesh file (a ContextCapture-style folder of tiles, or a single file), so memory
+    is bounded by the largest tile."""
+    path = Path(path)
+    if not path.is_dir():
+        yield read_mesh(path, offset, units_scale)
+        return
+    files = mesh_files(path)
+    if not files:
+        raise InputError(path, f"no mesh files ({', '.join(sorted(READERS))}) in this folder")
+    for file in files:
+        yield read_mesh(file, offset, units_scale)
+
+
+def read_mesh_dir(folder: str | Path, offset=(0.0, 0.0, 0.0), units_scale: float = 1.0) -> MeshData:
+    """All mesh files under ``folder`` as one MeshData (see ``iter_meshes`` for bounded memory)."""
+    return MeshData.concat(iter_meshes(folder, offset, units_scale), source=str(folder))
+
+
+def texture_image(mesh: MeshData, index: int) -> np.ndarray:
+    """Pixels of ``mesh.textures[index]``: (H, W, 3) uint8."""
+    from PIL import Image
+
+    ref = mesh.textures[index]
+    if ref in mesh.embedded_textures:
+        return mesh.embedded_textures[ref]
+    with Image.open(ref) as image:
+        return np.asarray(image.convert("RGB"))
+
+
+# --- writers ---------------------------------------------------------------------------------------
+
+
+def _format_rows(fmt: str, rows: np.ndarray, block: int = 100_000) -> Iterator[str]:
+    for lo in range(0, len(rows), block):
+        part = rows[lo : lo + block]
+        yield (fmt * len(part)) % tuple(part.ravel().tolist())
+
+
+def write_obj(
+    path: str | Path,
+    vertices: np.ndarray,
+    faces: np.ndarray,
+    uv: np.ndarray | None = None,
+    texture_images: Sequence[np.ndarray | str | Path] | None = None,
+    face_texture: np.ndarray | None = None,
+    face_colors: np.ndarray | None = None,
+    offset=None,
+) -> Path:
+    """Write an OBJ with its MTL and texture images beside it, each atomically: images, then MTL, then OBJ.
+
+    vertices: (n, 3) float64 world metres, written with 6 decimals (minus ``offset`` if given, so the
+        file holds local coordinates; read back with ``read_mesh(path, offset=offset)``).
+    faces: (m, 3) int64. uv: (m, 3, 2) per-corner (OBJ convention). texture_images: (H, W, 3|4) uint8
+        arrays (written as PNG) or image paths (copied), named ``<stem>_tex<k>.<ext>``.
+    face_texture: (m,) index into texture_images, -1 for none (default: all 0 when there is one image).
+    face_colors: (m, 3) uint8 for untextured faces (one material per distinct colour).
+    Face order is kept; one ``usemtl`` per run of faces sharing a material.
+    """
+    path = Path(path)
+    vertices = np.asarray(vertices, np.float64)
+    faces = np.asarray(faces, np.int64)
+    m = len(faces)
+    texture_images = list(texture_images or [])
+    if face_texture is None:
+        face_texture = np.zeros(m, np.int64) if len(texture_images) == 1 else np.full(m, -1, np.int64)
+    face_texture = np.asarray(face_texture, np.int64)
+    if len(face_texture) != m or (face_texture >= len(texture_images)).any():
+        raise ValueError(f"{path}: face_texture must be (m,) with values < {len(texture_images)} or -1")
+
+    names = _write_textures(path, texture_images)
+    # material code per face: a texture index, else a distinct colour, else the default material
+    code = face_texture.copy()
+    mtl_lines = [f"newmtl tex{k}\nKd 1 1 1\nKs 0 0 0\nillum 1\nmap_Kd {n}\n" for k, n in enumerate(names)]
+    material_names = [f"tex{k}" for k in range(len(names))]
+    plain = code < 0
+    if plain.any():
+        colours = np.full((int(plain.sum()), 3), 200, np.uint8)
+        if face_colors is not None:
+            colours = np.asarray(face_colors, np.uint8)[plain]
+        unique, inverse = np.unique(colours, axis=0, return_inverse=True)
+        code[plain] = len(names) + inverse.ravel()
+        for rgb in unique:
+            name = "col_{:02x}{:02x}{:02x}".format(*rgb)
+            material_names.append(name)
+            kd = " ".join(f"{c / 255:.6f}" for c in rgb)
+            mtl_lines.append(f"newmtl {name}\nKd {kd}\nillum 1\n")
+    use_mtl = bool(names) or face_colors is not None
+    mtl_path = path.with_suffix(".mtl")
+    if use_mtl:
+        with atomic_path(mtl_path) as tmp:
+            tmp.write_text("\n".join(mtl_lines))
+
+    local = vertices - (np.asarray(offset, np.float64) if offset is not None else 0.0)
+    with atomic_path(path) as tmp, open(tmp, "w") as out:
+        out.write("# ms3d\n")
+        if use_mtl:
+            out.write(f"mtllib {mtl_path.name}\n")
+        for text in _format_rows("v %.6f %.6f %.6f\n", local):
+            out.write(text)
+        if uv is not None:
+            for text in _format_rows("vt %.7f %.7f\n", np.asarray(uv, np.float64).reshape(-1, 2)):
+                out.write(text)
+        ids = faces + 1
+        if uv is not None:
+            vt_ids = np.arange(1, 3 * m + 1, dtype=np.int64).reshape(m, 3)
+            rows, fmt = np.stack([ids, vt_ids], axis=2).reshape(m, 6), "f %d/%d %d/%d %d/%d\n"
+        else:
+            rows, fmt = ids, "f %d %d %d\n"
+        starts = np.flatnonzero(np.diff(code, prepend=-2)) if m else np.zeros(0, np.int64)
+        for lo, hi in zip(starts, [*starts[1:], m]):
+            if use_mtl:
+                out.write(f"usemtl {material_names[code[lo]]}\n")
+            for text in _format_rows(fmt, rows[lo:hi]):
+                out.write(text)
+    return path
+
+
+def _write_textures(path: Path, images: list) -> list[str]:
+    from PIL import Image
+
+    names = []
+    for k, image in enumerate(images):
+        if isinstance(image, (str, Path)):
+            name = f"{path.stem}_tex{k}{Path(image).suffix.lower()}"
+            with atomic_path(path.parent / name) as tmp:
+                shutil.copyfile(image, tmp)
+        else:
+            name = f"{path.stem}_tex{k}.png"
+            with atomic_path(path.parent / name) as tmp:
+                Image.fromarray(np.asarray(image, np.uint8)).save(tmp, format="PNG")
+        names.append(name)
+    return names
+
+
+def write_ply(
+    path: str | Path,
+    vertices: np.ndarray,
+    faces: np.ndarray,
+    face_colors: np.ndarray | None = None,
+    vertex_colors: np.ndarray | None = None,
+) -> Path:
+    """Binary little-endian PLY with float64 ('double') vertices, so world coordinates survive exactly.
+
+    vertices: (n, 3) float64 metres; faces: (m, 3) int (written int32); colours: (m|n, 3) uint8.
+    """
+    path = Path(path)
+    vertices = np.asarray(vertices, np.float64)
+    faces = np.asarray(faces)
+    if len(faces) and (faces.min() < 0 or faces.max() >= len(vertices)):
+        raise ValueError(f"{path}: face indices out of range for {len(vertices)} vertices")
+    rgb = ["property uchar red", "property uchar green", "property uchar blue"]
+    v_dtype = [("xyz", "<f8", 3)] + ([("rgb", "u1", 3)] if vertex_colors is not None else [])
+    f_dtype = [("n", "u1"), ("ids", "<i4", 3)] + ([("rgb", "u1", 3)] if face_colors is not None else [])
+    v_rec = np.zeros(len(vertices), v_dtype)
+    v_rec["xyz"] = vertices
+    f_rec = np.zeros(len(faces), f_dtype)
+    f_rec["n"], f_rec["ids"] = 3, faces
+    if vertex_colors is not None:
+        v_rec["rgb"] = vertex_colors
+    if face_colors is not None:
+        f_rec["rgb"] = face_colors
+    header = [
+        "ply", "format binary_little_endian 1.0", f"element vertex {len(vertices)}",
+        "property double x", "property double y", "property double z",
+        *(rgb if vertex_colors is not None else []),
+        f"element face {len(faces)}", "property list uchar int vertex_indices",
+        *(rgb if face_colors is not None else []),
+        "end_header",
+    ]  # fmt: skip
+    with atomic_path(path) as tmp, open(tmp, "wb") as out:
+        out.write(("\n".join(header) + "\n").encode("ascii"))
+        out.write(v_rec.tobytes())
+        out.write(f_rec.tobytes())
+    return path
+
+
+__all__ = [
+    "DEGENERATE_AREA_M2",
+    "READERS",
+    "MeshData",
+    "count_nonmanifold_edges",
+    "degenerate_faces",
+    "duplicate_faces",
+    "iter_meshes",
+    "mesh_files",
+    "read_mesh",
+    "read_mesh_dir",
+    "texture_image",
+    "write_obj",
+    "write_ply",
+]

@@ -1,0 +1,284 @@
+"""``ms3d synth``: write a synthetic campus with ground truth, deterministic from preset and seed.
+
+Layout of ``OUT``::
+
+    mesh/            the UAV/MVS-like mesh: OBJ + MTL + texture atlas PNGs (ContextCapture-style:
+                     local coordinates, SRS origin in metadata.xml); the campus preset writes one
+                     folder per tile (Tile_+000_+000/...)
+    mls/             the MLS scan, one LAZ per vehicle pass (LAS 1.4, RGB, GPS time, EPSG:32650),
+                     in a frame perturbed from the mesh frame by a known similarity
+    images/          vehicle camera images and cameras.json (poses in the MLS frame)
+    truth/           truth_mesh.ply (float64 world), truth_faces.npz (class/building per face),
+                     registration.json, defects.json, scene.json, manifest.json (sha256 of every file)
+    campus.yaml      an ``ms3d run`` config for these inputs
+"""
+
+from __future__ import annotations
+
+import datetime as _dt
+import json
+import logging
+import shutil
+import time
+from pathlib import Path
+
+import numpy as np
+import yaml
+
+from storage.atomic import file_sha256, write_bytes_atomic, write_json_atomic
+from storage.mesh_io import write_obj, write_ply
+from storage.pointcloud_io import LasChunkWriter, PointChunk
+
+from .presets import SynthPreset, get_preset
+from .scene import FaceClass, Mesh, OccluderClass, Scene
+
+log = logging.getLogger("ms3d.synth")
+
+WORLD_ORIGIN = (589_000.0, 2_712_000.0, 15.0)  # UTM zone 50N (Zhangzhou, Fujian), metres
+CRS = "EPSG:32650"
+VERTICAL_DATUM = "ellipsoidal (WGS 84), synthetic"
+LAS_DATE = _dt.date(2026, 1, 1)  # fixed: identical seeds give identical bytes
+
+# ASPRS classes for the simulated returns (truth classes -> LAS classification)
+_ASPRS_TRUTH = {FaceClass.GROUND: 2, FaceClass.ROAD: 11, FaceClass.WALL: 6, FaceClass.ROOF: 6,
+                FaceClass.GLASS: 6, FaceClass.FRAME: 6, FaceClass.BALCONY: 6, FaceClass.EAVE: 6}
+_ASPRS_OCC = {OccluderClass.TREE: 5, OccluderClass.CAR: 1, OccluderClass.PEDESTRIAN: 1, OccluderClass.FENCE: 1}
+
+
+# ----------------------------------------------------------------------------------- pure helpers
+
+
+def similarity(scale: float, yaw_deg: float, pitch_deg: float, roll_deg: float, t) -> np.ndarray:
+    """(4, 4) float64 ``[s R | t]`` with R = Rz(yaw) Ry(pitch) Rx(roll)."""
+    y, p, r = np.radians([yaw_deg, pitch_deg, roll_deg])
+    rz = np.array([[np.cos(y), -np.sin(y), 0], [np.sin(y), np.cos(y), 0], [0, 0, 1]])
+    ry = np.array([[np.cos(p), 0, np.sin(p)], [0, 1, 0], [-np.sin(p), 0, np.cos(p)]])
+    rx = np.array([[1, 0, 0], [0, np.cos(r), -np.sin(r)], [0, np.sin(r), np.cos(r)]])
+    m = np.eye(4)
+    m[:3, :3] = scale * rz @ ry @ rx
+    m[:3, 3] = t
+    return m
+
+
+def random_registration(rng: np.random.Generator) -> np.ndarray:
+    """The true MLS -> mesh similarity (campus-local metres): yaw up to 3 deg, pitch/roll up to
+    0.3 deg, translation up to 2.5 m, scale within +-0.4 %."""
+    return similarity(1.0 + rng.uniform(-0.004, 0.004), rng.uniform(-3, 3), rng.uniform(-0.3, 0.3),
+                      rng.uniform(-0.3, 0.3), rng.uniform(-2.5, 2.5, 3) * np.array([1, 1, 0.3]))
+
+
+def apply(m: np.ndarray, xyz: np.ndarray) -> np.ndarray:
+    return np.asarray(xyz, np.float64) @ m[:3, :3].T + m[:3, 3]
+
+
+def asprs_classes(source: np.ndarray, face_class: np.ndarray) -> np.ndarray:
+    """(n,) uint8 ASPRS classification from the simulated hit's source (0 truth / 1 occluder) and class."""
+    lut_t = np.zeros(256, np.uint8)
+    lut_o = np.ones(256, np.uint8)
+    for k, v in _ASPRS_TRUTH.items():
+        lut_t[int(k)] = v
+    for k, v in _ASPRS_OCC.items():
+        lut_o[int(k)] = v
+    return np.where(source == 0, lut_t[face_class], lut_o[face_class]).astype(np.uint8)
+
+
+def streams(seed: int, n: int) -> list[np.random.Generator]:
+    """Independent generators per component, so changing one stage's draws leaves the others alone."""
+    return [np.random.default_rng(s) for s in np.random.SeedSequence(seed).spawn(n)]
+
+
+# ----------------------------------------------------------------------------------- writers
+
+
+def _prepare_out(out: Path, overwrite: bool) -> None:
+    if out.exists() and any(out.iterdir()):
+        if not overwrite:
+            raise FileExistsError(f"{out} is not empty; pass --overwrite to replace its contents")
+        for p in out.iterdir():
+            shutil.rmtree(p) if p.is_dir() else p.unlink()
+    out.mkdir(parents=True, exist_ok=True)
+
+
+def write_mvs_tile(folder: Path, name: str, mvs: Mesh, rng: np.random.Generator) -> Path:
+    """OBJ + MTL + atlas PNGs in local coordinates, plus a ContextCapture-style metadata.xml."""
+    from .texture import bake_atlas
+
+    uv, atlases, face_atlas = bake_atlas(mvs, rng)
+    path = write_obj(folder / f"{name}.obj", mvs.vertices, mvs.faces, uv=uv, texture_images=atlases,
+                     face_texture=face_atlas)
+    return path
+
+
+def write_metadata_xml(mesh_root: Path) -> None:
+    xml = ("<?xml version=\"1.0\" encoding=\"utf-8\"?>\n<ModelMetadata version=\"1\">\n"
+           f"\t<SRS>{CRS}</SRS>\n\t<SRSOrigin>{WORLD_ORIGIN[0]:.3f},{WORLD_ORIGIN[1]:.3f},{WORLD_ORIGIN[2]:.3f}</SRSOrigin>\n"
+           "\t<Texture><ColorSource>Visible</ColorSource></Texture>\n</ModelMetadata>\n")
+    write_bytes_atomic(mesh_root / "metadata.xml", xml.encode())
+
+
+def scan_to_laz(scene: Scene, trajs: list, path_for, perturb: np.ndarray, density_scale: float,
+                rng: np.random.Generator, stats: dict) -> list[Path]:
+    """Simulate the MLS along each trajectory and write one LAZ per trajectory, in the MLS frame."""
+    from .mls import MlsParams, simulate_mls, with_density
+
+    params = with_density(MlsParams.vmx450(), density_scale)
+    origin = np.asarray(WORLD_ORIGIN)
+    paths = []
+    for traj in trajs:
+        path = path_for(traj)
+        with LasChunkWriter(path, crs=CRS, offset=np.round(origin / 1000) * 1000,
+                            extra_dims={"pass_id": np.uint8, "scanner_id": np.uint8}) as w:
+            w.header.creation_date = LAS_DATE
+            t0 = time.perf_counter()
+            for ch in simulate_mls(scene, [traj], params, rng):
+                stats["rays"] = stats.get("rays", 0) + ch.n_rays
+                if not len(ch):
+                    continue
+                xyz = apply(perturb, ch.xyz) + origin
+                w.write(PointChunk(xyz=xyz, rgb=ch.rgb, intensity=ch.intensity, gps_time=ch.gps_time,
+                                   classification=asprs_classes(ch.source, ch.face_class),
+                                   extra={"pass_id": ch.pass_id.astype(np.uint8), "scanner_id": ch.scanner_id.astype(np.uint8)}))
+                stats["points"] = stats.get("points", 0) + len(ch)
+            stats["scan_seconds"] = stats.get("scan_seconds", 0.0) + time.perf_counter() - t0
+        paths.append(path)
+    return paths
+
+
+def write_campus_yaml(out: Path, preset: SynthPreset, mesh_inputs: list[str]) -> None:
+    cfg = {
+        "name": f"synth-{preset.name}",
+        "work_dir": "../ms3d-work/" + out.name,
+        "inputs": {"mesh": mesh_inputs, "points": ["mls"], "crs": CRS,
+                   "mesh_offset": list(WORLD_ORIGIN), "labels": "truth/defects.json"},
+    }
+    write_bytes_atomic(out / "campus.yaml", yaml.safe_dump(cfg, sort_keys=False).encode())
+
+
+def write_manifest(out: Path, meta: dict) -> dict:
+    """truth/manifest.json: sha256 and size of every file under ``out`` (except itself)."""
+    files = {}
+    for p in sorted(out.rglob("*")):
+        if p.is_file() and p.name != "manifest.json" and not p.name.startswith("."):
+            files[str(p.relative_to(out))] = {"sha256": file_sha256(p), "bytes": p.stat().st_size}
+    doc = {"generator": "ms3d.synth", **meta, "files": files}
+    write_json_atomic(out / "truth" / "manifest.json", doc)
+    return doc
+
+
+# ----------------------------------------------------------------------------------- generation
+
+
+def _tile_scene(seed: int, preset: SynthPreset, ix: int, iy: int, n_tiles: int) -> Scene:
+    """The scene of generation tile (ix, iy): deterministic from (seed, ix, iy) alone."""
+    from .buildings import make_scene
+
+    rng = np.random.default_rng([seed, 1000 + ix, 1000 + iy])
+    x0, y0 = ix * preset.tile_m, iy * preset.tile_m
+    extent = (x0, y0, min(x0 + preset.tile_m, preset.extent_m[0]), min(y0 + preset.tile_m, preset.extent_m[1]))
+    n_b = int(np.ceil(preset.n_buildings / n_tiles))
+    tid = (ix + 1) * 1000 + iy + 1
+    return make_scene(rng, extent, n_b, storeys=preset.storeys, first_building_id=tid * 100,
+                      first_occluder_id=tid * 10_000)
+
+
+def _merge_scenes(scenes: list[Scene]) -> Scene:
+    from .scene import Occluders
+
+    return Scene(truth=Mesh.concat([s.truth for s in scenes]),
+                 occluders=Occluders(Mesh.concat([s.occluders.mesh for s in scenes if s.occluders])),
+                 buildings=[b for s in scenes for b in s.buildings], roads=[r for s in scenes for r in s.roads],
+                 extent=scenes[0].extent, meta={})
+
+
+def generate(preset: str = "tiny", seed: int = 0, out: str | Path = "synth-out", overwrite: bool = False,
+             scale: float = 1.0) -> Path:
+    """Generate a synthetic campus into ``out``; returns ``out``. See the module docstring."""
+    from .cameras import render_cameras, write_images
+    from .mvs import make_mvs_mesh
+    from .trajectory import TrajectoryParams, build_trajectories
+
+    p = get_preset(preset, scale)
+    out = Path(out).absolute()
+    _prepare_out(out, overwrite)
+    t_start = time.perf_counter()
+    r_reg, = streams(seed, 1)
+    truth_reg = random_registration(r_reg)  # MLS local -> mesh local
+    perturb = np.linalg.inv(truth_reg)  # mesh local -> MLS local
+    nx, ny = int(np.ceil(p.extent_m[0] / p.tile_m)), int(np.ceil(p.extent_m[1] / p.tile_m))
+    origin = np.asarray(WORLD_ORIGIN)
+    defects, buildings, stats = [], [], {}
+    mesh_inputs, cameras = [], []
+    cache: dict[tuple[int, int], Scene] = {}
+
+    def scene_at(ix, iy):
+        if (ix, iy) not in cache:
+            cache[(ix, iy)] = _tile_scene(seed, p, ix, iy, nx * ny)
+        return cache[(ix, iy)]
+
+    for ix in range(nx):
+        for iy in range(ny):
+            r_mvs, r_tex, r_traj, r_mls, r_cam = streams(seed * 7919 + ix * 131 + iy + 1, 5)
+            scene = scene_at(ix, iy)
+            name = f"Tile_{ix:+04d}_{iy:+04d}" if p.tiled_mesh else "mvs"
+            mvs, tile_defects = make_mvs_mesh(r_mvs, scene, target_edge_m=p.mvs_edge_m, defect_scale=p.defect_scale)
+            for d in tile_defects:
+                d["id"] = f"{ix}_{iy}_{d['id']}"
+                d["mesh_file"] = f"mesh/{name}/{name}.obj" if p.tiled_mesh else "mesh/mvs.obj"
+            defects += tile_defects
+            folder = out / "mesh" / name if p.tiled_mesh else out / "mesh"
+            write_mvs_tile(folder, name, mvs, r_tex)
+            stats["mvs_faces"] = stats.get("mvs_faces", 0) + mvs.n_faces
+            tname = f"truth_mesh_{name}" if p.tiled_mesh else "truth_mesh"
+            write_ply(out / "truth" / f"{tname}.ply", scene.truth.vertices + origin, scene.truth.faces,
+                      face_colors=scene.truth.face_color)
+            _save_npz(out / "truth" / f"{tname}_faces.npz", face_class=scene.truth.face_class,
+                      face_building=scene.truth.face_building)
+            buildings += [_building_json(b) for b in scene.buildings]
+            # MLS: scan the tile's roads against the tile and its neighbours (rays cross tile borders)
+            neigh = [scene_at(jx, jy) for jx in range(max(ix - 1, 0), min(ix + 2, nx))
+                     for jy in range(max(iy - 1, 0), min(iy + 2, ny))] if p.tiled_mesh else [scene]
+            seen = _merge_scenes(neigh) if len(neigh) > 1 else scene
+            tp = TrajectoryParams(n_passes=p.n_passes, gps_start_s=302_400.0 + (ix * ny + iy) * 3600.0)
+            trajs = build_trajectories(scene.roads, tp, r_traj, truth=seen.truth)
+            scan_to_laz(seen, trajs, lambda t, ix=ix, iy=iy: out / "mls" / f"strip_{ix:02d}{iy:02d}_{t.traj_id:03d}.laz",
+                        perturb, p.mls_density_scale, r_mls, stats)
+            if p.image_every_m > 0:
+                imgs, cams = render_cameras(seen, trajs, every_m=p.image_every_m, size=p.image_size, rng=r_cam)
+                cameras += write_images(out / "images", imgs, cams, perturb, origin, prefix=f"{ix:02d}{iy:02d}_")
+            # bounded memory: forget scenes no later tile needs
+            for key in [k for k in cache if k[0] < ix - 1]:
+                del cache[key]
+    mesh_inputs = ["mesh"]
+    write_metadata_xml(out / "mesh")
+    if cameras:
+        write_json_atomic(out / "images" / "cameras.json", {"frame": "MLS", "frame_origin": list(WORLD_ORIGIN),
+                                                            "convention": "OpenCV: x right, y down, z forward; X_cam = R X_local + t, X_local = X_world - frame_origin",
+                                                            "cameras": cameras})
+    write_json_atomic(out / "truth" / "registration.json", {
+        "frame_origin": list(WORLD_ORIGIN), "crs": CRS,
+        "matrix_mls_to_mesh": truth_reg.tolist(),
+        "note": "mesh_world - frame_origin = M (mls_world - frame_origin); M = [s R | t]",
+    })
+    write_json_atomic(out / "truth" / "defects.json", {"frame_origin": list(WORLD_ORIGIN), "frame": "mesh",
+                                                       "defects": defects})
+    write_json_atomic(out / "truth" / "scene.json", {"preset": p.name, "seed": seed, "scale": scale,
+                                                     "extent_m": list(p.extent_m), "buildings": buildings,
+                                                     "stats": {k: v for k, v in stats.items() if k != "scan_seconds"}})
+    write_campus_yaml(out, p, mesh_inputs)
+    write_manifest(out, {"preset": p.name, "seed": seed, "scale": scale})
+    log.info("synth %s seed %d: %s in %.1f s", p.name, seed, stats, time.perf_counter() - t_start)
+    return out
+
+
+def _save_npz(path: Path, **arrays) -> None:
+    import io
+
+    buf = io.BytesIO()
+    np.savez_compressed(buf, **arrays)
+    write_bytes_atomic(path, buf.getvalue())
+
+
+def _building_json(b) -> dict:
+    return {"id": int(b.id), "footprint": np.asarray(b.footprint).round(4).tolist(), "storeys": int(b.storeys),
+            "storey_height_m": float(b.storey_height_m), "roof": b.roof, "eave_overhang_m": float(b.eave_overhang_m),
+            "height_m": float(b.height_m)}

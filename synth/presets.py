@@ -1,0 +1,49 @@
+"""Synthetic campus presets: sizes, densities and defect rates per preset."""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+
+@dataclass(frozen=True)
+class SynthPreset:
+    """extent_m: campus side lengths (x, y); tile_m: generation tile (bounded memory);
+    mls_density_scale: multiplies the scanner's point rate (1.0 = RIEGL VMX-450-like, ~4,000 pts/m^2
+    at 10 m); image_every_m: camera spacing along the trajectory (0 = no images)."""
+
+    name: str
+    extent_m: tuple[float, float]
+    n_buildings: int
+    storeys: tuple[int, int]
+    tile_m: float
+    mls_density_scale: float
+    n_passes: int
+    image_every_m: float
+    image_size: tuple[int, int]
+    mvs_edge_m: float = 0.12
+    defect_scale: float = 1.0
+    tiled_mesh: bool = False
+
+
+PRESETS = {
+    # one small building beside one road: seconds, for tests
+    "tiny": SynthPreset("tiny", (60.0, 50.0), 1, (2, 4), 60.0, 0.08, 2, 20.0, (320, 240), mvs_edge_m=0.15),
+    # 4-8 buildings, a few million points, 1-2 minutes: the demo campus
+    "demo": SynthPreset("demo", (220.0, 200.0), 6, (1, 12), 220.0, 0.35, 2, 12.0, (1024, 768)),
+    # >= 0.25 km^2, >= 40 buildings, ~1e8 points, generated tile by tile in bounded memory
+    "campus": SynthPreset("campus", (520.0, 520.0), 44, (1, 12), 130.0, 1.0, 2, 0.0, (1024, 768),
+                          tiled_mesh=True),
+}
+
+
+def get_preset(name: str, scale: float = 1.0) -> SynthPreset:
+    """The named preset; ``scale`` multiplies the campus side lengths (and the building count)."""
+    if name not in PRESETS:
+        raise ValueError(f"unknown preset {name!r}; choose one of {sorted(PRESETS)}")
+    p = PRESETS[name]
+    if scale == 1.0:
+        return p
+    from dataclasses import replace
+
+    return replace(p, extent_m=(p.extent_m[0] * scale, p.extent_m[1] * scale),
+                   n_buildings=max(1, int(round(p.n_buildings * scale * scale))))
