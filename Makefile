@@ -25,7 +25,7 @@ $(PY):
 
 $(STAMP): pyproject.toml $(APT_STAMP) | $(PY)
 	$(PY) -m pip install -q --upgrade pip
-	$(PY) -m pip install -q -e ".[dev]"
+	$(PY) -m pip install -q -e ".[dev]" --config-settings editable_mode=compat
 	$(PY) -c "import open3d, torch, prefect, laspy; print('ms3d environment ready: torch', torch.__version__, 'open3d', open3d.__version__, 'prefect', prefect.__version__)"
 	@touch $@
 

@@ -13,7 +13,7 @@ import time
 from dataclasses import dataclass, field
 from pathlib import Path
 
-from prefect import flow, task
+from prefect import flow, task, unmapped
 from prefect.artifacts import create_table_artifact
 from prefect.cache_policies import NONE as NO_CACHE
 from prefect.futures import as_completed
@@ -137,6 +137,8 @@ def _wait_all(futures, label: str, progress: bool) -> list:
     with _Progress(label, len(futures), enabled=progress) as bar:
         for _ in as_completed(futures):
             bar.advance()
+    for f in futures:
+        f.wait()  # sets the future's final state from the Dask result, not from the (lagging) API
     return [f.state for f in futures]
 
 
@@ -160,7 +162,7 @@ def reprocess_campus(cfg_json: dict, progress: bool = True) -> dict:
     all_hinted = sorted({k for h in hints.values() for k in h})
 
     unit_batches = _batches(units, 1)
-    ingest_futs = ingest_task.map([[unit_to_json(u) for u in b] for b in unit_batches], cfg_json=cfg_json)
+    ingest_futs = ingest_task.map([[unit_to_json(u) for u in b] for b in unit_batches], cfg_json=unmapped(cfg_json))
     states = _wait_all(ingest_futs, "ingest", progress)
     failed: dict[str, str] = {}
     blocked: dict[str, str] = {}
@@ -179,7 +181,7 @@ def reprocess_campus(cfg_json: dict, progress: bool = True) -> dict:
 
     tiles = sorted(set(all_hinted) | {t.key for t in wd.staged_tiles()})
     tile_batches = _batches(tiles, cfg.cluster.tiles_per_task)
-    part_futs = partition_task.map(tile_batches, cfg_json=cfg_json, blocked=blocked)
+    part_futs = partition_task.map(tile_batches, cfg_json=unmapped(cfg_json), blocked=unmapped(blocked))
     states = _wait_all(part_futs, "partition", progress)
     for b, st in zip(tile_batches, states):
         if not st.is_completed():

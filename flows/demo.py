@@ -42,7 +42,7 @@ def run_demo(out: Path, work: Path, seed: int = 7, preset: str = "demo") -> int:
     print(f"      done in {time.perf_counter() - t1:.0f} s")
     print("[3/3] baseline quality of the MVS mesh against the truth (what later stages must beat):", flush=True)
     try:
-        from tasks.quality import quality_of_campus
+        from tasks.quality_io import quality_of_campus
 
         report = quality_of_campus(out)
         print(report)

@@ -132,9 +132,13 @@ def duplicate_faces(faces: np.ndarray) -> np.ndarray:
     """(m,) bool: faces whose vertex-id set already appeared earlier (either winding)."""
     if len(faces) == 0:
         return np.zeros(0, bool)
-    _, first = np.unique(np.sort(faces, axis=1), axis=0, return_index=True)
-    dup = np.ones(len(faces), bool)
-    dup[first] = False
+    key = np.sort(faces, axis=1)
+    order = np.lexsort(key.T[::-1])  # stable: the first of equal faces comes first
+    ordered = key[order]
+    same_as_previous = np.zeros(len(faces), bool)
+    same_as_previous[1:] = (ordered[1:] == ordered[:-1]).all(axis=1)
+    dup = np.zeros(len(faces), bool)
+    dup[order] = same_as_previous
     return dup
 
 
@@ -143,7 +147,8 @@ def count_nonmanifold_edges(faces: np.ndarray) -> int:
     if len(faces) == 0:
         return 0
     edges = np.sort(faces[:, [0, 1, 1, 2, 2, 0]].reshape(-1, 2), axis=1)
-    _, counts = np.unique(edges, axis=0, return_counts=True)
+    key = edges[:, 0] * (int(edges.max()) + 1) + edges[:, 1]  # one int64 per undirected edge
+    _, counts = np.unique(key, return_counts=True)
     return int((counts > 2).sum())
 
 
@@ -218,63 +223,102 @@ def _read_mtl(obj: Path, mtl: Path) -> dict[str, _Material]:
     return materials
 
 
-def _parse_corner_tokens(path: Path, corners: list[str]) -> tuple[np.ndarray, np.ndarray | None]:
-    """'v', 'v/vt', 'v//vn', 'v/vt/vn' tokens -> raw (1-based or negative) v and vt ids; vt 0 = none."""
-    if not corners:
-        return np.zeros(0, np.int64), None
-    slashes = corners[0].count("/")
-    uniform = sum(t.count("/") for t in corners) == slashes * len(corners)
+def _numbers(rows: list[str], dtype=np.float64) -> np.ndarray | None:
+    """All whitespace-separated numbers of ``rows``, flat, parsed in C; None if any token is not one."""
     try:
-        if uniform and not any("//" in t for t in corners):
-            ids = np.array("/".join(corners).split("/"), dtype=np.int64).reshape(len(corners), slashes + 1)
-            return ids[:, 0], (ids[:, 1] if slashes >= 1 else None)
-        parts = [t.split("/") for t in corners]
+        return np.fromstring(" ".join(rows), sep=" ", dtype=dtype)
+    except ValueError:
+        return None
+
+
+def _table(path: Path, rows: list[str], widths: tuple[int, ...], what: str) -> np.ndarray:
+    """(len(rows), w) float64 for the first width w that fits every row; else the first ``widths[-1]``
+    columns of each row (rows shorter than that are an error)."""
+    nums = _numbers(rows)
+    for width in widths:
+        if nums is not None and nums.size == width * len(rows):
+            return nums.reshape(len(rows), width)
+    keep = min(widths)
+    try:
+        return np.array([r.split()[:keep] for r in rows], dtype=np.float64).reshape(len(rows), keep)
+    except ValueError as err:
+        raise InputError(path, f"malformed {what} statement ({err})") from err
+
+
+def _face_corners(path: Path, rows: list[str]) -> tuple[np.ndarray, np.ndarray, np.ndarray | None]:
+    """Face statements -> (corner count per face, raw v id per corner, raw vt id per corner or None).
+
+    Ids are as written (1-based, or negative = relative); a corner without a vt gets vt 0. Files of
+    triangles in one layout ('v', 'v/vt', 'v//vn', 'v/vt/vn') are parsed in C; others token by token.
+    """
+    if not rows:
+        return np.zeros(0, np.int64), np.zeros(0, np.int64), None
+    if rows[0] != rows[0].strip() or rows[-1] != rows[-1].strip():
+        rows = [r.strip() for r in rows]
+    token = rows[0].split()[0]
+    slashes = token.count("/")
+    has_vt = slashes >= 1 and token.split("/")[1] != ""
+    per_corner = 1 + slashes - (1 if slashes == 2 and not has_vt else 0)
+    joined = " ".join(rows)
+    n = len(rows)
+    if joined.count(" ") == 3 * n - 1 and joined.count("/") == 3 * n * slashes:
+        nums = _numbers([joined.replace("/", " ")], np.int64)
+        if nums is not None and nums.size == 3 * n * per_corner:
+            ids = nums.reshape(3 * n, per_corner)
+            return np.full(n, 3, np.int64), ids[:, 0], (ids[:, 1] if has_vt else None)
+    split = [r.split() for r in rows]
+    counts = np.array([len(r) for r in split], dtype=np.int64)
+    parts = [t.split("/") for t in itertools.chain.from_iterable(split)]
+    try:
         v = np.array([p[0] for p in parts], dtype=np.int64)
         vt = np.array([int(p[1]) if len(p) > 1 and p[1] else 0 for p in parts], dtype=np.int64)
-        return v, (vt if vt.any() else None)
     except ValueError as err:
         raise InputError(path, f"malformed face statement ({err})") from err
+    return counts, v, (vt if vt.any() else None)
 
 
-def _resolve_ids(raw: np.ndarray, seen: np.ndarray) -> np.ndarray:
+def _resolve_ids(raw: np.ndarray, seen: np.ndarray | None) -> np.ndarray:
     """OBJ ids (1-based, or negative = relative to the ``seen`` elements so far) -> 0-based; 0 -> -1."""
-    return np.where(raw > 0, raw - 1, np.where(raw < 0, raw + seen, -1))
+    relative = raw + seen if seen is not None else np.full_like(raw, -1)
+    return np.where(raw > 0, raw - 1, np.where(raw < 0, relative, -1))
+
+
+def _seen_before_faces(lines: list[str], key: str) -> np.ndarray:
+    """For each face statement, how many ``key`` statements precede it (for negative OBJ ids)."""
+    seen, n = [], 0
+    for ln in lines:
+        k = ln.partition(" ")[0]
+        if k == key:
+            n += 1
+        elif k == "f":
+            seen.append(n)
+    return np.array(seen, dtype=np.int64)
 
 
 def _read_obj(path: Path) -> MeshData:
-    v_rows, vt_rows, f_rows, f_mat, f_seen_v, f_seen_vt, mtllibs = [], [], [], [], [], [], []
-    material_ids: dict[str, int] = {}
-    current = -1
-    for line in path.read_text(errors="replace").replace("\t", " ").splitlines():
-        key, _, rest = line.strip().partition(" ")
-        if key == "v":
-            v_rows.append(rest)
-        elif key == "vt":
-            vt_rows.append(rest)
-        elif key == "f":
-            f_rows.append(rest.split())
-            f_mat.append(current)
-            f_seen_v.append(len(v_rows))
-            f_seen_vt.append(len(vt_rows))
+    lines = path.read_text(errors="replace").replace("\t", " ").splitlines()
+    rows: dict[str, list[str]] = {"v": [], "vt": [], "f": [], "mtllib": []}
+    usemtl_names, faces_before_usemtl = [], []
+    for ln in lines:  # one pass; everything per element is parsed in bulk below
+        key, _, rest = ln.partition(" ")
+        bucket = rows.get(key)
+        if bucket is not None:
+            bucket.append(rest)
         elif key == "usemtl":
-            current = material_ids.setdefault(rest.strip(), len(material_ids))
-        elif key == "mtllib":
-            mtllibs.append(rest.strip())
+            usemtl_names.append(rest.strip())
+            faces_before_usemtl.append(len(rows["f"]))
 
-    try:
-        values = [row.split() for row in v_rows]
-        width = min((len(r) for r in values), default=3)
-        ncol = 6 if width >= 6 else 3
-        xyzc = np.array([r[:ncol] for r in values], dtype=np.float64).reshape(-1, ncol)
-        vt = np.array([r.split()[:2] for r in vt_rows], dtype=np.float64).reshape(-1, 2)
-    except ValueError as err:
-        raise InputError(path, f"malformed vertex statement ({err})") from err
-
-    counts = np.array([len(r) for r in f_rows], dtype=np.int64)
+    xyzc = _table(path, rows["v"], (3, 6, 4), "vertex")
+    vt = _table(path, rows["vt"], (2, 3), "texture coordinate")
+    counts, raw_v, raw_vt = _face_corners(path, rows["f"])
     if (counts < 3).any():
         raise InputError(path, f"{int((counts < 3).sum())} face statements have fewer than 3 vertices")
-    raw_v, raw_vt = _parse_corner_tokens(path, list(itertools.chain.from_iterable(f_rows)))
-    v_idx = _resolve_ids(raw_v, np.repeat(np.array(f_seen_v, np.int64), counts))
+    negative = (raw_v < 0).any() or (raw_vt is not None and (raw_vt < 0).any())
+
+    def seen(key: str) -> np.ndarray | None:
+        return np.repeat(_seen_before_faces(lines, key), counts) if negative else None
+
+    v_idx = _resolve_ids(raw_v, seen("v"))
     # fan-triangulate polygons: corners (s, s+j, s+j+1) for j = 1 .. c-2
     ntri = counts - 2
     tri_face = np.repeat(np.arange(len(counts)), ntri)
@@ -287,13 +331,19 @@ def _read_obj(path: Path) -> MeshData:
         rgb = rgb * 255.0 if rgb.max() <= 1.0 else rgb  # 0..1 floats by convention, else 0..255
         mesh.vertex_colors = np.clip(np.round(rgb), 0, 255).astype(np.uint8)
     if raw_vt is not None:
-        vt_idx = _resolve_ids(raw_vt, np.repeat(np.array(f_seen_vt, np.int64), counts))[corner]
+        vt_idx = _resolve_ids(raw_vt, seen("vt"))[corner]
         if (vt_idx >= len(vt)).any() or ((vt_idx < 0) & (raw_vt[corner] != 0)).any():
             raise InputError(path, f"texture coordinate ids out of range (file has {len(vt):,} vt)")
         valid = vt_idx >= 0  # corners without a vt get (0, 0)
         mesh.uv = np.zeros((*vt_idx.shape, 2), np.float32)
         mesh.uv[valid] = vt[vt_idx[valid]]
-    _apply_materials(path, mesh, mtllibs, material_ids, np.array(f_mat, np.int64)[tri_face])
+    material_ids: dict[str, int] = {}
+    tri_mat = np.full(len(tri_face), -1, np.int64)
+    if usemtl_names:
+        ids = np.array([material_ids.setdefault(name, len(material_ids)) for name in usemtl_names] + [-1])
+        run = np.searchsorted(faces_before_usemtl, np.arange(len(counts)), side="right") - 1
+        tri_mat = ids[run][tri_face]  # run -1 (before any usemtl) picks the trailing -1
+    _apply_materials(path, mesh, [r.strip() for r in rows["mtllib"]], material_ids, tri_mat)
     return mesh
 
 
@@ -345,7 +395,9 @@ def _read_ply(path: Path) -> MeshData:
         raise InputError(path, f"unreadable PLY ({type(err).__name__}: {err})") from err
     if not isinstance(loaded, trimesh.Trimesh):
         raise InputError(path, "empty mesh (no faces; a point cloud?)")
-    mesh = MeshData(vertices=np.asarray(loaded.vertices, np.float64), faces=np.asarray(loaded.faces, np.int64))
+    mesh = MeshData(
+        vertices=np.asarray(loaded.vertices, np.float64), faces=np.asarray(loaded.faces, np.int64)
+    )
     kind = loaded.visual.kind
     if kind == "face":
         mesh.face_colors = np.asarray(loaded.visual.face_colors)[:, :3].astype(np.uint8)
@@ -539,11 +591,9 @@ def write_obj(
         out.write("# ms3d\n")
         if use_mtl:
             out.write(f"mtllib {mtl_path.name}\n")
-        for text in _format_rows("v %.6f %.6f %.6f\n", local):
-            out.write(text)
+        out.writelines(_format_rows("v %.6f %.6f %.6f\n", local))
         if uv is not None:
-            for text in _format_rows("vt %.7f %.7f\n", np.asarray(uv, np.float64).reshape(-1, 2)):
-                out.write(text)
+            out.writelines(_format_rows("vt %.7f %.7f\n", np.asarray(uv, np.float64).reshape(-1, 2)))
         ids = faces + 1
         if uv is not None:
             vt_ids = np.arange(1, 3 * m + 1, dtype=np.int64).reshape(m, 3)
@@ -554,8 +604,7 @@ def write_obj(
         for lo, hi in zip(starts, [*starts[1:], m]):
             if use_mtl:
                 out.write(f"usemtl {material_names[code[lo]]}\n")
-            for text in _format_rows(fmt, rows[lo:hi]):
-                out.write(text)
+            out.writelines(_format_rows(fmt, rows[lo:hi]))
     return path
 
 

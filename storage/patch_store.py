@@ -20,9 +20,11 @@ Missing optional input columns are written with documented defaults (:data:`POIN
 :data:`FACE_DEFAULTS`): zeros for attributes, NaN for uv, -1 for ``texture`` and ``src_face``. Unknown
 columns are rejected: the schema is fixed per ``schema_version``.
 
-Compression: by default coordinates, uv, gps_time and the dictionary/RLE-encoded ``patch`` are stored
-uncompressed (float32 mantissas of metre offsets are close to random: lz4/zstd gain little and halve
-write speed), small integer attributes with lz4. Pass ``compression="zstd"`` for archival size.
+Compression ("auto"): coordinates, uv and gps_time are stored uncompressed (float32 mantissas of metre
+offsets are close to random: lz4/zstd gain ~10 % and halve write speed); patch, source, texture and
+classification are dictionary + RLE encoded; other integer attributes use lz4. Measured on 5 M MLS-like
+points: ~0.7 s CPU to write, 163 MB; zstd everywhere 1.3 s, 113 MB. Pass ``compression="zstd"`` for
+archival size.
 """
 
 from __future__ import annotations
@@ -90,7 +92,8 @@ UPDATABLE_PATCH_COLUMNS = ("outlier_points", "outlier_faces", "outlier", "label"
 _TABLES = {"points": (POINTS_FILE, POINT_DTYPES, POINT_DEFAULTS),
            "faces": (FACES_FILE, FACE_DTYPES, FACE_DEFAULTS),
            "patches": (PATCHES_FILE, PATCH_DTYPES, PATCH_DEFAULTS)}
-_RAW_COLUMNS = {"x", "y", "z", "gps_time", "patch"} | {f"{a}{v}" for v in range(3) for a in "xyzuv"}
+_DICT_COLUMNS = ["patch", "source", "texture", "classification"]  # few distinct values: dictionary + RLE
+_RAW_COLUMNS = {"x", "y", "z", "gps_time", *_DICT_COLUMNS} | {f"{a}{v}" for v in range(3) for a in "xyzuv"}
 
 
 def _arrow_schema(dtypes: dict[str, np.dtype]) -> pa.Schema:
@@ -247,7 +250,7 @@ def _write_table(path: Path, cols: dict, table: str, meta_json: dict, row_group_
     with atomic_path(path) as tmp:
         pq.write_table(
             t, tmp, row_group_size=row_group_size, compression=_compression(table, compression),
-            use_dictionary=["patch", "texture", "source"] if table != "patches" else True,
+            use_dictionary=[c for c in _DICT_COLUMNS if c in cols] if table != "patches" else True,
             sorting_columns=[pq.SortingColumn(schema.get_field_index("patch"))],
         )
     return path.stat().st_size

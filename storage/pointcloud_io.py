@@ -31,6 +31,7 @@ import sys
 from collections.abc import Callable, Iterable, Iterator
 from dataclasses import dataclass, field
 from pathlib import Path
+from typing import Self
 
 import laspy
 import numpy as np
@@ -153,7 +154,7 @@ def _open_las(path: Path) -> laspy.LasReader:
         raise InputError(path, f"not a LAS/LAZ file (signature {signature!r}, expected b'LASF')")
     try:
         return laspy.open(path)
-    except Exception:  # EVLRs lie past the end of a truncated file: retry without them
+    except Exception:  # noqa: BLE001 - EVLRs past the end of a truncated file: retry without them
         try:
             return laspy.open(path, read_evlrs=False)
         except Exception as err:
@@ -165,7 +166,7 @@ class _LazWithEmptyChunkTable(io.RawIOBase):
     chunk table appended after the surviving bytes, so lazrs decodes the surviving chunks in order."""
 
     def __init__(self, path: Path, offset_field_at: int):
-        self._f = open(path, "rb")
+        self._f = open(path, "rb")  # noqa: SIM115 - closed by close()
         self._size = path.stat().st_size
         self._patch_at = offset_field_at
         self._patch = struct.pack("<q", self._size)
@@ -222,7 +223,7 @@ def _count_decodable_laz_points(path: Path, header: laspy.LasHeader) -> int:
                 m = min(step, header.point_count - done)
                 decoder.decompress_many(bytearray(m * item_size))
                 done += m
-        except Exception:
+        except Exception:  # noqa: BLE001, S110 - lazrs reports running out of data as a generic error
             pass
     return done
 
@@ -254,7 +255,7 @@ def _las_info(path: Path) -> CloudInfo:
         _check_las_complete(path, h)
         try:
             crs = crs_to_string(h.parse_crs())
-        except Exception:  # an unparsable CRS VLR is reported as unknown, not fatal
+        except Exception:  # noqa: BLE001 - an unparsable CRS VLR is reported as unknown, not fatal
             crs = None
         dims = set(h.point_format.dimension_names)
         return CloudInfo(
@@ -704,7 +705,7 @@ class LasChunkWriter:
         self._writer = None
         self.points_written = 0
 
-    def __enter__(self) -> LasChunkWriter:
+    def __enter__(self) -> Self:
         self._stack = contextlib.ExitStack()
         self._tmp = self._stack.enter_context(atomic_path(self.path))
         return self
@@ -717,11 +718,12 @@ class LasChunkWriter:
         bad = ~np.isfinite(xyz).all(axis=1)
         if bad.any():
             raise ValueError(f"{self.path}: refusing to write {int(bad.sum())} NaN/inf points")
+        if len(xyz) == 0:  # an empty first chunk must not fix the offset
+            return
         if self._writer is None:
             self._open(xyz)
-        if len(xyz):
-            self._writer.write_points(self._record(chunk, xyz))
-            self.points_written += len(xyz)
+        self._writer.write_points(self._record(chunk, xyz))
+        self.points_written += len(xyz)
 
     def _open(self, xyz: np.ndarray) -> None:
         self.header.offsets = self._offset if self._offset is not None else choose_offset(xyz)

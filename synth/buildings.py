@@ -295,9 +295,9 @@ def soup_to_mesh(parts, building: int, tol: float = 1e-6) -> Mesh:
                 face_color=np.concatenate([np.tile(np.asarray(p[2], np.uint8), (len(p[0]), 1)) for p in parts]))
 
 
-def terrain_mesh(extent, roads, infos: list[dict], road_z_m: float) -> Mesh:
-    """GROUND and ROAD quads on a rectilinear grid cut at road edges and building footprints
-    (no terrain under buildings). roads: [(axis, centre, half_width)]."""
+def terrain_cells(extent, roads, infos: list[dict]):
+    """The terrain grid: cell bounds xs (nx + 1,), ys (ny + 1,) cut at road edges and building bbox /
+    notch lines; road (nx, ny) bool: cell on a road; inside (nx, ny) bool: cell under a building."""
     x0, y0, x1, y1 = extent
     br = [r for inf in infos for r in [inf["bbox"]] + ([inf["cut"]] if inf["cut"] is not None else [])]
     cuts = [[], []]
@@ -309,7 +309,6 @@ def terrain_mesh(extent, roads, infos: list[dict], road_z_m: float) -> Mesh:
     xs = np.unique(np.clip([x0, x1, *cuts[0]], x0, x1))
     ys = np.unique(np.clip([y0, y1, *cuts[1]], y0, y1))
     cx, cy = np.meshgrid(0.5 * (xs[:-1] + xs[1:]), 0.5 * (ys[:-1] + ys[1:]), indexing="ij")
-    I, J = np.meshgrid(np.arange(len(xs) - 1), np.arange(len(ys) - 1), indexing="ij")
     road = np.zeros(cx.shape, bool)
     for ax, c, hw in roads:
         road |= np.abs((cx if ax == 0 else cy) - c) < hw
@@ -321,6 +320,14 @@ def terrain_mesh(extent, roads, infos: list[dict], road_z_m: float) -> Mesh:
             q = inf["cut"]
             m &= ~((cx > q[0]) & (cx < q[2]) & (cy > q[1]) & (cy < q[3]))
         inside |= m
+    return xs, ys, road, inside
+
+
+def terrain_mesh(extent, roads, infos: list[dict], road_z_m: float) -> Mesh:
+    """GROUND and ROAD quads on the ``terrain_cells`` grid (no terrain under buildings).
+    roads: [(axis, centre, half_width)]."""
+    xs, ys, road, inside = terrain_cells(extent, roads, infos)
+    I, J = np.meshgrid(np.arange(len(xs) - 1), np.arange(len(ys) - 1), indexing="ij")
     parts = []
     for cls, mask, z in ((FaceClass.GROUND, ~road & ~inside, 0.0), (FaceClass.ROAD, road & ~inside, road_z_m)):
         i, j = I[mask], J[mask]

@@ -112,8 +112,18 @@ def building_charts(fp: np.ndarray, wall_h: float, roof: str, overhang: float, p
                             FaceClass.ROOF, "fascia"))
     top = z_e + thickness
     if roof == "flat":
-        charts.append(Chart(_oriented(np.column_stack([out, np.full(len(out), top)]), _Z), FaceClass.ROOF, "roof"))
-        return charts
+        if len(out) == 4:
+            charts.append(Chart(_oriented(np.column_stack([out, np.full(4, top)]), _Z), FaceClass.ROOF, "roof"))
+            return charts
+        # an L roof as two rectangles, split through the reflex corner; every chart edge that the split
+        # point falls on gets it as a vertex, so edges shared between charts stay identical
+        rects, split = _split_l(out)
+        pts = np.column_stack([np.vstack([out, split]), np.full(len(out) + 1, top)])
+        for r in rects:
+            ring = np.array([[r[0], r[1]], [r[2], r[1]], [r[2], r[3]], [r[0], r[3]]])
+            charts.append(Chart(insert_points(np.column_stack([ring, np.full(4, top)]), pts), FaceClass.ROOF, "roof"))
+        return [Chart(insert_points(c.polygon, pts[-1:]), c.face_class, c.kind, c.rect_height_m)
+                if c.kind == "fascia" else c for c in charts]
     swap = (out[:, 0].max() - out[:, 0].min()) < (out[:, 1].max() - out[:, 1].min())
     o = out[:, ::-1] if swap else out
     X0, Y0, X1, Y1 = o[:, 0].min(), o[:, 1].min(), o[:, 0].max(), o[:, 1].max()
@@ -129,6 +139,39 @@ def building_charts(fp: np.ndarray, wall_h: float, roof: str, overhang: float, p
             p = p[:, [1, 0, 2]]
         charts.append(Chart(_oriented(p, _Z), FaceClass.ROOF, "roof"))
     return charts
+
+
+def _split_l(out: np.ndarray) -> tuple[list[list[float]], np.ndarray]:
+    """Two rectangles [x0, y0, x1, y1] covering an L polygon (6, 2) CCW, split by the vertical line
+    through its reflex corner; and the point (1, 2) where that line meets the opposite outer edge."""
+    e1, e2 = out - np.roll(out, 1, axis=0), np.roll(out, -1, axis=0) - out
+    rx, ry = out[np.argmin(e1[:, 0] * e2[:, 1] - e1[:, 1] * e2[:, 0])]
+    X0, Y0, X1, Y1 = out[:, 0].min(), out[:, 1].min(), out[:, 0].max(), out[:, 1].max()
+    have = {(round(x, 9), round(y, 9)) for x, y in out}
+    notch = next((x, y) for x in (X0, X1) for y in (Y0, Y1) if (round(x, 9), round(y, 9)) not in have)
+    ylo, yhi = (Y0, ry) if np.isclose(notch[1], Y1) else (ry, Y1)
+    y_opp = Y0 if np.isclose(notch[1], Y1) else Y1
+    if np.isclose(notch[0], X1):
+        rects = [[X0, Y0, rx, Y1], [rx, ylo, X1, yhi]]
+    else:
+        rects = [[rx, Y0, X1, Y1], [X0, ylo, rx, yhi]]
+    return rects, np.array([[rx, y_opp]])
+
+
+def insert_points(poly: np.ndarray, pts: np.ndarray, tol: float = 1e-7) -> np.ndarray:
+    """Polygon (k, 3) with every point of pts (p, 3) that lies strictly inside one of its edges
+    inserted there (in order along the edge)."""
+    out = []
+    for i in range(len(poly)):
+        a, b = poly[i], poly[(i + 1) % len(poly)]
+        out.append(a)
+        ab = b - a
+        L2 = float(ab @ ab)
+        t = (pts - a) @ ab / max(L2, 1e-18)
+        off = np.linalg.norm(pts - (a + t[:, None] * ab), axis=1)
+        on = (off < tol) & (t > 1e-9) & (t < 1 - 1e-9)
+        out.extend(pts[on][np.argsort(t[on])])
+    return np.array(out, float)
 
 
 def _gable_charts(fp, H, o, tp, t) -> list[Chart]:

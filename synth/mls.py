@@ -48,12 +48,15 @@ OCCLUDER_REFLECTANCE = {
 @dataclass(frozen=True)
 class ScannerHead:
     """One laser head. position_m: vehicle frame metres above the road reference point;
-    spin_axis: vehicle frame (normalised here); channel_elev_deg: beam angles out of the spin plane."""
+    spin_axis: vehicle frame (normalised here); channel_elev_deg: beam angles out of the spin plane;
+    range_bias_m: per-channel constant range error (a calibration residual; makes heads and
+    channels disagree by a few mm, as in real multi-head / multi-channel data)."""
 
     position_m: tuple[float, float, float]
     spin_axis: tuple[float, float, float]
     channel_elev_deg: tuple[float, ...] = (0.0,)
     phase_deg: float = 0.0
+    range_bias_m: tuple[float, ...] | None = None  # per channel calibration residual; None = 0
 
     def basis(self) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         """(u, w, a): (3,) float64 unit vectors, vehicle frame; theta = 0 fires along u."""
@@ -64,11 +67,11 @@ class ScannerHead:
         return u, np.cross(a, u), a
 
 
-def _profile_heads(yaw_deg: float, height_m: float) -> tuple[ScannerHead, ...]:
+def _profile_heads(yaw_deg: float, height_m: float, bias_m: float) -> tuple[ScannerHead, ...]:
     return tuple(
         ScannerHead(position_m=(-0.5, 0.3 * sgn, height_m),
                     spin_axis=(np.cos(np.radians(sgn * yaw_deg)), np.sin(np.radians(sgn * yaw_deg)), 0.0),
-                    phase_deg=90.0 * (sgn < 0))
+                    phase_deg=90.0 * (sgn < 0), range_bias_m=(sgn * bias_m,))
         for sgn in (1, -1)
     )
 
@@ -77,7 +80,7 @@ def _profile_heads(yaw_deg: float, height_m: float) -> tuple[ScannerHead, ...]:
 class MlsParams:
     """Scanner configuration. The rates are per head and per channel, before ``density_scale``."""
 
-    heads: tuple[ScannerHead, ...] = _profile_heads(35.0, 2.5)
+    heads: tuple[ScannerHead, ...] = _profile_heads(35.0, 2.5, 0.008)
     profile_rate_hz: float = 250.0  # turns per second (VQ-450: up to 200)
     pulses_per_profile: int = 5_600  # per channel per turn (0.064 deg steps)
     density_scale: float = 1.0  # multiplies point density: rate and pulses each by sqrt(scale)
@@ -98,8 +101,10 @@ class MlsParams:
     @classmethod
     def spinner32(cls, **kw) -> "MlsParams":
         """One upright 32-channel spinner at 2.3 m (HDL-32E-like: 10 Hz, 1,800 pulses per channel)."""
+        bias = np.random.default_rng(32).normal(0.0, 0.006, 32)  # fixed per-laser calibration residual
         head = ScannerHead(position_m=(0.0, 0.0, 2.3), spin_axis=(0.0, 0.0, 1.0),
-                           channel_elev_deg=tuple(np.round(np.linspace(-30.67, 10.67, 32), 3)))
+                           channel_elev_deg=tuple(np.round(np.linspace(-30.67, 10.67, 32), 3)),
+                           range_bias_m=tuple(np.round(bias, 4)))
         base = dict(heads=(head,), profile_rate_hz=10.0, pulses_per_profile=1_800, max_range_m=100.0)
         return cls(**{**base, **kw})
 
@@ -121,6 +126,8 @@ class MlsParams:
     def __post_init__(self):
         if not self.heads or len({len(h.channel_elev_deg) for h in self.heads}) != 1:
             raise ValueError("MlsParams.heads: need >= 1 head, all with the same number of channels")
+        if any(h.range_bias_m is not None and len(h.range_bias_m) != len(h.channel_elev_deg) for h in self.heads):
+            raise ValueError("MlsParams.heads: range_bias_m needs one value per channel")
         if not (self.density_scale > 0 and self.profile_rate_hz > 0 and self.pulses_per_profile > 0):
             raise ValueError("MlsParams: density_scale, profile_rate_hz, pulses_per_profile must be > 0")
         if not 0 <= self.min_range_m < self.max_range_m:
@@ -179,8 +186,9 @@ def _reflectance_lut() -> list[np.ndarray]:
     return out
 
 
-def _beam_table(params: MlsParams) -> tuple[np.ndarray, np.ndarray]:
-    """Vehicle-frame beam (P, 3) float64 and rotation angle theta (P,) for pulse k at ``k % P``.
+def _beam_table(params: MlsParams) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """For pulse k at row ``k % P``: vehicle-frame beam (P, 3) float64, rotation angle theta (P,)
+    radians and range bias (P,) metres.
 
     The firing pattern repeats every P = heads x channels x pulses_per_profile pulses: pulse k is
     head ``k % H``, then channel ``(k // H) % C``, then step ``k // (H C)`` of the turn.
@@ -196,7 +204,8 @@ def _beam_table(params: MlsParams) -> tuple[np.ndarray, np.ndarray]:
     ce = np.cos(elev)[:, None]
     beam = ce * (np.cos(theta)[:, None] * basis[head, 0] + np.sin(theta)[:, None] * basis[head, 1])
     beam += np.sin(elev)[:, None] * basis[head, 2]
-    return beam, theta
+    bias = np.array([h.range_bias_m or (0.0,) * n_ch for h in params.heads], np.float64)[head, ch]
+    return beam, theta, bias
 
 
 def _rays(traj: Trajectory, params: MlsParams, k: np.ndarray, table: np.ndarray):
@@ -265,7 +274,8 @@ def _scan_block(traj, params, k, caster, refl, table, rng) -> MlsChunk:
     cls = caster.all_face_class[row]
     glass = (source == SOURCE_TRUTH) & (cls == FaceClass.GLASS)
     drop = glass & (rng.random(len(keep)) >= params.glass_return_prob)
-    rng_m = hits.t[keep] + rng.normal(0.0, params.range_noise_m, len(keep))
+    bias = table[2][k[keep] % len(table[2])]
+    rng_m = hits.t[keep] + bias + rng.normal(0.0, params.range_noise_m, len(keep))
     ok = ~drop & (rng_m <= params.max_range_m) & (rng_m >= params.min_range_m)
     keep, source, face, row, cls, rng_m = keep[ok], source[ok], face[ok], row[ok], cls[ok], rng_m[ok]
 

@@ -12,8 +12,6 @@ from __future__ import annotations
 from dataclasses import dataclass
 
 import numpy as np
-import trimesh
-
 from .scene import Mesh, OccluderClass, Occluders, Scene
 
 
@@ -55,6 +53,20 @@ def box(lo, hi) -> np.ndarray:
     return hexahedron(np.column_stack([q, np.full(4, z0)]), np.column_stack([q, np.full(4, z1)]))
 
 
+def icosphere() -> np.ndarray:
+    """Unit sphere: an icosahedron with each face split in four, projected -> triangles (80, 3, 3) outward."""
+    g = (1 + 5 ** 0.5) / 2
+    v = np.array([[-1, g, 0], [1, g, 0], [-1, -g, 0], [1, -g, 0], [0, -1, g], [0, 1, g],
+                  [0, -1, -g], [0, 1, -g], [g, 0, -1], [g, 0, 1], [-g, 0, -1], [-g, 0, 1]], float)
+    f = np.array([[0, 11, 5], [0, 5, 1], [0, 1, 7], [0, 7, 10], [0, 10, 11], [1, 5, 9], [5, 11, 4],
+                  [11, 10, 2], [10, 7, 6], [7, 1, 8], [3, 9, 4], [3, 4, 2], [3, 2, 6], [3, 6, 8],
+                  [3, 8, 9], [4, 9, 5], [2, 4, 11], [6, 2, 10], [8, 6, 7], [9, 8, 1]])
+    a, b, c = v[f[:, 0]], v[f[:, 1]], v[f[:, 2]]
+    ab, bc, ca = (a + b) / 2, (b + c) / 2, (c + a) / 2
+    t = np.concatenate([np.stack(x, 1) for x in ((a, ab, ca), (ab, b, bc), (ca, bc, c), (ab, bc, ca))])
+    return t / np.linalg.norm(t, axis=2, keepdims=True)
+
+
 def _car(L, W, H) -> np.ndarray:
     """Car along x centred at the origin, wheels on z = 0: body, tapered cabin, four wheels."""
     body = box((-L / 2, -W / 2, 0.3), (L / 2, W / 2, 0.55 * H + 0.1))
@@ -78,10 +90,9 @@ def _tree(rng, p: OccluderParams):
     a, b = np.arange(8), (np.arange(8) + 1) % 8
     lo, hi = np.column_stack([ring, np.zeros(8)]), np.column_stack([ring, np.full(8, zb + 0.5)])
     trunk = np.concatenate([np.stack([lo[a], lo[b], hi[b]], 1), np.stack([lo[a], hi[b], hi[a]], 1)])
-    ico = trimesh.creation.icosphere(subdivisions=1)
-    v = ico.vertices * [R, R, 0.5 * (h - zb)] + [0, 0, 0.5 * (h + zb)]
-    v = v + rng.normal(0, 0.08 * R, v.shape)
-    return trunk, v[ico.faces], R, zb, h, tr
+    crown = icosphere() * [R, R, 0.5 * (h - zb)] + [0, 0, 0.5 * (h + zb)]
+    crown = crown + rng.normal(0, 0.04 * R, crown.shape)  # per corner: a lumpy, slightly open crown
+    return trunk, crown, R, zb, h, tr
 
 
 def _free(boxes_lo, boxes_hi, obstacles) -> bool:

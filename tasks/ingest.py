@@ -176,7 +176,22 @@ def scan_points(index: int, path: Path, cfg: CampusConfig) -> InputFile:
         rec.crs = info.crs
     except InputError as e:
         rec.error = str(e)
+        rec.lo, rec.hi = _salvage_cloud_bounds(path, cfg)
     return rec
+
+
+def _salvage_cloud_bounds(path: Path, cfg: CampusConfig) -> tuple[list, list]:
+    """The header bounds of a LAS/LAZ file whose points are unreadable (to know which tiles it hits)."""
+    try:
+        import laspy
+
+        with laspy.open(path) as f:
+            lo, hi = np.asarray(f.header.mins, float), np.asarray(f.header.maxs, float)
+        if np.isfinite(lo).all() and np.isfinite(hi).all() and (hi >= lo).all():
+            return (lo * cfg.inputs.units_scale).tolist(), (hi * cfg.inputs.units_scale).tolist()
+    except Exception:  # noqa: BLE001 - best effort; an unknown extent fails every tile
+        pass
+    return [], []
 
 
 def sample_points_for_registration(rec: InputFile, n_target: int, cfg: CampusConfig, n_ranges: int = 16) -> np.ndarray:
@@ -331,7 +346,6 @@ def run_register(cfg: CampusConfig, wd: WorkDir) -> dict:
     Skipped when campus.json exists with the same input fingerprints and registration parameters.
     """
     from storage.workdir import read_campus, write_campus
-    from tasks.register import check_coregistered, register_clouds
 
     meshes, points = expand_inputs(cfg)
     fps = [file_fingerprint(p) for p in meshes + points]
@@ -366,9 +380,13 @@ def run_register(cfg: CampusConfig, wd: WorkDir) -> dict:
     if (far > 5 * 2000).any():
         raise InputError(points[0], f"the MLS cloud lies {far.max():,.0f} m from the mesh: wrong CRS, units or mesh offset")
     if cfg.registration.enabled:
+        from tasks.register import register_clouds
+
         result = register_clouds(source, target, cfg.registration)
         registration = result.to_json()
     else:
+        from tasks.register import check_coregistered
+
         ok, med = check_coregistered(source, target)
         if not ok:
             log.warning("registration is switched off but the MLS points lie %.3f m (median) from the mesh "

@@ -75,7 +75,7 @@ def fit_count_outliers(counts: np.ndarray, sigma_low: float, sigma_high: float, 
         values = np.log10(values)
     mask = np.zeros(len(counts), dtype=bool)
     if len(values) < 3:
-        return OutlierFit(np.nan, np.nan, 0.0, np.inf, log, mask, 0, int(len(values)))
+        return OutlierFit(np.nan, np.nan, 0.0, np.inf, log, mask, 0, len(values))
     if method == "robust":
         mean = float(np.median(values))
         std = float(MAD_TO_SIGMA * np.median(np.abs(values - mean)))
@@ -84,11 +84,11 @@ def fit_count_outliers(counts: np.ndarray, sigma_low: float, sigma_high: float, 
     else:
         mean, std = float(values.mean()), float(values.std())
     if std == 0.0:
-        return OutlierFit(mean, 0.0, 0.0, np.inf, log, mask, 0, int(len(values)))
+        return OutlierFit(mean, 0.0, 0.0, np.inf, log, mask, 0, len(values))
     lo_v, hi_v = mean - sigma_low * std, mean + sigma_high * std
     mask[fitted] = (values < lo_v) | (values > hi_v)
     low, high = (10.0 ** lo_v, 10.0 ** hi_v) if log else (lo_v, hi_v)
-    return OutlierFit(mean, std, float(low), float(high), log, mask, int(mask.sum()), int(len(values)))
+    return OutlierFit(mean, std, float(low), float(high), log, mask, int(mask.sum()), len(values))
 
 
 def flag_patch_count_outliers(n_points: np.ndarray, n_faces: np.ndarray, sigma_low: float, sigma_high: float,
@@ -121,7 +121,7 @@ def save_histogram_png(counts: np.ndarray, fit: OutlierFit, path: str | Path, ti
     ax = fig.add_subplot(1, 1, 1)
     if len(values):
         n_bins = int(np.clip(np.sqrt(len(values)), 10, 80))
-        hist, edges, _ = ax.hist(values, bins=n_bins, color="0.6", label=f"{len(values)} patches")
+        _, edges, _ = ax.hist(values, bins=n_bins, color="0.6", label=f"{len(values)} patches")
         if np.isfinite(fit.std) and fit.std > 0:
             lo_v = np.log10(fit.low) if fit.log else fit.low
             hi_v = np.log10(fit.high) if fit.log else fit.high

@@ -8,6 +8,8 @@ module reads and writes the work dir.
 from __future__ import annotations
 
 import logging
+import os
+import socket
 import time
 from pathlib import Path
 
@@ -20,7 +22,7 @@ from storage.ids import TileId
 from storage.manifest import ManifestRecord, combine_fingerprints, is_done, params_hash, write_record
 from storage.workdir import WorkDir, read_campus
 from tasks.config import CampusConfig
-from tasks.partition import build_tile_tables, pack_patch_key, patch_index
+from tasks.partition import build_tile_tables
 
 log = logging.getLogger("ms3d.patches")
 
@@ -33,14 +35,12 @@ def _concat(parts: list[dict[str, np.ndarray]]) -> dict[str, np.ndarray] | None:
 
 def bad_patch_keys(labels_path: str, origin: np.ndarray, patch_size) -> np.ndarray:
     """Packed keys of bad patches from a synth defects.json or a CSV of patch ids. (k,) int64 sorted."""
-    from storage.labels import bad_keys_from_csv, load_defect_samples
+    from storage.labels import bad_keys_from_csv, bad_keys_from_defects
 
     p = Path(labels_path)
     if p.suffix.lower() == ".csv":
         return np.unique(bad_keys_from_csv(p))
-    xyz_world, _ = load_defect_samples(p)
-    local = xyz_world - np.asarray(origin, np.float64)
-    return np.unique(pack_patch_key(patch_index(local, patch_size)))
+    return np.unique(bad_keys_from_defects(p, np.asarray(origin, np.float64), patch_size))
 
 
 def partition_params(cfg: CampusConfig, campus: dict) -> dict:
@@ -53,7 +53,7 @@ def run_partition_tile(tile: TileId, cfg: CampusConfig, wd: WorkDir, blocked: st
     ``blocked``: the error of an input this tile depends on; the tile then fails with it.
     Raises InputError (tile failed) or returns a summary; an empty tile is recorded as ``empty``.
     """
-    from storage.patch_store import write_tile_tables
+    from storage.patch_store import TileMeta, write_tile_tables
 
     campus = read_campus(wd)
     staging = wd.staging_dir(tile)
@@ -84,11 +84,10 @@ def run_partition_tile(tile: TileId, cfg: CampusConfig, wd: WorkDir, blocked: st
             raise EmptyTileError(staging, f"tile {tile.key} holds no points and no faces")
         pts_s, faces_s, patches = build_tile_tables(points, faces, cfg.partition.patch_size_m)
         if cfg.inputs.labels:
-            bad = bad_patch_keys(cfg.inputs.labels, np.zeros(3) + np.asarray(campus["frame"]["origin"]),
-                                 cfg.partition.patch_size_m)
+            bad = bad_patch_keys(cfg.inputs.labels, campus["frame"]["origin"], cfg.partition.patch_size_m)
             patches["label"] = np.isin(patches["patch"], bad).astype(np.int8)
-        meta = {"tile": tile.key, "crs": campus["frame"].get("crs"), "patch_size_m": list(cfg.partition.patch_size_m),
-                "textures": textures, "origin": campus["frame"]["origin"]}
+        meta = TileMeta(tile=tile.key, patch_size_m=tuple(cfg.partition.patch_size_m),
+                        crs=campus["frame"].get("crs"), textures=tuple(textures))
         write_tile_tables(wd.tile_dir(tile), pts_s or None, faces_s or None, patches, meta)
     except EmptyTileError as e:
         write_record(wd, ManifestRecord("partition", tile.key, "empty", fp, ph, error=str(e),
@@ -102,7 +101,8 @@ def run_partition_tile(tile: TileId, cfg: CampusConfig, wd: WorkDir, blocked: st
     n_faces = int(len(faces_s.get("x0", []))) if faces_s else 0
     summary = {"tile": tile.key, "status": "done", "n_points": n_pts, "n_faces": n_faces,
                "n_patches": int(len(patches["patch"])),
-               "n_bad": int((patches["label"] == 1).sum()), "n_labelled": int((patches["label"] >= 0).sum())}
+               "n_bad": int((patches["label"] == 1).sum()), "n_labelled": int((patches["label"] >= 0).sum()),
+               "worker": f"{socket.gethostname()}:{os.getpid()}"}
     outputs = [str((wd.tile_dir(tile) / f).relative_to(wd.root)) for f in ("patches.parquet",)]
     write_record(wd, ManifestRecord("partition", tile.key, "done", fp, ph, seconds=time.perf_counter() - t0,
                                     outputs=outputs, summary=summary))

@@ -189,9 +189,8 @@ def _unit_normals(vertices, faces) -> np.ndarray:
 class _MeshDistance:
     """An open3d scene over faces of a mesh, in a float64 frame centred on them (float32 inside)."""
 
-    def __init__(self, vertices: np.ndarray, faces: np.ndarray, face_ids: np.ndarray | None = None):
-        self.face_ids = np.arange(len(faces)) if face_ids is None else face_ids
-        used, inv = np.unique(faces[self.face_ids], return_inverse=True)
+    def __init__(self, vertices: np.ndarray, faces: np.ndarray):
+        used, inv = np.unique(faces, return_inverse=True)
         self.faces = inv.reshape(-1, 3)
         v = vertices[used]
         self.centre = 0.5 * (v.min(0) + v.max(0)) if len(v) else np.zeros(3)
@@ -217,7 +216,7 @@ class _MeshDistance:
             q = closest_points_on_triangles(p[ok], tri[:, 0], tri[:, 1], tri[:, 2])
             d64 = np.linalg.norm(p[ok] - q, axis=1)
             d[ok] = np.where(np.isfinite(d64), d64, d[ok])  # degenerate faces keep the float32 value
-        return d, np.where(ok, self.face_ids[np.minimum(prim, len(self.faces) - 1)], -1)
+        return d, np.where(ok, prim, -1)
 
     def covered_along(self, points: np.ndarray, normals: np.ndarray, half_m: float) -> np.ndarray:
         """(k,) bool: the mesh crosses the segment points +- half_m * normals ((k, 3) unit vectors)."""
@@ -227,7 +226,7 @@ class _MeshDistance:
         return self.scene.cast_rays(o3d.core.Tensor(rays))["t_hit"].numpy() <= 2 * half_m
 
 
-def point_to_mesh_distance(points, vertices, faces, *, return_faces=False, exact=True, chunk_size=2_000_000):
+def point_to_mesh_distance(points, vertices, faces, *, return_faces=False, exact=True, chunk_size=1_000_000):
     """Exact unsigned distance from each point to a triangle set.
 
     points: (k, 3) float64 metres; vertices: (n, 3) float64 metres, same frame; faces: (m, 3) int64.
@@ -399,7 +398,8 @@ class QualityReport:
         for name, s in (("accuracy", self.accuracy), ("completeness", self.completeness)):
             cells = "".join(f(x) for x in (s.mean_m, s.median_m, s.p90_m, s.p95_m, s.rms_m, s.max_m))
             rows.append(f"{name:14}{cells}  {s.area_m2:12.2f}")
-        rows.append(f"chamfer {self.chamfer_m:.4f} m, L2 {self.chamfer_l2_m2:.6f} m² (spacing {self.spacing_m} m)")
+        rows.append(f"chamfer {self.chamfer_m:.4f} m, L2 {self.chamfer_l2_m2:.6f} m², "
+                    f"spacing {self.spacing_m} m")
         rows.append(f"{'tau m':>8}{'precision':>10}{'recall':>8}{'F':>8}")
         rows += [f"{t:8.3f}{p:10.3f}{r:8.3f}{fs:8.3f}"
                  for t, p, r, fs in zip(self.taus_m, self.precision, self.recall, self.fscore)]
@@ -428,7 +428,7 @@ class QualityPartial:
     class_names: tuple[str, ...]
 
     def __add__(self, other: QualityPartial) -> QualityPartial:
-        key = lambda q: (q.taus_m, q.hole_threshold_m, q.class_names)  # noqa: E731
+        key = lambda q: (q.taus_m, q.hole_threshold_m, q.class_names)
         if key(self) != key(other):
             raise ValueError("cannot merge partials measured with different taus, thresholds or classes")
         return replace(self, accuracy=self.accuracy + other.accuracy,
@@ -463,7 +463,8 @@ class QualityPartial:
 def _validated(vertices, faces, name: str):
     v, f = np.asarray(vertices, np.float64), np.asarray(faces)
     if v.ndim != 2 or v.shape[1] != 3 or f.ndim != 2 or (f.size and f.shape[1] != 3):
-        raise InputError(None, f"{name} mesh: vertices must be (n, 3), faces (m, 3): got {v.shape}, {f.shape}")
+        raise InputError(None, f"{name} mesh: vertices must be (n, 3) and faces (m, 3), "
+                               f"not {v.shape} and {f.shape}")
     if not np.isfinite(v).all():
         bad = int((~np.isfinite(v).all(1)).sum())
         raise InputError(None, f"{name} mesh: {bad} vertices are NaN or infinite")
@@ -522,7 +523,7 @@ def evaluate_partial(pred_vertices, pred_faces, true_vertices, true_faces, *, ta
                      true_face_class=None, class_names: Sequence[str] | Mapping[int, str] | None = None,
                      region=None, tile: TileId | None = None, tile_size_m: float = 100.0,
                      hole_threshold_m: float = 0.20, max_distance_m: float | None = None, rng=0,
-                     chunk_size: int = 2_000_000, exact: bool = True) -> QualityPartial:
+                     chunk_size: int = 1_000_000, exact: bool = True) -> QualityPartial:
     """The mergeable sums of :func:`evaluate_mesh` for the samples inside ``region`` and ``tile``.
 
     Samples are drawn on the faces given and kept when they lie in the region / tile; their
@@ -550,6 +551,7 @@ def evaluate_partial(pred_vertices, pred_faces, true_vertices, true_faces, *, ta
             cls, ok = np.full(len(d), -1), (ofid >= 0) if side is acc else np.ones(len(d), bool)
             if tc is not None:  # pred samples take the class of their nearest truth face
                 cls[ok] = tc[ofid[ok]] if side is acc else tc[fid]
+                cls[cls >= len(names)] = -1  # classes without a name count in the totals only
             if side is acc:
                 in_mask = holes = np.zeros(len(d), bool)
             else:

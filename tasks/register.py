@@ -31,17 +31,29 @@ from tasks.config import RegistrationConfig
 
 _reg = o3d.pipelines.registration
 
+_debug: dict = {}
+
 # Parameters not (yet) in RegistrationConfig; candidates for config fields.
 MIN_POINTS = 100  # fewer finite points than this cannot be registered
 CROP_MARGIN_M = 10.0  # target is cropped to the source bbox grown by this much
-ROTATION_PRIOR_DEG = (5.0, 5.0, 15.0)  # max |roll|, |pitch|, |yaw| (axis-angle components) of a hypothesis
+ROTATION_PRIOR_DEG = (5.0, 5.0, 10.0)  # max |roll|, |pitch|, |yaw| (axis-angle components) of a hypothesis
 NORMAL_RADIUS_VOXELS = 2.5  # normal estimation radius, in voxels
 FPFH_RADIUS_VOXELS = 5.0  # FPFH radius, in voxels
 SAC_MIN_THRESHOLD_VOXELS = 0.5  # RANSAC inlier distance is at least this many voxels (see coarse_register)
 SAC_ATTEMPTS = 3  # independent RANSAC runs (different seeds); the best fitness wins
+SAC_EVAL_POINTS = 20_000  # source voxels on which RANSAC scores a hypothesis
+SAC_MAX_KEYPOINTS = (5_000, 20_000)  # FPFH keypoints (source, target), drawn among the most curved voxels
+KEYPOINT_MIN_CURVATURE = 0.02  # surface variation l0 / (l0 + l1 + l2) of a keypoint (a plane is ~0)
+SAC_MUTUAL = False
+SAC_CONSISTENT_MATCHES = 300  # matches kept for RANSAC, by degree in the compatibility graph
+MAX_OFFSET_M = 10.0  # a feature match is only sought this far away (+ the rotation prior at that distance)
 FINE_DISTANCES_M = (1.0, 0.3, 0.15)  # ICP max correspondence distance schedule
-FINE_COARSE_POINTS = 60_000  # source points used in the loose (>= 0.3 m) ICP levels
+FINE_COARSE_POINTS = 60_000  # source points used in every ICP level but the last
 FINE_LEVEL_ITERATIONS = 30  # iteration cap of every ICP level but the last (which uses cfg.icp_iterations)
+FINE_METHOD = "plane"  # "plane": point-to-plane similarity ICP; "point": Open3D point-to-point with scaling
+TARGET_NORMAL_RADIUS_M = 0.3  # normals of mesh vertices when the caller has none (~3 vertex spacings)
+TARGET_MAX_POINTS = 3_000_000  # random cap on cropped mesh vertices
+CHECK_POINTS = 50_000  # source points sampled by check_coregistered
 PRE_CAP_FACTOR = 8  # random pre-cap (before voxelling) at this many times cfg.max_points
 
 
@@ -222,20 +234,120 @@ def _estimate_normals(pc: o3d.geometry.PointCloud, radius_m: float, viewpoint: n
 # --------------------------------------------------------------------------- coarse: SAC-IA
 
 
-def _fpfh(pc: o3d.geometry.PointCloud, voxel_m: float):
-    return _reg.compute_fpfh_feature(
-        pc, o3d.geometry.KDTreeSearchParamHybrid(radius=FPFH_RADIUS_VOXELS * voxel_m, max_nn=100)
-    )
+def _surface_variation(pc: o3d.geometry.PointCloud, radius_m: float) -> np.ndarray:
+    """(n,) l0 / (l0 + l1 + l2) of each point's neighbourhood covariance: 0 on planes, ~0.1 on edges."""
+    pc.estimate_covariances(o3d.geometry.KDTreeSearchParamHybrid(radius=radius_m, max_nn=30))
+    ev = np.linalg.eigvalsh(np.asarray(pc.covariances))
+    return ev[:, 0] / np.maximum(ev.sum(axis=1), 1e-18)
+
+
+def _keypoints(pc: o3d.geometry.PointCloud, radius_m: float, cap: int, rng: np.random.Generator) -> np.ndarray:
+    """Indices (k,) int64 of curved points (edges, corners), at most ``cap``, random among them."""
+    curv = _surface_variation(pc, radius_m)
+    idx = np.flatnonzero(curv >= KEYPOINT_MIN_CURVATURE)
+    if len(idx) < 3 * MIN_POINTS // 10:  # a nearly planar scene: fall back to the most curved points
+        idx = np.argsort(curv)[-max(MIN_POINTS, min(cap, len(curv))):]
+    if len(idx) > cap:
+        idx = np.sort(rng.choice(idx, cap, replace=False))
+    return idx
+
+
+def match_features(
+    src_xyz: np.ndarray,
+    src_feat: np.ndarray,
+    tgt_xyz: np.ndarray,
+    tgt_feat: np.ndarray,
+    gate_m: np.ndarray,
+    mutual: bool = False,
+) -> np.ndarray:
+    """Nearest-descriptor matches, sought only among target points within ``gate_m`` of each source point.
+
+    src_xyz: (n, 3), src_feat: (n, d), tgt_xyz: (m, 3), tgt_feat: (m, d), gate_m: (n,) metres.
+    Returns (k, 2) int64 pairs (source index, target index), at most one per source point; with
+    ``mutual`` each pair is also the best source match of its target point (within the same gates).
+    """
+    tree = cKDTree(tgt_xyz)
+    pi, pj, pd = [], [], []
+    for lo in range(0, len(src_xyz), 1000):
+        hi = min(lo + 1000, len(src_xyz))
+        lists = tree.query_ball_point(src_xyz[lo:hi], gate_m[lo:hi], workers=-1)
+        counts = np.fromiter(map(len, lists), dtype=np.int64, count=hi - lo)
+        if not counts.sum():
+            continue
+        i = np.repeat(np.arange(lo, hi), counts)
+        j = np.concatenate([np.asarray(l, dtype=np.int64) for l in lists if l])
+        diff = src_feat[i] - tgt_feat[j]
+        d = np.einsum("ij,ij->i", diff, diff)
+        # i is sorted: each source point's best candidate by a segmented argmin
+        starts = np.flatnonzero(np.r_[True, i[1:] != i[:-1]])
+        best = starts + _segmented_argmin(d, starts)
+        pi.append(i[best])
+        pj.append(j[best])
+        pd.append(d[best])
+        if mutual:
+            pd[-1] = (pd[-1], i, j, d)
+    if not pi:
+        return np.empty((0, 2), dtype=np.int64)
+    i, j = np.concatenate(pi), np.concatenate(pj)
+    if mutual:
+        d_best = np.concatenate([x[0] for x in pd])
+        min_for_j = np.full(len(tgt_xyz), np.inf)
+        for _, ii, jj, dd in pd:
+            np.minimum.at(min_for_j, jj, dd)
+        keep = d_best <= min_for_j[j]
+        i, j = i[keep], j[keep]
+    return np.stack([i, j], axis=1)
+
+
+def _segmented_argmin(values: np.ndarray, starts: np.ndarray) -> np.ndarray:
+    """Offset (within its segment) of the minimum of each segment of ``values`` beginning at ``starts``."""
+    mins = np.minimum.reduceat(values, starts)
+    seg = np.repeat(np.arange(len(starts)), np.diff(np.r_[starts, len(values)]))
+    hit = np.flatnonzero(values == mins[seg])
+    first = np.r_[True, seg[hit][1:] != seg[hit][:-1]]
+    return hit[first] - starts[seg[hit][first]]
+
+
+def consistent_matches(
+    src_xyz: np.ndarray, tgt_xyz: np.ndarray, tol_m: float, max_rotation_rad: float, keep: int
+) -> np.ndarray:
+    """Indices of the matches most consistent with the others under a small-rotation similarity.
+
+    src_xyz, tgt_xyz: (k, 3) matched positions. Two true matches a, b of a similarity with a
+    rotation below ``max_rotation_rad`` and a scale near 1 keep their distance (``| |p_a - p_b| -
+    |q_a - q_b| | < tol_m + 1 % of it``) and nearly their displacement (``|(q_a - p_a) - (q_b - p_b)| <
+    tol_m + 2 sin(max_rotation / 2) |p_a - p_b|``). Each match's degree in this compatibility graph
+    ranks it; returns the indices of the ``keep`` best (int64, sorted by decreasing degree).
+    """
+    k = len(src_xyz)
+    disp = tgt_xyz - src_xyz
+    degree = np.zeros(k, dtype=np.int64)
+    chord = 2.0 * np.sin(max_rotation_rad / 2.0)
+    for lo in range(0, k, 512):
+        hi = min(lo + 512, k)
+        dp = np.linalg.norm(src_xyz[lo:hi, None] - src_xyz[None], axis=2)
+        dq = np.linalg.norm(tgt_xyz[lo:hi, None] - tgt_xyz[None], axis=2)
+        dd = np.linalg.norm(disp[lo:hi, None] - disp[None], axis=2)
+        ok = (np.abs(dp - dq) < tol_m + 0.01 * dp) & (dd < tol_m + chord * dp)
+        degree[lo:hi] = ok.sum(axis=1)
+    return np.argsort(-degree, kind="stable")[: min(keep, k)]
 
 
 def coarse_register(
     source_xyz: np.ndarray, target_xyz: np.ndarray, cfg: RegistrationConfig
 ) -> tuple[np.ndarray, float, float]:
-    """SAC-IA: FPFH features + RANSAC on mutual feature matches -> rigid (4, 4) source -> target.
+    """SAC-IA: FPFH features + RANSAC on feature matches -> rigid (4, 4) source -> target.
 
     source_xyz, target_xyz: (n, 3) / (m, 3) float64 campus-local metres, already thinned and the
     target cropped around the source. Both are voxel-downsampled at ``cfg.voxel_m``; normals use a
     radius of ``NORMAL_RADIUS_VOXELS`` voxels and FPFH ``FPFH_RADIUS_VOXELS`` voxels.
+
+    Descriptors are computed only at keypoints: voxels whose neighbourhood is curved (edges and
+    corners; on planes every FPFH looks alike and only adds false matches). A source keypoint is
+    matched to the target keypoint with the nearest descriptor among those within
+    ``MAX_OFFSET_M`` (+ what the rotation prior moves a point at that distance from the data
+    centroid), mutually. This encodes the brief's prior (both clouds in one campus frame, off by a
+    few metres and degrees) and turns a repetitive street into a solvable matching problem.
 
     The paper's 10 cm (``cfg.sac_threshold_m``) is the RANSAC inlier distance, but two independent
     voxel grids put their centroids up to ~half a voxel apart on the same surface, so a 10 cm
@@ -249,7 +361,9 @@ def coarse_register(
     Returns (matrix, fitness, inlier_distance_m).
     """
     voxel = float(cfg.voxel_m)
-    viewpoint = source_xyz.mean(axis=0) + np.array([0.0, 0.0, 5.0])
+    rng = np.random.default_rng(cfg.seed)
+    centroid = source_xyz.mean(axis=0)
+    viewpoint = centroid + np.array([0.0, 0.0, 5.0])
     src = _cloud(source_xyz).voxel_down_sample(voxel)
     tgt = _cloud(target_xyz).voxel_down_sample(voxel)
     if len(src.points) < MIN_POINTS or len(tgt.points) < MIN_POINTS:
@@ -258,23 +372,330 @@ def coarse_register(
             f"after {voxel} m voxels only {len(src.points)} source / {len(tgt.points)} target points remain "
             f"(need {MIN_POINTS}); the clouds are too small or do not overlap",
         )
-    for pc in (src, tgt):
-        _estimate_normals(pc, NORMAL_RADIUS_VOXELS * voxel, viewpoint)
-    f_src, f_tgt = _fpfh(src, voxel), _fpfh(tgt, voxel)
+    radius = NORMAL_RADIUS_VOXELS * voxel
+    ck = _Clock(time.perf_counter()); _debug["coarse_laps"] = ck.laps
+    ck.lap("voxel")
+    ks = _keypoints(src, radius, SAC_MAX_KEYPOINTS[0], rng)
+    kt = _keypoints(tgt, radius, SAC_MAX_KEYPOINTS[1], rng)
+    ck.lap("keypoints")
+    for pc in (src, tgt):  # reuses the covariances _keypoints left on the cloud
+        _estimate_normals(pc, radius, viewpoint)
+    ck.lap("normals")
+    search = o3d.geometry.KDTreeSearchParamHybrid(radius=FPFH_RADIUS_VOXELS * voxel, max_nn=100)
+    f_src = np.asarray(_reg.compute_fpfh_feature(src, search, o3d.utility.IntVector(ks.astype(np.int32))).data).T
+    f_tgt = np.asarray(_reg.compute_fpfh_feature(tgt, search, o3d.utility.IntVector(kt.astype(np.int32))).data).T
+    ck.lap("fpfh")
+    src_xyz, tgt_xyz = np.asarray(src.points), np.asarray(tgt.points)
+    sin_rot = np.sin(np.radians(max(ROTATION_PRIOR_DEG)))
+    gate = MAX_OFFSET_M + sin_rot * np.linalg.norm(src_xyz[ks] - centroid, axis=1)
+    pairs = match_features(src_xyz[ks], f_src, tgt_xyz[kt], f_tgt, gate, mutual=SAC_MUTUAL)
+    n_raw = len(pairs)
+    _debug['raw'] = (src_xyz[ks][pairs[:, 0]], tgt_xyz[kt][pairs[:, 1]])
+    if len(pairs) > 3:
+        top = consistent_matches(
+            src_xyz[ks][pairs[:, 0]], tgt_xyz[kt][pairs[:, 1]], 2.0 * voxel,
+            np.radians(max(ROTATION_PRIOR_DEG)), SAC_CONSISTENT_MATCHES,
+        )
+        pairs = pairs[top]
+    if len(pairs) < 3:
+        raise InputError(None, "no FPFH matches between the MLS cloud and the mesh: do they overlap?")
+    ck.lap("match")
+    # RANSAC scores hypotheses on a subset of source voxels: the matched keypoints plus random others.
+    matched = ks[pairs[:, 0]]
+    others = np.setdiff1d(np.arange(len(src_xyz)), matched)
+    n_more = max(0, min(len(others), SAC_EVAL_POINTS - len(matched)))
+    eval_idx = np.concatenate([matched, np.sort(rng.choice(others, n_more, replace=False))])
+    corres = np.stack([np.arange(len(matched)), kt[pairs[:, 1]]], axis=1).astype(np.int32)
+    src_eval = _cloud(src_xyz[eval_idx])
     distance = max(float(cfg.sac_threshold_m), SAC_MIN_THRESHOLD_VOXELS * voxel)
     checkers = [
         _reg.CorrespondenceCheckerBasedOnEdgeLength(0.9),
-        _reg.CorrespondenceCheckerBasedOnDistance(distance),
         _reg.CorrespondenceCheckerBasedOnSourceRotation(np.radians(ROTATION_PRIOR_DEG).reshape(3, 1)),
+        _reg.CorrespondenceCheckerBasedOnDistance(distance),
     ]
     best = None
     for attempt in range(SAC_ATTEMPTS):
         o3d.utility.random.seed(int(cfg.seed) + attempt)
-        res = _reg.registration_ransac_based_on_feature_matching(
-            src, tgt, f_src, f_tgt, True, distance,
+        res = _reg.registration_ransac_based_on_correspondence(
+            src_eval, tgt, o3d.utility.Vector2iVector(corres), distance,
             _reg.TransformationEstimationPointToPoint(False), 3, checkers,
             _reg.RANSACConvergenceCriteria(int(cfg.sac_iterations), 0.9999),
         )
         if best is None or (res.fitness, -res.inlier_rmse) > (best.fitness, -best.inlier_rmse):
             best = res
+    ck.lap("ransac")
+    _debug.update(n_keypoints=(len(ks), len(kt)), n_matches=(n_raw, len(pairs)), pairs_xyz=(src_xyz[ks][pairs[:, 0]], tgt_xyz[kt][pairs[:, 1]]))
     return np.asarray(best.transformation).copy(), float(best.fitness), distance
+
+
+
+# --------------------------------------------------------------------------- fine: Scale-ICP
+
+
+def _box_corners(xyz: np.ndarray) -> np.ndarray:
+    lo, hi = xyz.min(axis=0), xyz.max(axis=0)
+    return np.array([[x, y, z] for x in (lo[0], hi[0]) for y in (lo[1], hi[1]) for z in (lo[2], hi[2])])
+
+
+def _max_motion(delta: np.ndarray, corners: np.ndarray) -> float:
+    """Largest displacement, metres, that the (4, 4) update ``delta`` gives the data's bbox corners."""
+    return float(np.linalg.norm(apply_similarity(delta, corners) - corners, axis=1).max())
+
+
+def plane_similarity_icp(
+    source_xyz: np.ndarray,
+    target_xyz: np.ndarray,
+    target_normals: np.ndarray,
+    init: np.ndarray,
+    max_distance_m: float,
+    max_iterations: int,
+    tolerance_m: float,
+    with_scale: bool = True,
+    tree: cKDTree | None = None,
+) -> tuple[np.ndarray, float, float, int]:
+    """Point-to-plane ICP estimating a similarity (Gauss-Newton on 7 parameters, Tukey-weighted).
+
+    source_xyz: (n, 3), target_xyz: (m, 3), target_normals: (m, 3) unit, float64 metres.
+    init: (4, 4) source -> target. Each iteration pairs every transformed source point with its
+    nearest target point within ``max_distance_m`` and minimises ``sum w (n . (s R p + t - q))^2``
+    over a rotation, translation and (with ``with_scale``) a scale about the paired points'
+    centroid, linearised. Weights: Tukey biweight with c = 4.685 x 1.4826 x MAD of the residuals
+    (at least 1 cm, at most ``max_distance_m``). Stops when an update moves no corner of the source
+    bounding box by more than ``tolerance_m`` or after ``max_iterations``.
+
+    Measuring the residual along the target normal makes it insensitive to where on the surface the
+    (noisy, ~10 cm spaced) mesh vertex lies, which is what biases point-to-point ICP.
+    Returns (matrix, fitness, rmse_m, iterations): fitness = share of source points paired, rmse =
+    RMS point-to-plane residual of the paired points under the returned matrix.
+    """
+    tree = cKDTree(target_xyz) if tree is None else tree
+    m = np.asarray(init, dtype=np.float64).copy()
+    corners = _box_corners(source_xyz)
+    it = 0
+    for it in range(1, max_iterations + 1):
+        p = apply_similarity(m, source_xyz)
+        dist, idx = tree.query(p, distance_upper_bound=max_distance_m, workers=-1)
+        ok = np.isfinite(dist)
+        if ok.sum() < 10:
+            raise InputError(None, f"ICP lost the overlap: {int(ok.sum())} source points within {max_distance_m} m")
+        p, q, nrm = p[ok], target_xyz[idx[ok]], target_normals[idx[ok]]
+        r = np.einsum("ij,ij->i", p - q, nrm)
+        c = np.clip(4.685 * 1.4826 * np.median(np.abs(r - np.median(r))), 0.01, max_distance_m)
+        w = np.where(np.abs(r) < c, (1.0 - (r / c) ** 2) ** 2, 0.0)
+        c0 = (w[:, None] * p).sum(axis=0) / w.sum()
+        a = p - c0
+        cols = [np.cross(a, nrm), nrm]
+        if with_scale:
+            cols.append(np.einsum("ij,ij->i", a, nrm)[:, None])
+        jac = np.concatenate(cols, axis=1)
+        jw = jac * w[:, None]
+        h = jw.T @ jac
+        h += 1e-9 * np.trace(h) * np.eye(len(h))  # keeps an unobservable direction from exploding
+        x = np.linalg.solve(h, -(jw.T @ r))
+        ds = x[6] if with_scale else 0.0
+        step = np.eye(4)
+        step[:3, :3] = (1.0 + ds) * _small_rotation(x[:3])
+        step[:3, 3] = c0 + x[3:6] - step[:3, :3] @ c0
+        m = step @ m
+        if _max_motion(step, apply_similarity(m, corners)) < tolerance_m:
+            break
+    p = apply_similarity(m, source_xyz)
+    dist, idx = tree.query(p, distance_upper_bound=max_distance_m, workers=-1)
+    ok = np.isfinite(dist)
+    r = np.einsum("ij,ij->i", p[ok] - target_xyz[idx[ok]], target_normals[idx[ok]])
+    rmse = float(np.sqrt(np.mean(r**2))) if ok.any() else float("nan")
+    return m, float(ok.mean()), rmse, it
+
+
+def point_similarity_icp(
+    source_xyz: np.ndarray,
+    target_xyz: np.ndarray,
+    init: np.ndarray,
+    max_distance_m: float,
+    max_iterations: int,
+    with_scale: bool = True,
+) -> tuple[np.ndarray, float, float, int]:
+    """Open3D point-to-point ICP, with scaling (the paper's Scale-ICP as Open3D implements it).
+
+    Same arrays and return as :func:`plane_similarity_icp` (rmse is point-to-point here; iterations
+    is not reported by Open3D, -1). Converges on relative fitness / RMSE changes of 1e-6.
+    """
+    res = _reg.registration_icp(
+        _cloud(source_xyz), _cloud(target_xyz), max_distance_m, np.asarray(init, dtype=np.float64),
+        _reg.TransformationEstimationPointToPoint(with_scale),
+        _reg.ICPConvergenceCriteria(relative_fitness=1e-6, relative_rmse=1e-6, max_iteration=int(max_iterations)),
+    )
+    return np.asarray(res.transformation).copy(), float(res.fitness), float(res.inlier_rmse), -1
+
+
+def fine_register(
+    source_xyz: np.ndarray,
+    target_xyz: np.ndarray,
+    target_normals: np.ndarray,
+    init: np.ndarray,
+    cfg: RegistrationConfig,
+    rng: np.random.Generator,
+) -> tuple[np.ndarray, float, float, str]:
+    """Scale-ICP from a coarse alignment, over the distance schedule ``FINE_DISTANCES_M``.
+
+    source_xyz: (n, 3) thinned MLS points; target_xyz/target_normals: (m, 3) mesh vertices and unit
+    normals near the source; init: (4, 4) coarse source -> target; all float64 campus-local metres.
+
+    Every level but the last runs at most ``FINE_LEVEL_ITERATIONS`` iterations on
+    ``FINE_COARSE_POINTS`` random source points; the last uses all of them and
+    ``cfg.icp_iterations`` (paper: 1000). The paper's "1 mm" (``cfg.icp_threshold_m``) cannot be a
+    correspondence distance here: mesh vertices are ~10 cm apart and carry a few cm of noise, so
+    almost no MLS point has a vertex within 1 mm. It is used as the convergence threshold instead:
+    a level ends when one update moves no corner of the source's bounding box by more than 1 mm.
+
+    Returns (matrix, fitness, rmse_m, method name).
+    """
+    small = source_xyz
+    if len(source_xyz) > FINE_COARSE_POINTS:
+        small = source_xyz[np.sort(rng.choice(len(source_xyz), FINE_COARSE_POINTS, replace=False))]
+    tree = cKDTree(target_xyz) if FINE_METHOD == "plane" else None
+    m = np.asarray(init, dtype=np.float64)
+    fit = rmse = float("nan")
+    for level, dist in enumerate(FINE_DISTANCES_M):
+        last = level == len(FINE_DISTANCES_M) - 1
+        pts = source_xyz if last else small
+        iters = int(cfg.icp_iterations) if last else min(FINE_LEVEL_ITERATIONS, int(cfg.icp_iterations))
+        if FINE_METHOD == "plane":
+            m, fit, rmse, _ = plane_similarity_icp(
+                pts, target_xyz, target_normals, m, dist, iters, float(cfg.icp_threshold_m), cfg.with_scale, tree
+            )
+        else:
+            m, fit, rmse, _ = point_similarity_icp(pts, target_xyz, m, dist, iters, cfg.with_scale)
+    return m, fit, rmse, f"{FINE_METHOD}-scale-icp" if cfg.with_scale else f"{FINE_METHOD}-icp"
+
+
+# --------------------------------------------------------------------------- public entry points
+
+
+class _Clock:
+    """Wall and CPU seconds per named step (reported in RegistrationResult.details)."""
+
+    def __init__(self, t0: float):
+        self.t, self.c, self.laps = t0, time.process_time(), {}
+
+    def lap(self, name: str) -> None:
+        now, cpu = time.perf_counter(), time.process_time()
+        self.laps[name] = (round(now - self.t, 2), round(cpu - self.c, 2))
+        self.t, self.c = now, cpu
+
+
+def _near(points: np.ndarray, reference: np.ndarray, distance_m: float) -> np.ndarray:
+    """Boolean (n,) mask of ``points`` within ``distance_m`` of some ``reference`` point (thinned at d/3)."""
+    ref = np.asarray(_cloud(reference).voxel_down_sample(distance_m / 3.0).points)
+    dist, _ = cKDTree(ref).query(points, distance_upper_bound=distance_m, workers=-1)
+    return np.isfinite(dist)
+
+
+def check_coregistered(
+    source_xyz: np.ndarray, target_xyz: np.ndarray, tol_m: float = 0.2, seed: int = 0
+) -> tuple[bool, float]:
+    """Do two clouds already overlap? (Used when registration is switched off.)
+
+    source_xyz: (n, 3) MLS points, target_xyz: (m, 3) mesh vertices, float64 campus-local metres.
+    Samples ``CHECK_POINTS`` source points and measures the distance to the nearest target point.
+    Returns (median <= tol_m, median distance in metres). A shift *along* the dominant surfaces
+    (e.g. along a street whose facades and ground are planes) moves points within those planes and
+    is barely visible to this test; it catches offsets across them (height, across the street).
+    """
+    src = _finite_xyz(source_xyz, "MLS point cloud")
+    tgt = _finite_xyz(target_xyz, "mesh vertices")
+    rng = np.random.default_rng(seed)
+    if len(src) > CHECK_POINTS:
+        src = src[rng.choice(len(src), CHECK_POINTS, replace=False)]
+    lo, hi = src.min(axis=0) - CROP_MARGIN_M, src.max(axis=0) + CROP_MARGIN_M
+    tgt = tgt[crop_to_box(tgt, lo, hi)]
+    if len(tgt) == 0:
+        return False, float("inf")
+    dist, _ = cKDTree(tgt).query(src, workers=-1)
+    median = float(np.median(dist))
+    return median <= tol_m, median
+
+
+def register_clouds(
+    source_xyz: np.ndarray,
+    target_xyz: np.ndarray,
+    cfg: RegistrationConfig,
+    target_normals: np.ndarray | None = None,
+) -> RegistrationResult:
+    """Estimate the similarity mapping the MLS cloud onto the mesh: SAC-IA, then Scale-ICP.
+
+    source_xyz: (n, 3) MLS points; target_xyz: (m, 3) mesh vertices; target_normals: optional
+    (m, 3) vertex normals (estimated when None). float64 campus-local metres; NaN/inf rows are
+    dropped. Either input may be millions of points: the source is voxelled at
+    ``cfg.fine_voxel_m`` and capped at ``cfg.max_points``; the target is cropped to the source's
+    bounding box grown by ``CROP_MARGIN_M``, then, for the fine stage, to within
+    ``FINE_DISTANCES_M[0]`` (+ 0.5 m) of the coarsely aligned source.
+
+    With ``cfg.enabled`` False nothing is estimated: the identity is returned after
+    :func:`check_coregistered`, which warns when the clouds do not look co-registered.
+
+    Raises InputError when an input has fewer than ``MIN_POINTS`` finite points or the clouds do
+    not overlap. Deterministic for a given ``cfg.seed``.
+    """
+    t0 = time.perf_counter()
+    src = _finite_xyz(source_xyz, "MLS point cloud")
+    tgt_all = np.asarray(target_xyz)
+    tgt = _finite_xyz(tgt_all, "mesh vertices")
+    nrm = None
+    if target_normals is not None:
+        nrm = np.asarray(target_normals, dtype=np.float64)
+        if nrm.shape != tgt_all.shape:
+            raise InputError(None, f"target_normals has shape {nrm.shape}, mesh vertices {tgt_all.shape}")
+        nrm = nrm[np.isfinite(tgt_all.astype(np.float64)).all(axis=1)]
+    if not cfg.enabled:
+        ok, median = check_coregistered(src, tgt, seed=cfg.seed)
+        if not ok:
+            warnings.warn(
+                f"registration is disabled but the MLS cloud lies a median {median:.2f} m from the mesh: "
+                "are the inputs really co-registered?",
+                stacklevel=2,
+            )
+        return RegistrationResult(
+            np.eye(4), 1.0, float("nan"), float("nan"), float("nan"), len(src), len(tgt),
+            time.perf_counter() - t0, "identity (registration disabled)", {"median_distance_m": median},
+        )
+    rng = np.random.default_rng(cfg.seed)
+    clock = _Clock(t0)
+    src = subsample_for_registration(src, cfg.max_points, cfg.fine_voxel_m, rng)
+    lo, hi = src.min(axis=0) - CROP_MARGIN_M, src.max(axis=0) + CROP_MARGIN_M
+    keep = crop_to_box(tgt, lo, hi)
+    if keep.sum() < MIN_POINTS:
+        raise InputError(
+            None,
+            f"only {int(keep.sum())} mesh vertices lie within {CROP_MARGIN_M} m of the MLS cloud's extent "
+            f"{np.round(lo, 1).tolist()} - {np.round(hi, 1).tolist()}: the inputs do not overlap "
+            "(wrong CRS, origin or units?)",
+        )
+    tgt = tgt[keep]
+    nrm = None if nrm is None else nrm[keep]
+    if len(tgt) > TARGET_MAX_POINTS:
+        pick = np.sort(rng.choice(len(tgt), TARGET_MAX_POINTS, replace=False))
+        tgt, nrm = tgt[pick], (None if nrm is None else nrm[pick])
+
+    clock.lap("thin+crop")
+    coarse, coarse_fit, _ = coarse_register(src, tgt, cfg)
+    clock.lap("coarse")
+
+    near = _near(tgt, apply_similarity(coarse, src), FINE_DISTANCES_M[0] + 0.5)
+    tgt_f = tgt[near]
+    if len(tgt_f) < MIN_POINTS:
+        raise InputError(None, "the coarse registration left no mesh vertices near the MLS cloud")
+    if nrm is None:
+        pc = _cloud(tgt_f)
+        pc.estimate_normals(o3d.geometry.KDTreeSearchParamHybrid(radius=TARGET_NORMAL_RADIUS_M, max_nn=30))
+        nrm_f = np.asarray(pc.normals)
+    else:
+        nrm_f = nrm[near] / np.maximum(np.linalg.norm(nrm[near], axis=1, keepdims=True), 1e-12)
+    clock.lap("fine-prep")
+    matrix, fit, rmse, method = fine_register(src, tgt_f, nrm_f, coarse, cfg, rng)
+    clock.lap("fine")
+    scale = decompose_similarity(matrix)[0]
+    return RegistrationResult(
+        matrix, float(scale), fit, rmse, coarse_fit, len(src), len(tgt_f),
+        time.perf_counter() - t0, f"sac-ia+{method}", {"coarse_matrix": coarse, "seconds": clock.laps},
+    )

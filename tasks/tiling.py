@@ -31,7 +31,7 @@ def group_by_tile(tile_ij: np.ndarray) -> list[tuple[TileId, np.ndarray]]:
     if len(tile_ij) == 0:
         return []
     t = np.asarray(tile_ij, dtype=np.int64)
-    key = (t[:, 0] + (1 << 31)) << 32 | (t[:, 1] + (1 << 31))
+    key = ((t[:, 0] + (1 << 30)) << 31) | (t[:, 1] + (1 << 30))  # tile indices |i| < 2**30
     order = np.argsort(key, kind="stable")
     ks = key[order]
     cut = np.flatnonzero(np.diff(ks)) + 1

@@ -47,8 +47,15 @@ def test_obj_round_trip_with_two_textured_materials(tmp_path):
     rng = np.random.default_rng(1)
     uv = rng.uniform(0, 1, size=(m, 3, 2)).astype(np.float32)
     face_texture = (np.arange(m) % 3 == 0).astype(np.int64)  # interleaved materials
-    path = write_obj(tmp_path / "model.obj", vertices, faces, uv=uv, texture_images=images(), face_texture=face_texture)
-    assert sorted(p.name for p in tmp_path.iterdir()) == ["model.mtl", "model.obj", "model_tex0.png", "model_tex1.png"]
+    path = write_obj(
+        tmp_path / "model.obj", vertices, faces, uv=uv, texture_images=images(), face_texture=face_texture
+    )
+    assert sorted(p.name for p in tmp_path.iterdir()) == [
+        "model.mtl",
+        "model.obj",
+        "model_tex0.png",
+        "model_tex1.png",
+    ]
 
     mesh = read_mesh(path)
     assert mesh.n_faces == m and mesh.n_degenerate_dropped == 0 and mesh.n_duplicate_dropped == 0
@@ -114,7 +121,9 @@ def test_ply_round_trip_keeps_float64_world_coordinates(tmp_path):
     np.testing.assert_array_equal(mesh.faces, faces)
     np.testing.assert_array_equal(mesh.face_colors, colours)
     vcol = np.full((len(vertices), 3), 7, np.uint8)
-    np.testing.assert_array_equal(read_mesh(write_ply(tmp_path / "v.ply", vertices, faces, vertex_colors=vcol)).vertex_colors, vcol)
+    np.testing.assert_array_equal(
+        read_mesh(write_ply(tmp_path / "v.ply", vertices, faces, vertex_colors=vcol)).vertex_colors, vcol
+    )
 
 
 def test_glb_round_trip_through_trimesh_export(tmp_path):
@@ -149,7 +158,13 @@ def test_contextcapture_folder_of_tiles(tmp_path):
         name = f"Tile_+{ix:03d}_+{iy:03d}"
         vertices, faces = grid_mesh(3 + k, 3, seed=k)
         uv = np.full((len(faces), 3, 2), 0.5, np.float32)
-        write_obj(tmp_path / "Data" / name / f"{name}.obj", vertices, faces, uv=uv, texture_images=images()[k:k + 1])
+        write_obj(
+            tmp_path / "Data" / name / f"{name}.obj",
+            vertices,
+            faces,
+            uv=uv,
+            texture_images=images()[k : k + 1],
+        )
     tiles = list(iter_meshes(tmp_path / "Data"))
     assert [len(t.faces) for t in tiles] == [8, 12]
     merged = read_mesh_dir(tmp_path / "Data")
@@ -161,7 +176,9 @@ def test_contextcapture_folder_of_tiles(tmp_path):
 
 def test_bad_meshes_raise_input_errors_naming_the_file(tmp_path):
     vertices, faces = grid_mesh(3, 3)
-    path = write_obj(tmp_path / "m.obj", vertices, faces, uv=np.zeros((len(faces), 3, 2)), texture_images=images()[:1])
+    path = write_obj(
+        tmp_path / "m.obj", vertices, faces, uv=np.zeros((len(faces), 3, 2)), texture_images=images()[:1]
+    )
 
     (tmp_path / "m_tex0.png").unlink()
     with pytest.raises(InputError, match="m_tex0.png") as err:
@@ -213,10 +230,32 @@ def test_truncated_or_corrupt_glb(tmp_path):
 
 
 def test_concat_shifts_indices_and_merges_textures():
-    a = MeshData(np.eye(3), np.array([[0, 1, 2]]), face_texture=np.array([0], np.int16), textures=["/t/a.png"])
-    b = MeshData(np.eye(3) + 1, np.array([[2, 1, 0]]), face_texture=np.array([0], np.int16), textures=["/t/a.png"])
+    a = MeshData(
+        np.eye(3), np.array([[0, 1, 2]]), face_texture=np.array([0], np.int16), textures=["/t/a.png"]
+    )
+    b = MeshData(
+        np.eye(3) + 1, np.array([[2, 1, 0]]), face_texture=np.array([0], np.int16), textures=["/t/a.png"]
+    )
     c = MeshData(np.eye(3) + 2, np.array([[0, 2, 1]]))
     m = MeshData.concat([a, b, c])
     np.testing.assert_array_equal(m.faces, [[0, 1, 2], [5, 4, 3], [6, 8, 7]])
     np.testing.assert_array_equal(m.face_texture, [0, 0, -1])
     assert m.textures == ["/t/a.png"]
+
+
+@pytest.mark.parametrize(
+    "face_lines",
+    [
+        "f 1//1 2//1 3//1\r\nf 1//1 3//1 4//1\r\n",  # v//vn, CRLF
+        "f\t1/1/1 2/2/1 3/3/1  \nf 1/1/1 3/3/1 4/4/1\n",  # v/vt/vn, tab and trailing spaces
+        "f 1/1 2/2 3/3 4/4\n",  # a quad, fan-triangulated
+        "f -4/-4 -3/-3 -2/-2\nf -4/-4 -2/-2 -1/-1\n",  # relative ids
+    ],
+)
+def test_obj_face_layouts(tmp_path, face_lines):
+    head = "v 0 0 0\nv 1 0 0\nv 1 1 0\nv 0 1 0\nvt 0 0\nvt 1 0\nvt 1 1\nvt 0 1\nvn 0 0 1\n"
+    (tmp_path / "f.obj").write_bytes((head + face_lines).encode())
+    mesh = read_mesh(tmp_path / "f.obj")
+    np.testing.assert_array_equal(mesh.faces, [[0, 1, 2], [0, 2, 3]])
+    if "/" in face_lines and "//" not in face_lines:
+        np.testing.assert_array_equal(mesh.uv[1], [[0, 0], [1, 1], [0, 1]])

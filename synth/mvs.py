@@ -1,0 +1,384 @@
+"""A UAV photogrammetry (ContextCapture-like) mesh simulated from the truth, with labelled defects.
+
+How it is built, per building and for the terrain:
+
+1. every envelope chart (``synth.envelope``: walls, soffits, fascias, roof planes) and the terrain
+   (the extent minus the footprints) is covered with a jittered equilateral lattice of edge
+   ``edge_*_m`` and Delaunay-triangulated; chart edges are sampled identically from both sides,
+   so the charts weld into one connected surface (and tiles of one campus meet on their borders);
+2. wall vertices are moved along the wall normal onto the truth details seen from 1.8 m in front
+   (glass at the back of window recesses, balcony fronts, ledges): balconies become solid blobs,
+   recesses dips; terrain vertices drop onto the ground/road surface;
+3. that displacement is diffused over the mesh (recesses partly fill in, edges melt), corners are
+   rounded by a little Taubin smoothing;
+4. class, building and colour come from the nearest truth face;
+5. defects are injected (``synth.defects``), then low-frequency (a few cm) and high-frequency
+   (mm) noise along the vertex normals, then the holes are cut.
+
+Occluders are not in this mesh. Frames and units: mesh frame, metres, float64.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+
+import numpy as np
+import open3d as o3d
+
+from .buildings import charts_of
+from .defects import DefectParams, inject_defects, wall_records
+from .envelope import Chart, insert_points, polygon_normal
+from .scene import CLASS_COLOR, FaceClass, Mesh, Scene
+
+DETAIL_CLASSES = (FaceClass.WALL, FaceClass.GLASS, FaceClass.FRAME, FaceClass.BALCONY)
+
+
+@dataclass(frozen=True)
+class MvsParams:
+    """Resolution, blur and noise of the simulated photogrammetry mesh."""
+
+    edge_facade_m: float = 0.12  # walls, soffits, fascias, and every building chart edge
+    edge_roof_m: float = 0.16  # roof plane interiors
+    edge_ground_m: float = 0.40  # terrain interior (footprint edges use edge_facade_m)
+    lattice_jitter: float = 0.12  # tangential jitter of lattice points, fraction of the edge
+    ray_reach_m: float = 1.8  # wall details are looked for this far in front of the wall
+    blur_iterations: int = 6  # diffusion of the wall displacement (recesses fill in)
+    blur_lambda: float = 0.5
+    round_iterations: int = 1  # Taubin passes over the whole mesh (rounds corners)
+    noise_lf_m: float = 0.015  # RMS of the smooth (long-wavelength) normal offset
+    noise_lf_wavelength_m: tuple[float, float] = (2.0, 10.0)
+    noise_hf_m: float = 0.006  # RMS of the per-vertex normal offset
+    include_terrain: bool = True
+    defects: DefectParams | None = field(default_factory=DefectParams)  # None: no defects
+
+
+# -- lattices over planar charts -------------------------------------------------------------------
+
+def _edge_samples(a: np.ndarray, b: np.ndarray, h: float) -> np.ndarray:
+    """Points every <= h metres on segment a-b (both (3,)), ends included exactly; the same floats
+    whichever way round the segment is given (so charts sharing an edge share its samples)."""
+    if tuple(np.round(b, 9)) < tuple(np.round(a, 9)):
+        a, b = b, a
+    n = max(1, int(np.ceil(np.linalg.norm(b - a) / h - 1e-9)))
+    s = a + (b - a) * (np.arange(n + 1) / n)[:, None]
+    s[-1] = b
+    return s
+
+
+def _chain(poly, i0, i1, edge_h) -> np.ndarray:
+    """Samples along the polygon edges from vertex i0 forward to vertex i1."""
+    pts, i = [], i0
+    while i != i1:
+        j = (i + 1) % len(poly)
+        s = _edge_samples(poly[i], poly[j], edge_h[i])
+        if not np.array_equal(s[0], poly[i]):
+            s = s[::-1]
+        pts.append(s if not pts else s[1:])
+        i = j
+    return np.concatenate(pts)
+
+
+def _corners(poly) -> np.ndarray:
+    n = polygon_normal(poly)
+    e1, e2 = poly - np.roll(poly, 1, axis=0), np.roll(poly, -1, axis=0) - poly
+    turn = np.cross(e1, e2) @ n / np.maximum(np.linalg.norm(e1, axis=1) * np.linalg.norm(e2, axis=1), 1e-18)
+    return np.flatnonzero(turn > 1e-7)
+
+
+def strip_chart(poly: np.ndarray, edge_h, h: float, rng: np.random.Generator, jitter: float = 0.0
+                ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Cover a convex planar 3- or 4-cornered polygon with staggered rows of near-equilateral triangles.
+
+    poly: (k, 3) metres (collinear extra vertices allowed; they split sides into sub-edges);
+    edge_h: (k,) sample spacing of each polygon edge (edges are sampled canonically, so two charts
+    sharing an edge conform); h: spacing inside rows. Rows run parallel to the longest side, one
+    per sample of the side edges; consecutive rows are zipped into triangles. Interior points get a
+    tangential Gaussian jitter of ``jitter * h``. Returns (vertices (n, 3), triangles (m, 3) int64
+    wound like ``poly``, boundary (n,) bool).
+    """
+    c = _corners(poly)
+    k = len(c)
+    if k not in (3, 4):
+        raise ValueError(f"strip_chart needs 3 or 4 corners, got {k}")
+    side = [np.linalg.norm(poly[c[(i + 1) % k]] - poly[c[i]]) for i in range(k)]
+    c = np.roll(c, -int(np.argmax(side)))
+    bottom, right = _chain(poly, c[0], c[1], edge_h), _chain(poly, c[1], c[2], edge_h)
+    if k == 4:
+        top, left = _chain(poly, c[2], c[3], edge_h)[::-1], _chain(poly, c[3], c[0], edge_h)[::-1]
+    else:
+        top, left = poly[c[2]][None], _chain(poly, c[2], c[0], edge_h)[::-1]
+    nl, nr = len(left) - 1, len(right) - 1
+    N = max(nl, nr)
+    kk = np.arange(1, N)
+    Lk, Rk = left[np.rint(kk * nl / N).astype(int)], right[np.rint(kk * nr / N).astype(int)]
+    m = np.maximum(1, np.rint(np.linalg.norm(Rk - Lk, axis=1) / h)).astype(int)
+    odd = (kk % 2 == 1).astype(int)
+    cnt = m + 1 + odd  # odd rows are staggered by half a step
+    row = np.repeat(np.arange(N - 1), cnt)
+    j = np.arange(cnt.sum()) - np.repeat(np.cumsum(cnt) - cnt, cnt)
+    last = j == cnt[row] - 1
+    par = np.where(odd[row] == 1, np.where(j == 0, 0.0, np.where(last, 1.0, (j - 0.5) / m[row])), j / m[row])
+    mid_pts = Lk[row] + par[:, None] * (Rk - Lk)[row]
+
+    def along(p):
+        span = np.linalg.norm(p[-1] - p[0])
+        return np.linalg.norm(p - p[0], axis=1) / span if span > 0 else np.full(len(p), 0.5)
+
+    pts = np.concatenate([bottom, mid_pts, top])
+    params = np.concatenate([along(bottom), par, along(top)])
+    prow = np.concatenate([np.zeros(len(bottom), int), row + 1, np.full(len(top), N)])
+    boundary = np.concatenate([np.ones(len(bottom), bool), (j == 0) | last, np.ones(len(top), bool)])
+    counts = np.bincount(prow, minlength=N + 1)
+    row_off = np.cumsum(counts) - counts
+    seg = np.flatnonzero(np.diff(prow) == 0)  # segment p -> p + 1 inside a row
+    mid, srow = 0.5 * (params[seg] + params[seg + 1]), prow[seg]
+    a_sel, b_sel = srow < N, srow > 0
+    keys = np.concatenate([srow[a_sel] + mid[a_sel], srow[b_sel] - 1 + mid[b_sel]])
+    isA = np.concatenate([np.ones(a_sel.sum(), bool), np.zeros(b_sel.sum(), bool)])
+    pair = np.concatenate([srow[a_sel], srow[b_sel] - 1])
+    sp_ = np.concatenate([seg[a_sel], seg[b_sel]])
+    o = np.argsort(keys, kind="stable")
+    isA, pair, sp_ = isA[o], pair[o], sp_[o]
+    cA, cB = np.cumsum(isA) - isA, np.cumsum(~isA) - ~isA
+    g = np.searchsorted(pair, pair, side="left")
+    a_before, b_before = cA - cA[g], cB - cB[g]
+    tri = np.where(isA[:, None],
+                   np.column_stack([sp_, sp_ + 1, row_off[np.minimum(pair + 1, N)] + b_before]),
+                   np.column_stack([row_off[pair] + a_before, sp_ + 1, sp_]))
+    t = pts[tri]
+    cr = np.cross(t[:, 1] - t[:, 0], t[:, 2] - t[:, 0])
+    n = polygon_normal(poly)
+    area = cr @ n
+    tri = tri[np.abs(area) > 1e-12]
+    if area.sum() < 0:
+        tri = tri[:, ::-1]
+    if jitter > 0:
+        e1 = np.cross(n, [0.0, 0.0, 1.0]) if abs(n[2]) < 0.9 else np.cross(n, [1.0, 0.0, 0.0])
+        e1 /= np.linalg.norm(e1)
+        e2 = np.cross(n, e1)
+        inner = ~boundary
+        d = rng.normal(0.0, jitter * h, (int(inner.sum()), 2))
+        pts[inner] += d[:, :1] * e1 + d[:, 1:] * e2
+    return pts, tri.astype(np.int64), boundary
+
+
+# -- helpers over the assembled mesh ---------------------------------------------------------------
+
+class TruthCaster:
+    """open3d ray casting / closest point over a subset of a Mesh's faces, in float32 around a local origin."""
+
+    def __init__(self, mesh: Mesh, face_mask: np.ndarray | None = None):
+        self.face_index = np.flatnonzero(np.ones(mesh.n_faces, bool) if face_mask is None else face_mask)
+        f = mesh.faces[self.face_index]
+        self.origin = np.round(mesh.vertices.mean(axis=0)) if len(mesh.vertices) else np.zeros(3)
+        self.normals = mesh.face_normals()[self.face_index]
+        self.scene = o3d.t.geometry.RaycastingScene()
+        if len(f):
+            self.scene.add_triangles(o3d.core.Tensor(np.ascontiguousarray(mesh.vertices - self.origin, np.float32)),
+                                     o3d.core.Tensor(np.ascontiguousarray(f, np.uint32)))
+
+    def cast(self, origins: np.ndarray, dirs: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """(n, 3) origins and unit dirs -> (t (n,) float64, inf on a miss; local face index (n,), -1 on a miss)."""
+        rays = np.empty((len(origins), 6), np.float32)
+        rays[:, :3], rays[:, 3:] = origins - self.origin, dirs
+        out = self.scene.cast_rays(o3d.core.Tensor(rays))
+        t = out["t_hit"].numpy().astype(np.float64)
+        prim = out["primitive_ids"].numpy().astype(np.int64)
+        miss = ~np.isfinite(t)
+        prim[miss] = -1
+        return t, prim
+
+    def closest(self, points: np.ndarray) -> np.ndarray:
+        """(n, 3) -> local face index (n,) of the nearest face."""
+        q = o3d.core.Tensor(np.ascontiguousarray(points - self.origin, np.float32))
+        return self.scene.compute_closest_points(q)["primitive_ids"].numpy().astype(np.int64)
+
+
+class NeighbourMean:
+    """x -> mean of x over each vertex's edge neighbours (interior edges counted from both faces).
+
+    faces: (m, 3) int64; n: vertex count. Works on (n,) and (n, 3) arrays.
+    """
+
+    def __init__(self, faces: np.ndarray, n: int):
+        e = np.concatenate([faces[:, [0, 1]], faces[:, [1, 2]], faces[:, [2, 0]]])
+        self.src, self.dst, self.n = np.concatenate([e[:, 0], e[:, 1]]), np.concatenate([e[:, 1], e[:, 0]]), n
+        self.deg = np.maximum(np.bincount(self.src, minlength=n), 1)
+
+    def __call__(self, x: np.ndarray) -> np.ndarray:
+        if x.ndim == 1:
+            return np.bincount(self.src, weights=x[self.dst], minlength=self.n) / self.deg
+        return np.column_stack([self(x[:, k]) for k in range(x.shape[1])])
+
+
+def vertex_normals(vertices: np.ndarray, faces: np.ndarray) -> np.ndarray:
+    """Area-weighted unit vertex normals (n, 3)."""
+    t = vertices[faces]
+    fn = np.cross(t[:, 1] - t[:, 0], t[:, 2] - t[:, 0])
+    vn = np.column_stack([sum(np.bincount(faces[:, k], weights=fn[:, c], minlength=len(vertices)) for k in range(3))
+                          for c in range(3)])
+    return vn / np.maximum(np.linalg.norm(vn, axis=1, keepdims=True), 1e-12)
+
+
+def _smooth_noise(rng, p, sigma, wavelengths, k=8) -> np.ndarray:
+    """A smooth random field (n,) with RMS ``sigma``: a sum of k plane waves in 3D."""
+    d = rng.normal(size=(k, 3))
+    d /= np.linalg.norm(d, axis=1, keepdims=True)
+    lam = rng.uniform(*wavelengths, k)
+    phase = rng.uniform(0, 2 * np.pi, k)
+    return sigma * np.sqrt(2.0 / k) * np.sin(2 * np.pi * (p @ d.T) / lam + phase).sum(axis=1)
+
+
+# -- the simulator ---------------------------------------------------------------------------------
+
+def _split_for_strips(c: Chart, xs, ys) -> list[np.ndarray]:
+    """Chart polygon(s) ready for ``strip_chart``: a gable-end pentagon is cut into its rectangle and
+    apex triangle; wall bottoms get the terrain grid lines as vertices (the terrain cells meet them)."""
+    poly = c.polygon
+    if c.kind != "wall":
+        return [poly]
+    pts = [np.array([x, y, 0.0]) for x in xs for y in ys]  # grid nodes; only those on the wall bottom matter
+    bottom = poly[np.abs(poly[:, 2]) < 1e-9]
+    lo, hi = bottom[:, :2].min(axis=0) - 1e-9, bottom[:, :2].max(axis=0) + 1e-9
+    pts = np.array([q for q in pts if np.all(q[:2] >= lo) and np.all(q[:2] <= hi)])
+    if len(pts):
+        poly = insert_points(poly, pts)
+    if len(c.polygon) == 5:
+        apex = int(np.argmax(poly[:, 2]))
+        k = len(poly)
+        tri = poly[[(apex - 1) % k, apex, (apex + 1) % k]]
+        rest = np.delete(poly, apex, axis=0)
+        return [rest, tri]
+    return [poly]
+
+
+def _lattices(rng, scene: Scene, p: MvsParams):
+    """Chart lattices welded into one mesh.
+
+    Returns vertices (n, 3), faces (m, 3), charts [(building, Chart)] (the unsplit building charts),
+    wall_n (n, 3) per-vertex wall normal (zeros off walls), face_kind (m,) 0 terrain / 1 wall /
+    2 other building chart, face_part (m,) lattice part index, part_class and part_building per
+    part, roads [(axis, centre, half_width)].
+    """
+    from .buildings import road_lines, terrain_cells
+
+    eh = p.edge_facade_m * np.sqrt(3) / 2  # chart edges sampled at the row pitch of an equilateral lattice
+    roads = [tuple(r) for r in scene.meta.get("roads", road_lines(scene.extent))]
+    xs, ys, road, inside = terrain_cells(scene.extent, roads, scene.meta["buildings"])
+    parts, charts, kinds, pclass, pbuild = [], [], [], [], []
+    for bid, chs in charts_of(scene).items():
+        for c in chs:
+            inner = p.edge_roof_m if c.kind == "roof" else p.edge_facade_m
+            for poly in _split_for_strips(c, xs, ys):
+                parts.append(strip_chart(poly, [eh] * len(poly), inner, rng, p.lattice_jitter))
+                kinds.append(c.normal if c.kind == "wall" else None)
+                pclass.append(int(c.face_class))
+                pbuild.append(bid)
+            charts.append((bid, c))
+    n_building_parts = len(parts)
+    if p.include_terrain:
+        ge = p.edge_ground_m * np.sqrt(3) / 2
+        pad = np.pad(inside, 1)
+        for i, j in zip(*np.nonzero(~inside)):
+            quad = np.array([[xs[i], ys[j], 0], [xs[i + 1], ys[j], 0], [xs[i + 1], ys[j + 1], 0],
+                             [xs[i], ys[j + 1], 0]], float)
+            nb = [pad[i + 1, j], pad[i + 2, j + 1], pad[i + 1, j + 2], pad[i, j + 1]]  # S, E, N, W neighbours
+            parts.append(strip_chart(quad, [eh if b else ge for b in nb], p.edge_ground_m, rng, p.lattice_jitter))
+            kinds.append(None)
+    # weld the boundary samples shared between charts; interior vertices are unique already
+    offs = np.cumsum([0] + [len(v) for v, _, _ in parts])
+    allv = np.concatenate([v for v, _, _ in parts])
+    bidx = np.flatnonzero(np.concatenate([b for _, _, b in parts]))
+    _, first, inv = np.unique(np.round(allv[bidx], 5), axis=0, return_index=True, return_inverse=True)
+    gid = np.arange(len(allv))
+    gid[bidx] = bidx[first][inv.ravel()]
+    used, remap = np.unique(gid, return_inverse=True)
+    vertices = allv[used]
+    faces = np.concatenate([remap[t + o] for (_, t, _), o in zip(parts, offs[:-1])])
+    wall_n = np.zeros_like(vertices)
+    for k, nrm in enumerate(kinds):
+        if nrm is not None:
+            wall_n[remap[offs[k]:offs[k + 1]]] = nrm
+    face_part = np.concatenate([np.full(len(t), k, np.int64) for k, (_, t, _) in enumerate(parts)])
+    part_kind = np.array([0 if k >= n_building_parts else (1 if nrm is not None else 2) for k, nrm in enumerate(kinds)])
+    part_class = np.array(pclass + [FaceClass.GROUND] * (len(parts) - n_building_parts), np.uint8)
+    part_building = np.array(pbuild + [-1] * (len(parts) - n_building_parts), np.int32)
+    return vertices, faces, charts, wall_n, part_kind[face_part], face_part, part_class, part_building, roads
+
+
+def make_mvs_mesh(rng: np.random.Generator, scene: Scene, params: MvsParams = MvsParams()
+                  ) -> tuple[Mesh, list[dict]]:
+    """Simulate the UAV photogrammetry mesh of ``scene`` and inject labelled defects.
+
+    scene: from ``synth.buildings.make_scene`` (uses truth, buildings, extent and meta). Returns
+    (mesh, defects): building faces carry class/building/colour of the nearest truth building face,
+    terrain faces GROUND/ROAD with building -1; defects as listed in ``synth.defects`` (face indices
+    refer to the returned mesh). Deterministic in ``rng``.
+    """
+    truth = scene.truth
+    v, faces, charts, wall_n, face_kind, face_part, part_class, part_building, roads = _lattices(rng, scene, params)
+    is_wall = np.any(wall_n != 0, axis=1)
+    disp = np.zeros(len(v))
+    if is_wall.any():
+        det = TruthCaster(truth, np.isin(truth.face_class, DETAIL_CLASSES) & (truth.face_building >= 0))
+        o = v[is_wall] + wall_n[is_wall] * params.ray_reach_m
+        t, prim = det.cast(o, -wall_n[is_wall])
+        d = params.ray_reach_m - t
+        ok = (prim >= 0) & (np.sum(det.normals[np.maximum(prim, 0)] * wall_n[is_wall], axis=1) > 0.5)
+        ok &= (d > -0.6) & (d < params.ray_reach_m - 0.02)
+        disp[is_wall] = np.where(ok, d, 0.0)
+        vsrc = np.full(len(v), -1, np.int64)  # truth face each wall vertex looked at
+        vsrc[is_wall] = np.where(ok, det.face_index[np.maximum(prim, 0)], -1)
+    on_road = lambda xy: np.any([np.abs(xy[:, ax] - c) < hw for ax, c, hw in roads], axis=0) \
+        if roads else np.zeros(len(xy), bool)  # noqa: E731
+    tv = np.zeros(len(v), bool)
+    tv[faces[face_kind == 0].ravel()] = True
+    tv &= ~is_wall
+    v[tv, 2] = np.where(on_road(v[tv, :2]), scene.meta.get("layout", {}).get("road_z_m", 0.02), 0.0)
+    Mw = NeighbourMean(faces[face_kind == 1], len(v))
+    for _ in range(params.blur_iterations):
+        disp = np.where(is_wall, disp + params.blur_lambda * (Mw(disp) - disp), 0.0)
+    del Mw
+    M = NeighbourMean(faces, len(v))
+    v = v + wall_n * disp[:, None]
+    for _ in range(params.round_iterations):
+        v = v + 0.5 * (M(v) - v)
+        v = v - 0.53 * (M(v) - v)
+    face_class = np.zeros(len(faces), np.uint8)
+    face_building = np.full(len(faces), -1, np.int32)
+    face_color = np.zeros((len(faces), 3), np.uint8)
+    # walls: the nearest truth face (glass, frame, balcony...); soffits, fascias, roofs: their chart's class
+    wf = np.flatnonzero(face_kind == 1)
+    src = vsrc[faces[wf]]
+    cls = np.where(src >= 0, truth.face_class[np.maximum(src, 0)], 255)
+    mixed = (cls[:, 0] == 255) | (cls[:, 0] != cls[:, 1]) | (cls[:, 0] != cls[:, 2])
+    src = src[:, 0]
+    near = TruthCaster(truth, truth.face_building >= 0)  # faces at class borders: the nearest truth face
+    src[mixed] = near.face_index[near.closest(v[faces[wf[mixed]]].mean(axis=1))]
+    face_class[wf], face_building[wf], face_color[wf] = truth.face_class[src], truth.face_building[src], \
+        truth.face_color[src]
+    of = np.flatnonzero(face_kind == 2)
+    face_class[of], face_building[of] = part_class[face_part[of]], part_building[face_part[of]]
+    tkey = truth.face_building.astype(np.int64) * 16 + truth.face_class
+    uk, ui = np.unique(tkey, return_index=True)  # truth colour per (building, class)
+    fk = face_building[of].astype(np.int64) * 16 + face_class[of]
+    pos = np.minimum(np.searchsorted(uk, fk), len(uk) - 1)
+    face_color[of] = np.where((uk[pos] == fk)[:, None], truth.face_color[ui[pos]],
+                              np.array([CLASS_COLOR[FaceClass(c)] for c in range(8)], np.uint8)[face_class[of]])
+    terrain_face = face_kind == 0
+    rd = on_road(v[faces[terrain_face]].mean(axis=1)[:, :2])
+    face_class[terrain_face] = np.where(rd, FaceClass.ROAD, FaceClass.GROUND)
+    face_color[terrain_face] = np.where(rd[:, None], CLASS_COLOR[FaceClass.ROAD], CLASS_COLOR[FaceClass.GROUND])
+
+    def add_noise(x):
+        vn = vertex_normals(x, faces)
+        off = _smooth_noise(rng, x, params.noise_lf_m, params.noise_lf_wavelength_m)
+        off = off + rng.normal(0.0, params.noise_hf_m, len(x))
+        return x + vn * off[:, None]
+
+    mesh = Mesh(v, faces, face_class, face_building, face_color)
+    if params.defects is None:
+        mesh.vertices = add_noise(mesh.vertices)
+        return mesh, []
+    return inject_defects(rng, mesh, wall_records(charts), scene, params.defects, add_noise,
+                          TruthCaster(truth))

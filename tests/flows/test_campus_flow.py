@@ -1,0 +1,78 @@
+"""The campus flow on real Dask worker processes sharing one Prefect API."""
+
+from __future__ import annotations
+
+import os
+
+import numpy as np
+import pytest
+
+from flows.campus import CampusRunFailed, run_campus
+from flows.status import campus_status
+from storage.manifest import all_records
+from storage.patch_store import PatchStore
+from storage.workdir import WorkDir
+from tasks.config import CampusConfig
+
+
+def _task_runs_on_server(api_url: str) -> int:
+    """How many task runs the (single) test server has recorded."""
+    import httpx
+
+    r = httpx.post(f"{api_url}/task_runs/count", json={}, timeout=30)
+    r.raise_for_status()
+    return int(r.json())
+
+
+def test_flow_on_dask_processes_then_resume(handmade_campus, prefect_api):
+    cfg = CampusConfig.from_yaml(handmade_campus())
+    before = _task_runs_on_server(prefect_api)
+    summary = run_campus(cfg, progress=False)
+    wd = WorkDir(cfg.work_dir)
+    assert summary["tiles_failed"] == [] and len(summary["tiles_done"]) >= 6
+    recs = {r.unit: r for r in all_records(wd) if r.stage == "partition" and r.status == "done"}
+    # the tiles ran in Dask worker processes, not in this process ...
+    pids = {r.summary["worker"].split(":")[1] for r in recs.values()}
+    assert str(os.getpid()) not in pids and len(pids) >= 1
+    # ... and every task run was recorded by the one server of this session (no per-worker servers)
+    n_tasks = 1 + len([r for r in all_records(wd) if r.stage == "ingest"]) + len(summary["tile_rows"]) // 3 + 1
+    assert _task_runs_on_server(prefect_api) - before >= n_tasks - 2
+    # every point of the inputs is in exactly one patch of one tile
+    n_points = sum(PatchStore(wd.tile_dir(t)).n_points for t in wd.done_tiles())
+    assert n_points == 3 * 20_000
+    stamps = {k: r.updated_at for k, r in recs.items()}
+
+    again = run_campus(cfg, progress=False)  # second run: everything is done already
+    assert again["tiles_done"] == summary["tiles_done"]
+    recs2 = {r.unit: r for r in all_records(wd) if r.stage == "partition" and r.status == "done"}
+    assert {k: r.updated_at for k, r in recs2.items()} == stamps  # no tile was redone
+    assert (wd.report_dir / "patch_points_histogram.png").exists()
+
+
+def test_bad_inputs_fail_only_their_tiles(tmp_path, handmade_campus, prefect_api):
+    cfg = CampusConfig.from_yaml(handmade_campus(extra_stray=True))
+    laz = tmp_path / "mls" / "west.laz"
+    laz.write_bytes(laz.read_bytes()[: laz.stat().st_size // 2])  # truncated LAZ
+    obj = tmp_path / "mesh" / "middle.obj"
+    lines = obj.read_text().splitlines()
+    i = next(k for k, line in enumerate(lines) if line.startswith("v "))
+    lines[i] = "v nan 1.0 2.0"  # a mesh with a NaN vertex
+    obj.write_text("\n".join(lines) + "\n")
+
+    with pytest.raises(CampusRunFailed) as exc:
+        run_campus(cfg, progress=False)
+    st = campus_status(cfg.work_dir)
+    failed = st["failed"]
+    assert failed, "bad inputs must fail their tiles"
+    assert any("truncated" in e and "west.laz" in e for e in failed.values())
+    assert any("NaN" in e and "middle.obj" in e for e in failed.values())
+    west = {k for k, e in failed.items() if "west.laz" in e}
+    assert all(int(k.split("_")[0]) * 20 < 40 for k in west)  # only tiles of the west region
+    east_done = [k for k in st["done"] if 120 <= int(k.split("_")[0]) * 20 < 150]
+    assert len(east_done) >= 2  # the healthy region is done
+    assert st["empty"], "tiles inside the stray file's extent but without data are reported empty"
+    assert "west.laz" in str(exc.value)
+    # outputs of done tiles are valid patch stores
+    for k in east_done:
+        store = PatchStore(WorkDir(cfg.work_dir).root / "tiles" / k)
+        assert store.n_points > 0 and np.all(store.patches()["n_faces"] >= 0)
