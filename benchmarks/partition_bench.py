@@ -12,11 +12,12 @@ coordinates, plus a gridded mesh of N/8 faces):
    ``floor(xyz / size)``, ``groupby`` per tile, ``sort_values`` by patch, a per-patch ``agg`` table and
    ``to_parquet`` per tile (pandas defaults).
 3. Peak RSS of one tile task: ``run_partition_tile`` of tile 1_1 in a fresh process, on two synthetic
-   campuses with identical content per 100 m block (4 and 16 tiles); the baseline's peak RSS beside it.
+   campuses with identical content per 100 m block (4 and 16 tiles; with ``--input``, also the input's
+   largest tile); the baseline's peak RSS (whole campus in one DataFrame) beside it.
 
 Everything runs in one process with one thread (OMP/OPENBLAS/MKL/RAYON threads = 1, pyarrow cpu_count 1);
 rates "per core" divide by CPU seconds (user + system of the process), which other jobs on a shared
-machine do not inflate; wall seconds are printed beside them. The script always exits 0: it reports.
+machine inflate far less than wall seconds (printed beside them, with the load average). The script always exits 0: it reports.
 
     .venv/bin/python benchmarks/partition_bench.py                       # demo campus if made, else 20 M
     .venv/bin/python benchmarks/partition_bench.py --synthetic-points 20000000 --work /tmp/pbench
@@ -421,13 +422,13 @@ def print_report(r: dict) -> None:
     for line in r["summary"]:
         print(line)
     if r.get("rss"):
-        print(f"\npeak RSS of one tile task: run_partition_tile of tile {RSS_TILE} in a fresh process; the "
-              "baseline (whole campus) beside it")
-        print(f"{'campus':<22}{'tiles':>6}{'campus pts':>13}{'tile pts':>11}{'tile faces':>11}"
+        print("\npeak RSS of one tile task: run_partition_tile of one tile in a fresh process; the baseline "
+              "(whole campus) beside it")
+        print(f"{'campus':<28}{'tile':>6}{'tiles':>6}{'campus pts':>13}{'tile pts':>11}{'tile faces':>11}"
               f"{'RSS imports':>13}{'peak RSS':>10}{'peak-imp':>10}{'baseline peak':>15}")
         for row in r["rss"]:
             mb = lambda b: f"{b / 2**20:,.0f} MB"
-            print(f"{row['campus']:<22}{row['tiles']:>6}{row['campus_points']:>13,}{row['n_points']:>11,}"
+            print(f"{row['campus'][-28:]:<28}{row['tile']:>6}{row['tiles']:>6}{row['campus_points']:>13,}{row['n_points']:>11,}"
                   f"{row['n_faces']:>11,}{mb(row['rss_imports']):>13}{mb(row['peak_rss']):>10}"
                   f"{mb(row['peak_rss'] - row['rss_imports']):>10}{mb(row['baseline_peak_rss']):>15}")
         for line in r["rss_summary"]:
@@ -476,7 +477,8 @@ def throughput_section(cfg, staged: dict, r: dict) -> None:
 def rss_section(campuses: list[tuple[str, object, dict]], r: dict) -> None:
     rows = []
     for label, cfg, staged in campuses:
-        tile = RSS_TILE if any(t.key == RSS_TILE for t in staged["tiles"]) else max(
+        synthetic = label.startswith("synthetic") and any(t.key == RSS_TILE for t in staged["tiles"])
+        tile = RSS_TILE if synthetic else max(  # else the largest staged tile
             staged["tiles"], key=lambda t: sum(p.stat().st_size for p in staged["wd"].staging_dir(t).iterdir())).key
         spec = {"kind": "tile", "wd": str(staged["wd"].root), "tile": tile, "cfg": cfg.model_dump(mode="json")}
         row = run_child(spec) | {"campus": label, "tiles": len(staged["tiles"]), "tile": tile,
@@ -554,6 +556,8 @@ def main(argv: list[str] | None = None) -> dict:
             if n_rss != n_synth or args.input is not None or not campuses:
                 campuses = [synthetic_campus(work, 4, n_rss // 16, args.seed)]
             campuses.insert(0, synthetic_campus(work, 2, n_rss // 16, args.seed))
+            if args.input is not None:
+                campuses.insert(0, (str(args.input), cfg, staged))
             rss_section(campuses, r)
         except Exception:  # noqa: BLE001
             r["errors"].append("peak RSS: " + traceback.format_exc())

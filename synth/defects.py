@@ -49,15 +49,15 @@ class DefectSpec:
 
 
 def _default_specs() -> dict[str, DefectSpec]:
-    return {
-        "hole": DefectSpec(0.22, (0.5, 1.5)),
-        "occluded_hole": DefectSpec(0.12, (0.8, 1.8)),  # behind a tree, car, fence or pedestrian
-        "eave_hole": DefectSpec(0.10, (0.6, 1.5)),  # at the wall top, through the soffit
-        "protrusion": DefectSpec(0.18, (0.6, 1.6), (0.2, 1.0)),
-        "melted_eave": DefectSpec(0.14, (0.8, 2.0), (0.2, 1.0)),
-        "recess": DefectSpec(0.16, (0.6, 1.6), (0.1, 0.5)),
-        "dent": DefectSpec(0.16, (0.4, 1.2), (0.1, 0.5)),
-        "warp": DefectSpec(0.06, (2.5, 5.0), (0.1, 0.35)),
+    return {  # tuned so that ~30-50 % of facade patches are touched (see facade_patch_bad_fraction)
+        "hole": DefectSpec(0.9, (0.5, 1.5)),
+        "occluded_hole": DefectSpec(0.5, (0.8, 1.8)),  # behind a tree, car, fence or pedestrian
+        "eave_hole": DefectSpec(0.42, (0.6, 1.5)),  # at the wall top, through the soffit
+        "protrusion": DefectSpec(0.75, (0.6, 1.6), (0.2, 1.0)),
+        "melted_eave": DefectSpec(0.58, (0.8, 2.0), (0.2, 1.0)),
+        "recess": DefectSpec(0.66, (0.6, 1.6), (0.1, 0.5)),
+        "dent": DefectSpec(0.66, (0.4, 1.2), (0.1, 0.5)),
+        "warp": DefectSpec(0.25, (2.5, 5.0), (0.1, 0.35)),
     }
 
 
@@ -119,42 +119,45 @@ def plan_defects(rng, walls: list[dict], scene: Scene, p: DefectParams) -> list[
     eave_w = area * np.array([w["eave"] for w in walls])
     spots = _occluder_spots(scene, walls, p.occluder_reach_m)
     rng.shuffle(spots)
-    plan = []
+    draws = []
     for typ in DEFECT_TYPES:
         spec = p.specs.get(typ)
-        if spec is None or spec.rate_per_100m2 <= 0:
-            continue
-        for _ in range(rng.poisson(spec.rate_per_100m2 * area.sum() / 100.0)):
-            for _try in range(20):
-                r = float(rng.uniform(*spec.radius_m))
-                if typ == "occluded_hole":
-                    if not spots:
-                        break
-                    k, u, v = spots.pop()
-                else:
-                    wts = eave_w if typ in ("eave_hole", "melted_eave") else area
-                    if wts.sum() <= 0:
-                        break
-                    k = int(rng.choice(len(walls), p=wts / wts.sum()))
-                    top = walls[k]["H"]
-                    if walls[k]["L"] < 2 * r or (typ not in ("eave_hole", "melted_eave") and top - r < r + 0.3):
-                        continue
-                    u = rng.uniform(r, walls[k]["L"] - r)
-                    v = top - rng.uniform(0.0, 0.25) * r if typ in ("eave_hole", "melted_eave") else \
-                        rng.uniform(r + 0.3, top - r)
-                w = walls[k]
-                u = float(np.clip(u, r, w["L"] - r))
-                v = float(min(max(v, r + 0.3), w["H"]))
-                if not (r <= u <= w["L"] - r) or v - r < 0.3 - 1e-9:
+        if spec is not None and spec.rate_per_100m2 > 0:
+            n = rng.poisson(spec.rate_per_100m2 * area.sum() / 100.0)
+            draws += [(typ, float(r)) for r in rng.uniform(*spec.radius_m, n)]
+    draws.sort(key=lambda d: -d[1])  # large defects first, while the walls are still free
+    plan = []
+    for typ, r in draws:
+        spec = p.specs[typ]
+        for _try in range(20):
+            if typ == "occluded_hole":
+                if not spots:
+                    break
+                k, u, v = spots.pop()
+            else:
+                wts = eave_w if typ in ("eave_hole", "melted_eave") else area
+                if wts.sum() <= 0:
+                    break
+                k = int(rng.choice(len(walls), p=wts / wts.sum()))
+                top = walls[k]["H"]
+                if walls[k]["L"] < 2 * r or (typ not in ("eave_hole", "melted_eave") and top - r < r + 0.3):
                     continue
-                c = w["P0"] + u * w["t"] + v * _Z
-                if any(q["building"] == w["building"] and np.linalg.norm(q["centre"] - c) < q["radius_m"] + r + p.gap_m
-                       for q in plan):
-                    continue
-                m = r if typ in HOLE_TYPES else float(rng.uniform(*spec.magnitude_m))
-                plan.append({"type": typ, "building": int(w["building"]), "centre": c, "normal": w["n"],
-                             "axis_u": w["t"], "radius_m": r, "magnitude_m": m, "wall_top_z": w["H"]})
-                break
+                u = rng.uniform(r, walls[k]["L"] - r)
+                v = top - rng.uniform(0.0, 0.25) * r if typ in ("eave_hole", "melted_eave") else \
+                    rng.uniform(r + 0.3, top - r)
+            w = walls[k]
+            u = float(np.clip(u, r, w["L"] - r))
+            v = float(min(max(v, r + 0.3), w["H"]))
+            if not (r <= u <= w["L"] - r) or v - r < 0.3 - 1e-9:
+                continue
+            c = w["P0"] + u * w["t"] + v * _Z
+            if any(q["building"] == w["building"] and np.linalg.norm(q["centre"] - c) < q["radius_m"] + r + p.gap_m
+                   for q in plan):
+                continue
+            m = r if typ in HOLE_TYPES else float(rng.uniform(*spec.magnitude_m))
+            plan.append({"type": typ, "building": int(w["building"]), "centre": c, "normal": w["n"],
+                         "axis_u": w["t"], "radius_m": r, "magnitude_m": m, "wall_top_z": w["H"]})
+            break
     return plan
 
 

@@ -194,7 +194,7 @@ def generate(preset: str = "tiny", seed: int = 0, out: str | Path = "synth-out",
              scale: float = 1.0) -> Path:
     """Generate a synthetic campus into ``out``; returns ``out``. See the module docstring."""
     from .cameras import render_cameras, write_images
-    from .mvs import make_mvs_mesh
+    from .mvs import MvsParams, make_mvs_mesh
     from .trajectory import TrajectoryParams, build_trajectories
 
     p = get_preset(preset, scale)
@@ -220,7 +220,7 @@ def generate(preset: str = "tiny", seed: int = 0, out: str | Path = "synth-out",
             r_mvs, r_tex, r_traj, r_mls, r_cam = streams(seed * 7919 + ix * 131 + iy + 1, 5)
             scene = scene_at(ix, iy)
             name = f"Tile_{ix:+04d}_{iy:+04d}" if p.tiled_mesh else "mvs"
-            mvs, tile_defects = make_mvs_mesh(r_mvs, scene, target_edge_m=p.mvs_edge_m, defect_scale=p.defect_scale)
+            mvs, tile_defects = make_mvs_mesh(r_mvs, scene, MvsParams(edge_facade_m=p.mvs_edge_m))
             for d in tile_defects:
                 d["id"] = f"{ix}_{iy}_{d['id']}"
                 d["mesh_file"] = f"mesh/{name}/{name}.obj" if p.tiled_mesh else "mesh/mvs.obj"

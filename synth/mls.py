@@ -80,7 +80,7 @@ def _profile_heads(yaw_deg: float, height_m: float, bias_m: float) -> tuple[Scan
 class MlsParams:
     """Scanner configuration. The rates are per head and per channel, before ``density_scale``."""
 
-    heads: tuple[ScannerHead, ...] = _profile_heads(35.0, 2.5, 0.008)
+    heads: tuple[ScannerHead, ...] = _profile_heads(35.0, 2.5, 0.010)
     profile_rate_hz: float = 250.0  # turns per second (VQ-450: up to 200)
     pulses_per_profile: int = 5_600  # per channel per turn (0.064 deg steps)
     density_scale: float = 1.0  # multiplies point density: rate and pulses each by sqrt(scale)
@@ -94,9 +94,11 @@ class MlsParams:
     nthreads: int = 0  # open3d threads; 0 = all cores
 
     @classmethod
-    def vmx450(cls, **kw) -> "MlsParams":
-        """Two +-35 deg yawed profile heads, ~4,000 pts/m^2 at 10 m and 9 m/s (the default)."""
-        return cls(**kw)
+    def vmx450(cls, yaw_deg: float = 35.0, height_m: float = 2.5, head_bias_m: float = 0.010,
+               **kw) -> "MlsParams":
+        """Two profile heads yawed +-``yaw_deg``, ``height_m`` above the road, with range biases
+        +-``head_bias_m``; ~4,000 pts/m^2 at 10 m and 9 m/s. ``MlsParams()`` is this preset."""
+        return cls(heads=_profile_heads(yaw_deg, height_m, head_bias_m), **kw)
 
     @classmethod
     def spinner32(cls, **kw) -> "MlsParams":

@@ -8,8 +8,9 @@ How it is built, per building and for the terrain:
    so the charts weld into one connected surface (and tiles of one campus meet on their borders);
 2. wall vertices are moved along the wall normal onto the truth details seen from 1.8 m in front
    (glass at the back of window recesses, balcony fronts, ledges): balconies become solid blobs,
-   recesses dips; terrain vertices drop onto the ground/road surface;
-3. that displacement is diffused over the mesh (recesses partly fill in, edges melt), corners are
+   recesses dips (only ``recess_gain`` of their depth: MVS bridges them); terrain vertices drop
+   onto the ground/road surface;
+3. that displacement is diffused over the wall (edges round off, balconies melt), corners are
    rounded by a little Taubin smoothing;
 4. class, building and colour come from the nearest truth face;
 5. defects are injected (``synth.defects``), then low-frequency (a few cm) and high-frequency
@@ -42,12 +43,13 @@ class MvsParams:
     edge_ground_m: float = 0.40  # terrain interior (footprint edges use edge_facade_m)
     lattice_jitter: float = 0.12  # tangential jitter of lattice points, fraction of the edge
     ray_reach_m: float = 1.8  # wall details are looked for this far in front of the wall
-    blur_iterations: int = 6  # diffusion of the wall displacement (recesses fill in)
+    recess_gain: float = 0.6  # MVS bridges recesses: window/door depth kept (the rest fills in)
+    blur_iterations: int = 6  # diffusion of the wall displacement (edges round off, balconies melt)
     blur_lambda: float = 0.5
     round_iterations: int = 1  # Taubin passes over the whole mesh (rounds corners)
     noise_lf_m: float = 0.015  # RMS of the smooth (long-wavelength) normal offset
     noise_lf_wavelength_m: tuple[float, float] = (2.0, 10.0)
-    noise_hf_m: float = 0.006  # RMS of the per-vertex normal offset
+    noise_hf_m: float = 0.007  # RMS of the per-vertex normal offset
     include_terrain: bool = True
     defects: DefectParams | None = field(default_factory=DefectParams)  # None: no defects
 
@@ -335,6 +337,7 @@ def make_mvs_mesh(rng: np.random.Generator, scene: Scene, params: MvsParams = Mv
     tv[faces[face_kind == 0].ravel()] = True
     tv &= ~is_wall
     v[tv, 2] = np.where(on_road(v[tv, :2]), scene.meta.get("layout", {}).get("road_z_m", 0.02), 0.0)
+    disp = np.where(disp < 0, params.recess_gain * disp, disp)
     Mw = NeighbourMean(faces[face_kind == 1], len(v))
     for _ in range(params.blur_iterations):
         disp = np.where(is_wall, disp + params.blur_lambda * (Mw(disp) - disp), 0.0)

@@ -21,7 +21,6 @@ class SynthPreset:
     image_every_m: float
     image_size: tuple[int, int]
     mvs_edge_m: float = 0.12
-    defect_scale: float = 1.0
     tiled_mesh: bool = False
 
 

@@ -1,8 +1,8 @@
 """Vehicle trajectories of a simulated mobile-mapping campaign, with a GNSS/INS error model.
 
 A :class:`Trajectory` is one pass of the vehicle along one road: the right-hand lane of the road
-centre line (offset ``lane_offset_m`` to the right of the driving direction, corners rounded to a
-drivable radius), driven at constant speed. Passes alternate direction (0 forward, 1 back, ...),
+centre line (centre-line corners rounded to ``corner_radius_m``, then offset ``lane_offset_m`` to
+the right of the driving direction), driven at constant speed. Passes alternate direction (0 forward, 1 back, ...),
 as a real campaign drives a street both ways. GPS time is seconds of the GPS week, monotonic over
 all passes of all roads (passes follow each other with a gap).
 
@@ -11,7 +11,8 @@ lane, or 0); scanner heads and cameras are mounted above it (``synth.mls``, ``sy
 
 Error model (what georeferencing gets wrong): the recorded trajectory is the true one plus
 ``error_at(t)`` = a constant per-pass 3D offset (1-5 cm between passes) + a slow linear drift + a
-low-frequency wander of a few mm (sum of sinusoids, periods of seconds). Sensors are simulated from
+low-frequency wander of ~12 mm RMS per axis (sum of sinusoids, periods 0.5-3 s; with the MLS
+heads' range bias it lifts flat-wall noise over one pass to ~10 mm, the real-data figure). Sensors are simulated from
 the true pose; their outputs are shifted by ``error_at(t)``. All in the mesh frame: campus-local
 metres, float64, z up.
 """
@@ -39,8 +40,8 @@ class TrajectoryParams:
     pass_gap_s: float = 30.0
     pass_offset_m: tuple[float, float] = (0.005, 0.025)  # |constant offset| per pass, uniform
     drift_m_per_s: float = 1.0e-4  # max |drift| (1 cm per 100 s)
-    jitter_m: float = 0.006  # per-axis RMS of the low-frequency wander
-    jitter_period_s: tuple[float, float] = (1.0, 10.0)
+    jitter_m: float = 0.012  # per-axis RMS of the low-frequency wander
+    jitter_period_s: tuple[float, float] = (0.5, 3.0)
     n_jitter_terms: int = 6
 
 
@@ -215,9 +216,8 @@ def build_trajectories(
         for pass_id in range(params.n_passes):
             direction = -1 if (params.alternate_direction and pass_id % 2) else 1
             base = road if direction > 0 else road[::-1]
-            base = densify(base, np.inf)  # drop repeated vertices
-            lane = round_corners(offset_polyline(base, params.lane_offset_m), params.corner_radius_m)
-            lane = densify(lane, params.max_step_m)
+            base = round_corners(densify(base, np.inf), params.corner_radius_m)  # the road's own curve
+            lane = densify(offset_polyline(base, params.lane_offset_m), params.max_step_m)
             path = np.column_stack([lane, surface_z(lane, truth)])
             s = np.concatenate([[0.0], np.cumsum(np.linalg.norm(np.diff(lane, axis=0), axis=1))])
             offset, drift, amp, freq, phase = _error_model(params, rng)

@@ -41,8 +41,8 @@ NORMAL_RADIUS_VOXELS = 2.5  # normal estimation radius, in voxels
 FPFH_RADIUS_VOXELS = 5.0  # FPFH radius, in voxels
 SAC_MIN_THRESHOLD_VOXELS = 0.5  # RANSAC inlier distance is at least this many voxels (see coarse_register)
 SAC_ATTEMPTS = 3  # independent RANSAC runs (different seeds); the best fitness wins
-SAC_EVAL_POINTS = 20_000  # source voxels on which RANSAC scores a hypothesis
-SAC_MAX_KEYPOINTS = (5_000, 20_000)  # FPFH keypoints (source, target), drawn among the most curved voxels
+SAC_EVAL_POINTS = 10_000  # source voxels on which RANSAC scores a hypothesis
+SAC_MAX_KEYPOINTS = (2_000, 6_000)  # FPFH keypoints (source, target), drawn among the most curved voxels
 KEYPOINT_MIN_CURVATURE = 0.02  # surface variation l0 / (l0 + l1 + l2) of a keypoint (a plane is ~0)
 SAC_MUTUAL = False
 SAC_CONSISTENT_MATCHES = 300  # matches kept for RANSAC, by degree in the compatibility graph
@@ -54,6 +54,8 @@ FINE_METHOD = "plane"  # "plane": point-to-plane similarity ICP; "point": Open3D
 TARGET_NORMAL_RADIUS_M = 0.3  # normals of mesh vertices when the caller has none (~3 vertex spacings)
 TARGET_MAX_POINTS = 3_000_000  # random cap on cropped mesh vertices
 CHECK_POINTS = 50_000  # source points sampled by check_coregistered
+CHECK_VOXEL_M = 0.2  # ... after thinning at this voxel size
+CHECK_MIN_GROUP_SHARE = 0.05  # an orientation group counts in check_coregistered from this share of points
 PRE_CAP_FACTOR = 8  # random pre-cap (before voxelling) at this many times cfg.max_points
 
 
@@ -585,10 +587,29 @@ class _Clock:
 
 
 def _near(points: np.ndarray, reference: np.ndarray, distance_m: float) -> np.ndarray:
-    """Boolean (n,) mask of ``points`` within ``distance_m`` of some ``reference`` point (thinned at d/3)."""
-    ref = np.asarray(_cloud(reference).voxel_down_sample(distance_m / 3.0).points)
-    dist, _ = cKDTree(ref).query(points, distance_upper_bound=distance_m, workers=-1)
-    return np.isfinite(dist)
+    """Boolean (n,) mask keeping every point within ``distance_m`` of a ``reference`` point.
+
+    A voxel-hash test (cells of ``distance_m``, dilated by one cell), so it also keeps some points
+    up to ~2 sqrt(3) ``distance_m`` away. points: (n, 3), reference: (k, 3) float64 metres.
+    """
+    lo = np.minimum(points.min(axis=0), reference.min(axis=0))
+    cells_p = np.floor((points - lo) / distance_m).astype(np.int64) + 1
+    cells_r = np.floor((reference - lo) / distance_m).astype(np.int64) + 1
+    dims = np.maximum(cells_p.max(axis=0), cells_r.max(axis=0)) + 2
+    ref = np.unique(np.ravel_multi_index(cells_r.T, dims))
+    offsets = np.stack(np.meshgrid(*([np.arange(-1, 2)] * 3), indexing="ij"), axis=-1).reshape(-1, 3)
+    ref_cells = np.stack(np.unravel_index(ref, dims), axis=1)
+    dilated = np.unique(np.ravel_multi_index((ref_cells[:, None, :] + offsets[None]).reshape(-1, 3).T, dims))
+    return np.isin(np.ravel_multi_index(cells_p.T, dims), dilated)
+
+
+def _orientation_groups(xyz: np.ndarray) -> np.ndarray:
+    """(n,) int group of each point's surface: 0 horizontal, 1..6 vertical by normal azimuth (30 deg bins)."""
+    pc = _cloud(xyz)
+    pc.estimate_normals(o3d.geometry.KDTreeSearchParamKNN(20))
+    n = np.asarray(pc.normals)
+    azimuth = np.degrees(np.arctan2(n[:, 1], n[:, 0])) % 180.0
+    return np.where(np.abs(n[:, 2]) > 0.7, 0, 1 + np.minimum((azimuth // 30).astype(np.int64), 5))
 
 
 def check_coregistered(
@@ -597,23 +618,27 @@ def check_coregistered(
     """Do two clouds already overlap? (Used when registration is switched off.)
 
     source_xyz: (n, 3) MLS points, target_xyz: (m, 3) mesh vertices, float64 campus-local metres.
-    Samples ``CHECK_POINTS`` source points and measures the distance to the nearest target point.
-    Returns (median <= tol_m, median distance in metres). A shift *along* the dominant surfaces
-    (e.g. along a street whose facades and ground are planes) moves points within those planes and
-    is barely visible to this test; it catches offsets across them (height, across the street).
+    Thins the source (``CHECK_VOXEL_M`` voxels, at most ``CHECK_POINTS``) and measures each point's
+    distance to the nearest target point. A plain median would hide a shift along the dominant
+    surfaces (across a street, the ground and the side walls do not move away from the mesh, and
+    they can be most of the points), so points are grouped by surface orientation (horizontal;
+    vertical in six 30 degree azimuth bins) and the largest median over the groups holding at least
+    ``CHECK_MIN_GROUP_SHARE`` of the points is used. Returns (that median <= tol_m, that median in
+    metres). A shift parallel to every well-populated surface family stays invisible.
     """
     src = _finite_xyz(source_xyz, "MLS point cloud")
     tgt = _finite_xyz(target_xyz, "mesh vertices")
-    rng = np.random.default_rng(seed)
-    if len(src) > CHECK_POINTS:
-        src = src[rng.choice(len(src), CHECK_POINTS, replace=False)]
+    src = subsample_for_registration(src, CHECK_POINTS, CHECK_VOXEL_M, np.random.default_rng(seed))
     lo, hi = src.min(axis=0) - CROP_MARGIN_M, src.max(axis=0) + CROP_MARGIN_M
     tgt = tgt[crop_to_box(tgt, lo, hi)]
     if len(tgt) == 0:
         return False, float("inf")
     dist, _ = cKDTree(tgt).query(src, workers=-1)
-    median = float(np.median(dist))
-    return median <= tol_m, median
+    groups = _orientation_groups(src)
+    counts = np.bincount(groups, minlength=7)
+    medians = [np.median(dist[groups == g]) for g in range(7) if counts[g] >= CHECK_MIN_GROUP_SHARE * len(src)]
+    worst = float(max(medians)) if medians else float(np.median(dist))
+    return worst <= tol_m, worst
 
 
 def register_clouds(
@@ -629,7 +654,7 @@ def register_clouds(
     dropped. Either input may be millions of points: the source is voxelled at
     ``cfg.fine_voxel_m`` and capped at ``cfg.max_points``; the target is cropped to the source's
     bounding box grown by ``CROP_MARGIN_M``, then, for the fine stage, to within
-    ``FINE_DISTANCES_M[0]`` (+ 0.5 m) of the coarsely aligned source.
+    ``FINE_DISTANCES_M[0]`` of the coarsely aligned source.
 
     With ``cfg.enabled`` False nothing is estimated: the identity is returned after
     :func:`check_coregistered`, which warns when the clouds do not look co-registered.
@@ -681,7 +706,7 @@ def register_clouds(
     coarse, coarse_fit, _ = coarse_register(src, tgt, cfg)
     clock.lap("coarse")
 
-    near = _near(tgt, apply_similarity(coarse, src), FINE_DISTANCES_M[0] + 0.5)
+    near = _near(tgt, apply_similarity(coarse, src), FINE_DISTANCES_M[0])
     tgt_f = tgt[near]
     if len(tgt_f) < MIN_POINTS:
         raise InputError(None, "the coarse registration left no mesh vertices near the MLS cloud")

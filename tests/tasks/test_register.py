@@ -1,0 +1,164 @@
+"""tasks.register: SAC-IA + Scale-ICP recover a known similarity on a synthetic street.
+
+The scene is built here: box buildings (walls + flat roofs) on both sides of a road along x, and a
+ground plane. The mesh stand-in (target) samples every surface at 10 cm with 2 cm noise; the MLS
+stand-in (source) samples only the road-facing facades, the first 4 m of the side walls (seen
+through the gaps) and the ground near the road, at 8 cm with 5 mm noise, and is then moved by the
+inverse of a known similarity, so that ``target ~= TRUTH(source)``.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from storage.errors import InputError
+from tasks.config import RegistrationConfig
+from tasks.register import (
+    RegistrationResult,
+    apply_similarity,
+    check_coregistered,
+    compare_transforms,
+    decompose_similarity,
+    register_clouds,
+    subsample_for_registration,
+)
+
+# (x0, x1, facade y, depth, height), metres; north buildings extend to +y, south ones to -y
+NORTH = [(-32.0, -14.0, 8.0, 12.0, 12.0), (-9.0, 8.0, 9.5, 10.0, 16.0), (13.0, 30.0, 8.0, 12.0, 9.0)]
+SOUTH = [(-28.0, -6.0, -9.0, 12.0, 10.0), (0.0, 26.0, -8.0, 14.0, 18.0)]
+
+
+def _rect(origin, u, v, spacing, rng):
+    """Jittered grid on the parallelogram origin + a u + b v, a, b in [0, 1]: (k, 3) float64."""
+    u, v = np.asarray(u, float), np.asarray(v, float)
+    nu, nv = max(int(np.linalg.norm(u) / spacing), 1), max(int(np.linalg.norm(v) / spacing), 1)
+    a, b = np.meshgrid((np.arange(nu) + 0.5) / nu, (np.arange(nv) + 0.5) / nv, indexing="ij")
+    a = a.ravel() + rng.uniform(-0.3, 0.3, a.size) / nu
+    b = b.ravel() + rng.uniform(-0.3, 0.3, b.size) / nv
+    return np.asarray(origin, float) + a[:, None] * u + b[:, None] * v
+
+
+def _street(seed=0):
+    """(source, target): (n, 3), (m, 3) float64 metres, both in the target (mesh) frame."""
+    rng = np.random.default_rng(seed)
+    tgt = [_rect((-40, -25, 0), (80, 0, 0), (0, 50, 0), 0.10, rng)]
+    src = [_rect((-35, -7.5, 0), (70, 0, 0), (0, 15, 0), 0.08, rng)]
+    for buildings, sign in ((NORTH, 1.0), (SOUTH, -1.0)):
+        for x0, x1, yf, depth, h in buildings:
+            yb = yf + sign * depth
+            faces = [
+                ((x0, yf, 0), (x1 - x0, 0, 0), (0, 0, h)),  # front (road side)
+                ((x0, yb, 0), (x1 - x0, 0, 0), (0, 0, h)),  # back
+                ((x0, yf, 0), (0, yb - yf, 0), (0, 0, h)),  # sides
+                ((x1, yf, 0), (0, yb - yf, 0), (0, 0, h)),
+                ((x0, yf, h), (x1 - x0, 0, 0), (0, yb - yf, 0)),  # roof
+            ]
+            tgt += [_rect(*f, 0.10, rng) for f in faces]
+            src.append(_rect(*faces[0], 0.08, rng))
+            src += [_rect((x, yf, 0), (0, sign * 4.0, 0), (0, 0, h), 0.08, rng) for x in (x0, x1)]
+    tgt, src = np.concatenate(tgt), np.concatenate(src)
+    return src + rng.normal(0, 0.005, src.shape), tgt + rng.normal(0, 0.02, tgt.shape)
+
+
+def _similarity(yaw_deg, roll_deg, pitch_deg, t, scale):
+    y, r, p = np.radians([yaw_deg, roll_deg, pitch_deg])
+    rz = np.array([[np.cos(y), -np.sin(y), 0], [np.sin(y), np.cos(y), 0], [0, 0, 1]])
+    ry = np.array([[np.cos(p), 0, np.sin(p)], [0, 1, 0], [-np.sin(p), 0, np.cos(p)]])
+    rx = np.array([[1, 0, 0], [0, np.cos(r), -np.sin(r)], [0, np.sin(r), np.cos(r)]])
+    m = np.eye(4)
+    m[:3, :3] = scale * rz @ ry @ rx
+    m[:3, 3] = t
+    return m
+
+
+TRUTH = _similarity(3.0, 0.5, -0.3, (2.5, -1.7, 0.8), 1.003)
+
+
+@pytest.fixture(scope="module")
+def street():
+    src, tgt = _street()
+    return apply_similarity(np.linalg.inv(TRUTH), src), src, tgt
+
+
+def test_recovers_known_similarity(street):
+    moved, _, tgt = street
+    res = register_clouds(moved, tgt, RegistrationConfig())
+    err = compare_transforms(res.matrix, TRUTH, at=moved.mean(axis=0))
+    print(f"\nregistration {res.method}: {err}, {res.seconds:.1f} s, {res.details['seconds']}")
+    assert isinstance(res, RegistrationResult) and res.matrix.shape == (4, 4)
+    assert err["rotation_error_deg"] < 0.05
+    assert err["translation_error_m"] < 0.02
+    assert abs(err["scale_error_pct"]) < 0.05
+    assert res.scale == pytest.approx(1.003, abs=5e-4)
+    assert res.fitness > 0.9 and res.inlier_rmse_m < 0.05  # 2 cm vertex noise dominates the residual
+    assert res.n_source <= RegistrationConfig().max_points
+    assert res.method.startswith("sac-ia+")
+
+
+def test_aligned_pair_returns_identity(street):
+    _, src, tgt = street
+    res = register_clouds(src, tgt, RegistrationConfig(max_points=100_000))
+    err = compare_transforms(res.matrix, np.eye(4), at=src.mean(axis=0))
+    assert err["rotation_error_deg"] < 0.05
+    assert err["translation_error_m"] < 0.02
+    assert abs(err["scale_error_pct"]) < 0.05
+
+
+def test_check_coregistered_flags_an_offset(street):
+    _, src, tgt = street
+    ok, median = check_coregistered(src, tgt)
+    assert ok and median < 0.05
+    # 1 m along the street, across it, up, and diagonally: each slides most points along some surfaces
+    for offset in ((1.0, 0.0, 0.0), (0.0, 1.0, 0.0), (0.0, 0.0, 1.0), np.ones(3) / np.sqrt(3.0)):
+        ok, median = check_coregistered(src + offset, tgt)
+        assert not ok and median > 0.5, (offset, median)
+
+
+def test_disabled_registration_warns_and_returns_identity(street):
+    _, src, tgt = street
+    with pytest.warns(UserWarning, match="co-registered"):
+        res = register_clouds(src + (0.0, 1.0, 0.0), tgt, RegistrationConfig(enabled=False))
+    assert np.array_equal(res.matrix, np.eye(4)) and res.method.startswith("identity")
+
+
+def test_degenerate_inputs_raise_input_error():
+    rng = np.random.default_rng(0)
+    good = rng.uniform(0, 10, (1000, 3))
+    cfg = RegistrationConfig()
+    with pytest.raises(InputError, match="at least 100"):
+        register_clouds(good[:50], good, cfg)
+    with pytest.raises(InputError, match="NaN"):
+        register_clouds(np.full((500, 3), np.nan), good, cfg)
+    with pytest.raises(InputError, match=r"\(n, 3\)"):
+        register_clouds(good[:, :2], good, cfg)
+    with pytest.raises(InputError, match="do not overlap"):
+        register_clouds(good, good + (5000.0, 0.0, 0.0), cfg)
+
+
+def test_similarity_algebra_on_three_points():
+    m = _similarity(90.0, 0.0, 0.0, (1.0, 2.0, 3.0), 2.0)
+    pts = np.array([[1.0, 0.0, 0.0], [0.0, 1.0, 0.0], [0.0, 0.0, 1.0]])
+    np.testing.assert_allclose(apply_similarity(m, pts), [[1, 4, 3], [-1, 2, 3], [1, 2, 5]], atol=1e-12)
+    s, r, t = decompose_similarity(m)
+    assert s == pytest.approx(2.0) and np.allclose(r @ r.T, np.eye(3)) and np.allclose(t, (1, 2, 3))
+    off = _similarity(91.0, 0.0, 0.0, (1.0, 2.0, 3.0), 2.0 * 1.001)
+    err = compare_transforms(off, m, at=(10.0, 0.0, 0.0))
+    assert err["rotation_error_deg"] == pytest.approx(1.0)
+    assert err["scale_error_pct"] == pytest.approx(0.1)
+    # (10, 0, 0) lands at 20.02 m from t at 91 degrees instead of 20 m at 90 degrees
+    expected = np.hypot(20.02 * np.sin(np.radians(1.0)), 20.02 * np.cos(np.radians(1.0)) - 20.0)
+    assert err["translation_error_m"] == pytest.approx(expected)
+    with pytest.raises(ValueError):
+        decompose_similarity(np.diag([1.0, 1.0, -1.0, 1.0]))
+
+
+def test_subsample_caps_and_is_deterministic():
+    rng = np.random.default_rng(3)
+    xyz = rng.uniform(0, 10, (200_000, 3))
+    a = subsample_for_registration(xyz, 5_000, 0.5, np.random.default_rng(1))
+    b = subsample_for_registration(xyz, 5_000, 0.5, np.random.default_rng(1))
+    assert a.shape == (5_000, 3) and np.array_equal(a, b)
+    assert a.min() >= 0 and a.max() <= 10
+    thinned = subsample_for_registration(xyz, 10**6, 0.5, np.random.default_rng(1))
+    assert 20**3 <= len(thinned) <= 21**3  # one centroid per occupied 0.5 m voxel of the 10 m cube
