@@ -16,6 +16,7 @@ double-sided; rays that hit nothing get the sky colour.
 
 from __future__ import annotations
 
+import functools
 import io
 from collections.abc import Iterator
 from dataclasses import dataclass, replace
@@ -55,7 +56,7 @@ class CameraParams:
     sky_rgb: tuple[int, int, int] = (175, 205, 235)
     sun_azimuth_deg: float = 135.0  # counter-clockwise from +x (east)
     sun_elevation_deg: float = 45.0
-    ambient: float = 0.35
+    ambient: float = 0.45  # skylight share: facades facing away from the sun stay readable
     apply_trajectory_error: bool = True
     image_ext: str = ".jpg"
     noise_dn: float = 2.0  # sensor noise (1 sigma, 8-bit counts), added only when an rng is given
@@ -152,33 +153,40 @@ class Render:
     depth: np.ndarray
 
 
+@functools.lru_cache(maxsize=4)
+def _pixel_rays(k_key: tuple, w: int, h: int) -> np.ndarray:
+    """Unit ray directions (h * w, 3) float32 in the camera frame through every pixel centre,
+    row-major, with ``1 / |K^-1 (u, v, 1)|`` (the depth per unit range) in a 4th column."""
+    kinv = np.linalg.inv(np.array(k_key).reshape(3, 3))
+    v, u = np.mgrid[0:h, 0:w]
+    d = np.stack([u.ravel(), v.ravel(), np.ones(h * w)], axis=1) @ kinv.T
+    norm = np.linalg.norm(d, axis=1, keepdims=True)
+    return np.hstack([d / norm, 1.0 / norm]).astype(np.float32)
+
+
 def render(caster: SceneCaster, cam: Camera, params: CameraParams = CameraParams()) -> Render:
     """Ray cast every pixel of ``cam`` from its true pose (recorded centre minus ``cam.error_m``)."""
     h, w = cam.height, cam.width
-    v, u = np.mgrid[0:h, 0:w]
-    kinv = np.linalg.inv(cam.K)
-    d_cam = np.stack([u.ravel(), v.ravel(), np.ones(h * w)], axis=1) @ kinv.T
-    d_world = d_cam @ cam.R  # rows: R^T d_cam
-    norm = np.linalg.norm(d_world, axis=1)
-    d_world /= norm[:, None]
-    origin = np.broadcast_to(cam.centre - cam.error_m, d_world.shape)
-    hits = caster.cast(origin, d_world, params.nthreads)
-    hit = hits.source >= 0
+    pix = _pixel_rays(tuple(cam.K.ravel()), w, h)
+    rays = np.empty((h * w, 6), np.float32)
+    rays[:, :3] = cam.centre - cam.error_m - caster.origin_m
+    rays[:, 3:] = pix[:, :3] @ cam.R.astype(np.float32)  # rows: R^T d_cam
+    hits = caster.cast_local(rays, params.nthreads)
+    hit = np.flatnonzero(hits.source >= 0)
     row = caster.global_face(hits.source[hit], hits.face[hit])
-    n = caster.all_face_normal[row]
-    n = np.where(np.sum(n * d_world[hit], axis=1, keepdims=True) > 0, -n, n)
     az, el = np.radians(params.sun_azimuth_deg), np.radians(params.sun_elevation_deg)
     sun = np.array([np.cos(el) * np.cos(az), np.cos(el) * np.sin(az), np.sin(el)])
-    shade = params.ambient + (1.0 - params.ambient) * np.clip(n @ sun, 0.0, 1.0)
-    rgb = np.tile(np.asarray(params.sky_rgb, np.float64), (h * w, 1))
-    rgb[hit] = caster.all_face_color[row] * shade[:, None]
-    depth = np.where(hit, hits.t / norm, np.inf)  # |d_cam| has z = 1, so depth = t / |d_cam|
-    return Render(
-        rgb=np.clip(np.round(rgb), 0, 255).astype(np.uint8).reshape(h, w, 3),
-        source=hits.source.reshape(h, w),
-        face=hits.face.reshape(h, w),
-        depth=depth.astype(np.float32).reshape(h, w),
-    )
+    n = caster.all_face_normal[row]
+    facing = np.sum(n * rays[hit, 3:], axis=1) > 0  # double-sided: use the side the ray sees
+    lambert = np.abs(n @ sun) * ((n @ sun > 0) != facing)
+    shade = params.ambient + (1.0 - params.ambient) * lambert
+    rgb = np.empty((h * w, 3), np.uint8)
+    rgb[:] = params.sky_rgb
+    rgb[hit] = np.clip(np.round(caster.all_face_color[row] * shade[:, None]), 0, 255).astype(np.uint8)
+    depth = np.full(h * w, np.inf, np.float32)
+    depth[hit] = hits.t[hit] * pix[hit, 3]
+    return Render(rgb=rgb.reshape(h, w, 3), source=hits.source.reshape(h, w),
+                  face=hits.face.reshape(h, w), depth=depth.reshape(h, w))
 
 
 def render_images(

@@ -50,14 +50,14 @@ class DefectSpec:
 
 def _default_specs() -> dict[str, DefectSpec]:
     return {  # tuned so that ~30-50 % of facade patches are touched (see facade_patch_bad_fraction)
-        "hole": DefectSpec(0.9, (0.5, 1.5)),
-        "occluded_hole": DefectSpec(0.5, (0.8, 1.8)),  # behind a tree, car, fence or pedestrian
-        "eave_hole": DefectSpec(0.42, (0.6, 1.5)),  # at the wall top, through the soffit
-        "protrusion": DefectSpec(0.75, (0.6, 1.6), (0.2, 1.0)),
-        "melted_eave": DefectSpec(0.58, (0.8, 2.0), (0.2, 1.0)),
-        "recess": DefectSpec(0.66, (0.6, 1.6), (0.1, 0.5)),
-        "dent": DefectSpec(0.66, (0.4, 1.2), (0.1, 0.5)),
-        "warp": DefectSpec(0.25, (2.5, 5.0), (0.1, 0.35)),
+        "hole": DefectSpec(0.86, (0.5, 1.5)),
+        "occluded_hole": DefectSpec(0.48, (0.8, 1.8)),  # behind a tree, car, fence or pedestrian
+        "eave_hole": DefectSpec(0.4, (0.6, 1.5)),  # at the wall top, through the soffit
+        "protrusion": DefectSpec(0.72, (0.6, 1.6), (0.2, 1.0)),
+        "melted_eave": DefectSpec(0.55, (0.8, 2.0), (0.2, 1.0)),
+        "recess": DefectSpec(0.63, (0.6, 1.6), (0.1, 0.5)),
+        "dent": DefectSpec(0.63, (0.4, 1.2), (0.1, 0.5)),
+        "warp": DefectSpec(0.24, (2.5, 5.0), (0.1, 0.35)),
     }
 
 
@@ -270,11 +270,12 @@ def inject_defects(rng, mesh: Mesh, walls: list[dict], scene: Scene, p: DefectPa
             fidx = new_face[old[keep[old]]]
         if not len(samples):
             continue
+        samples = np.round(samples, 4)  # 0.1 mm, plenty for labels and small in JSON
         rec = {"id": len(defects), "type": d["type"], "building": d["building"],
                "centre": [float(x) for x in d["centre"]], "normal": [float(x) for x in d["normal"]],
                "axis_u": [float(x) for x in d["axis_u"]], "radius_m": float(d["radius_m"]),
                "magnitude_m": float(d["magnitude_m"]), "faces": fidx.astype(int).tolist(),
-               "samples": np.round(samples, 4).tolist(),
+               "samples": samples.tolist(),
                "bbox": [*map(float, samples.min(axis=0)), *map(float, samples.max(axis=0))]}
         if d["type"] in HOLE_TYPES:
             rec["front_m"], rec["back_m"] = float(d["front_m"]), float(d["back_m"])
@@ -290,14 +291,20 @@ def facade_patch_bad_fraction(mesh: Mesh, defects: list[dict], patch_size=(2.3, 
     touched when it holds a defect sample or the centroid of a defect face.
     """
     size = np.asarray(patch_size, float)
+
+    def cells(x):  # unique int64 keys of the patches holding points x (n, 3)
+        ijk = np.floor(np.asarray(x, float).reshape(-1, 3) / size).astype(np.int64) + (1 << 20)
+        return np.unique((ijk[:, 0] << 42) | (ijk[:, 1] << 21) | ijk[:, 2])
+
+    cen = mesh.triangles().mean(axis=1)
     fac = np.isin(mesh.face_class, FACADE_CLASSES) & (mesh.face_building >= 0)
-    cells = lambda x: {tuple(c) for c in np.floor(np.asarray(x, float).reshape(-1, 3) / size).astype(np.int64)}  # noqa: E731
-    facade = cells(mesh.triangles()[fac].mean(axis=1))
-    touched = set()
+    facade = [cells(cen[fac])]
+    touched = [np.zeros(0, np.int64)]
     for d in defects:
-        touched |= cells(d["samples"])
+        touched.append(cells(d["samples"]))
         if d["faces"]:
-            touched |= cells(mesh.triangles()[d["faces"]].mean(axis=1))
+            touched.append(cells(cen[np.asarray(d["faces"], np.int64)]))
         if d["type"] in HOLE_TYPES:
-            facade |= cells(d["samples"])
-    return len(touched & facade) / max(len(facade), 1)
+            facade.append(touched[-1])
+    facade = np.unique(np.concatenate(facade))
+    return len(np.intersect1d(np.concatenate(touched), facade)) / max(len(facade), 1)

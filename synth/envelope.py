@@ -12,6 +12,7 @@ clockwise as seen from outside (its Newell normal points out of the building).
 
 from __future__ import annotations
 
+import itertools
 from dataclasses import dataclass
 
 import numpy as np
@@ -198,7 +199,7 @@ def _gable_charts(fp, H, o, tp, t) -> list[Chart]:
                     FaceClass.WALL, "wall", H))
     xs = [X0, x0, x1, X1]
     for ya, yb, yw, s in ((Y0, y0, yc, -1), (Y1, y1, yc, 1)):  # south side, north side
-        for xa, xb in zip(xs[:-1], xs[1:]):  # eave strip under the long side, split at the wall ends
+        for xa, xb in itertools.pairwise(xs):  # eave strip under the long side, split at the wall ends
             raw.append(([P(xa, ya), P(xb, ya), P(xb, yb), P(xa, yb)], (0, 0, -1), FaceClass.EAVE, "soffit", 0))
             raw.append(([P(xa, ya), P(xb, ya), P(xb, ya, t), P(xa, ya, t)], (0, s, 0), FaceClass.ROOF, "fascia", 0))
         for xa, xb in ((X0, x0), (x1, X1)):  # rake soffits over the gable ends

@@ -144,10 +144,10 @@ def scan_to_laz(scene: Scene, trajs: list, path_for, perturb: np.ndarray, densit
     return paths
 
 
-def write_campus_yaml(out: Path, preset: SynthPreset, mesh_inputs: list[str]) -> None:
+def write_campus_yaml(out: Path, preset: SynthPreset, mesh_inputs: list[str], seed: int) -> None:
     cfg = {
         "name": f"synth-{preset.name}",
-        "work_dir": "../ms3d-work/" + out.name,
+        "work_dir": f"../ms3d-work/synth-{preset.name}-s{seed}",
         "inputs": {"mesh": mesh_inputs, "points": ["mls"], "crs": CRS,
                    "mesh_offset": list(WORLD_ORIGIN), "labels": "truth/defects.json"},
     }
@@ -264,7 +264,7 @@ def generate(preset: str = "tiny", seed: int = 0, out: str | Path = "synth-out",
     write_json_atomic(out / "truth" / "scene.json", {"preset": p.name, "seed": seed, "scale": scale,
                                                      "extent_m": list(p.extent_m), "buildings": buildings,
                                                      "stats": {k: v for k, v in stats.items() if k != "scan_seconds"}})
-    write_campus_yaml(out, p, mesh_inputs)
+    write_campus_yaml(out, p, mesh_inputs, seed)
     write_manifest(out, {"preset": p.name, "seed": seed, "scale": scale})
     log.info("synth %s seed %d: %s in %.1f s", p.name, seed, stats, time.perf_counter() - t_start)
     return out

@@ -16,11 +16,18 @@ sin(phi_c) a`` with (u, w, a) orthonormal and theta the rotation angle.
   -30.67 to +10.67 deg), upright on the roof; it never sees above ~+10.67 deg.
 
 All pulses of all heads are interleaved in one time line (pulse k at ``t_start + k / PRR_total``),
-so points come out in GPS-time order. Range noise is Gaussian along the ray (sigma 5 mm); the
-trajectory error of :mod:`synth.trajectory` (per-pass offset + drift + low-frequency wander) is
-added to every point, as georeferencing with a wrong pose would. Returns beyond ``max_range_m``
-(after noise) and closer than ``min_range_m`` are dropped; glass returns only with
-``glass_return_prob``. Everything is in the mesh frame (campus-local metres, float64, z up).
+so points come out in GPS-time order. Range noise is Gaussian along the ray (sigma 5 mm), plus a
+constant per-channel range bias (the two VMX heads: +-10 mm); the trajectory error of
+:mod:`synth.trajectory` (per-pass offset + drift + low-frequency wander) is added to every point, as
+georeferencing with a wrong pose would. Returns beyond ``max_range_m`` (after noise) and closer than
+``min_range_m`` are dropped; glass returns only with ``glass_return_prob``. Single returns only.
+Everything is in the mesh frame (campus-local metres, float64, z up).
+
+Measured with :func:`synth.realism.mls_wall_stats` on a street of 10 m tall walls 3-16 m from the
+lane (default preset, two passes): wall density p50 7,200 / 4,800 / 2,550 pts/m^2 at 0-5 / 5-10 /
+10-20 m (x ``density_scale``; 0.15 gives 1,080 / 730 / 385 against real street MLS 2,500 / 700 /
+370); flat-wall noise 3.7 mm within one rotation (the 5 mm along the ray, seen obliquely) and
+12 mm over one pass; pass-to-pass offset median 24 mm.
 """
 
 from __future__ import annotations
@@ -95,25 +102,25 @@ class MlsParams:
 
     @classmethod
     def vmx450(cls, yaw_deg: float = 35.0, height_m: float = 2.5, head_bias_m: float = 0.010,
-               **kw) -> "MlsParams":
+               **kw) -> MlsParams:
         """Two profile heads yawed +-``yaw_deg``, ``height_m`` above the road, with range biases
         +-``head_bias_m``; ~4,000 pts/m^2 at 10 m and 9 m/s. ``MlsParams()`` is this preset."""
         return cls(heads=_profile_heads(yaw_deg, height_m, head_bias_m), **kw)
 
     @classmethod
-    def spinner32(cls, **kw) -> "MlsParams":
+    def spinner32(cls, **kw) -> MlsParams:
         """One upright 32-channel spinner at 2.3 m (HDL-32E-like: 10 Hz, 1,800 pulses per channel)."""
         bias = np.random.default_rng(32).normal(0.0, 0.006, 32)  # fixed per-laser calibration residual
         head = ScannerHead(position_m=(0.0, 0.0, 2.3), spin_axis=(0.0, 0.0, 1.0),
                            channel_elev_deg=tuple(np.round(np.linspace(-30.67, 10.67, 32), 3)),
                            range_bias_m=tuple(np.round(bias, 4)))
-        base = dict(heads=(head,), profile_rate_hz=10.0, pulses_per_profile=1_800, max_range_m=100.0)
+        base = {"heads": (head,), "profile_rate_hz": 10.0, "pulses_per_profile": 1_800, "max_range_m": 100.0}
         return cls(**{**base, **kw})
 
     def scaled(self) -> tuple[float, int]:
         """(profile rate Hz, pulses per profile) after ``density_scale``."""
         k = np.sqrt(self.density_scale)
-        return self.profile_rate_hz * k, max(1, int(round(self.pulses_per_profile * k)))
+        return self.profile_rate_hz * k, max(1, round(self.pulses_per_profile * k))
 
     @property
     def n_channels(self) -> int:
@@ -171,7 +178,7 @@ class MlsChunk:
         return len(self.gps_time)
 
     @staticmethod
-    def concat(chunks: list["MlsChunk"]) -> "MlsChunk":
+    def concat(chunks: list[MlsChunk]) -> MlsChunk:
         """All chunks' points in order; n_rays summed. Needs at least one chunk."""
         names = [f.name for f in fields(MlsChunk) if f.name != "n_rays"]
         arrays = {k: np.concatenate([getattr(c, k) for c in chunks]) for k in names}
@@ -210,24 +217,30 @@ def _beam_table(params: MlsParams) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     return beam, theta, bias
 
 
-def _rays(traj: Trajectory, params: MlsParams, k: np.ndarray, table: np.ndarray):
-    """Pulse indices k (n,) int64 of one trajectory -> (t (n,), origin (n, 3), dir (n, 3)), float64."""
+def _rays(traj: Trajectory, params: MlsParams, k: np.ndarray, beam: np.ndarray, origin_m: np.ndarray):
+    """Pulse indices k (n,) int64 of one trajectory (k[0] a multiple of the head count) ->
+    (t (n,) float64 GPS s, rays (n, 6) float32: origin relative to ``origin_m``, unit direction).
+
+    float32 keeps the per-ray work light: relative origins within 2 km resolve 0.1 mm, directions
+    1e-7 rad (10 um at 100 m), far below the 5 mm range noise.
+    """
     t = traj.t_start + k / params.pulse_rate_hz
-    beam = table[k % len(table)]
-    mount = np.array([h.position_m for h in params.heads], np.float64)[k % len(params.heads)]
     pos, heading = traj.pose_at(t)
-    c, s = np.cos(heading), np.sin(heading)
-    origin, direction = pos, np.empty_like(beam)
-    for v, out, add in ((mount, origin, True), (beam, direction, False)):
-        x = v[:, 0] * c - v[:, 1] * s
-        y = v[:, 0] * s + v[:, 1] * c
-        if add:
-            out[:, 0] += x
-            out[:, 1] += y
-            out[:, 2] += v[:, 2]
-        else:
-            out[:, 0], out[:, 1], out[:, 2] = x, y, v[:, 2]
-    return t, origin, direction
+    c, s = np.cos(heading).astype(np.float32), np.sin(heading).astype(np.float32)
+    rays = np.empty((len(k), 6), np.float32)
+    rays[:, :3] = pos - origin_m
+    n_heads = len(params.heads)
+    for h, head in enumerate(params.heads):
+        mx, my, mz = head.position_m
+        ch, sh = c[h::n_heads], s[h::n_heads]
+        rays[h::n_heads, 0] += mx * ch - my * sh
+        rays[h::n_heads, 1] += mx * sh + my * ch
+        rays[h::n_heads, 2] += mz
+    b = beam[k % len(beam)]
+    rays[:, 3] = b[:, 0] * c - b[:, 1] * s
+    rays[:, 4] = b[:, 0] * s + b[:, 1] * c
+    rays[:, 5] = b[:, 2]
+    return t, rays
 
 
 def simulate_mls(
@@ -268,8 +281,8 @@ def _smooth_error(traj: Trajectory, t: np.ndarray, step_s: float = 0.01) -> np.n
 
 
 def _scan_block(traj, params, k, caster, refl, table, rng) -> MlsChunk:
-    t, origin, direction = _rays(traj, params, k, table[0])
-    hits = caster.cast(origin, direction, params.nthreads)
+    t, rays = _rays(traj, params, k, table[0].astype(np.float32), caster.origin_m)
+    hits = caster.cast_local(rays, params.nthreads)
     keep = np.flatnonzero(np.isfinite(hits.t) & (hits.t >= params.min_range_m))
     source, face = hits.source[keep], hits.face[keep]
     row = caster.global_face(source, face)
@@ -281,8 +294,8 @@ def _scan_block(traj, params, k, caster, refl, table, rng) -> MlsChunk:
     ok = ~drop & (rng_m <= params.max_range_m) & (rng_m >= params.min_range_m)
     keep, source, face, row, cls, rng_m = keep[ok], source[ok], face[ok], row[ok], cls[ok], rng_m[ok]
 
-    d = direction[keep]
-    xyz = origin[keep] + d * rng_m[:, None]
+    d = rays[keep, 3:].astype(np.float64)
+    xyz = rays[keep, :3] + d * rng_m[:, None] + caster.origin_m
     if params.apply_trajectory_error and len(keep):
         xyz += _smooth_error(traj, t[keep])
     normal = caster.all_face_normal[row]

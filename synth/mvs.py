@@ -266,7 +266,7 @@ def _lattices(rng, scene: Scene, p: MvsParams):
 
     eh = p.edge_facade_m * np.sqrt(3) / 2  # chart edges sampled at the row pitch of an equilateral lattice
     roads = [tuple(r) for r in scene.meta.get("roads", road_lines(scene.extent))]
-    xs, ys, road, inside = terrain_cells(scene.extent, roads, scene.meta["buildings"])
+    xs, ys, _, inside = terrain_cells(scene.extent, roads, scene.meta["buildings"])
     parts, charts, kinds, pclass, pbuild = [], [], [], [], []
     for bid, chs in charts_of(scene).items():
         for c in chs:
@@ -308,31 +308,72 @@ def _lattices(rng, scene: Scene, p: MvsParams):
     return vertices, faces, charts, wall_n, part_kind[face_part], face_part, part_class, part_building, roads
 
 
+def _wall_details(v, wall_n, truth: Mesh, reach: float) -> tuple[np.ndarray, np.ndarray]:
+    """Signed offset (n,) along wall_n from each wall vertex to the truth detail in front of / behind
+    it (0 where none or off walls), and the truth face it looked at (n,) (-1 where none)."""
+    is_wall = np.any(wall_n != 0, axis=1)
+    disp, vsrc = np.zeros(len(v)), np.full(len(v), -1, np.int64)
+    if is_wall.any():
+        det = TruthCaster(truth, np.isin(truth.face_class, DETAIL_CLASSES) & (truth.face_building >= 0))
+        t, prim = det.cast(v[is_wall] + wall_n[is_wall] * reach, -wall_n[is_wall])
+        d = reach - t
+        # facing the wall's way (glass, balcony fronts), not a reveal or a neighbouring wing's side
+        ok = (prim >= 0) & (np.sum(det.normals[np.maximum(prim, 0)] * wall_n[is_wall], axis=1) > 0.5)
+        ok &= (d > -0.6) & (d < reach - 0.02)
+        disp[is_wall] = np.where(ok, d, 0.0)
+        vsrc[is_wall] = np.where(ok, det.face_index[np.maximum(prim, 0)], -1)
+    return disp, vsrc
+
+
+def _transfer(v, faces, face_kind, face_part, part_class, part_building, vsrc, truth: Mesh, on_road):
+    """Per-face class, building and colour: wall faces from the truth faces their corners looked at
+    (the nearest truth face where those disagree), other building faces from their chart, terrain
+    from the road grid."""
+    m = len(faces)
+    face_class, face_building = np.zeros(m, np.uint8), np.full(m, -1, np.int32)
+    face_color = np.zeros((m, 3), np.uint8)
+    wf = np.flatnonzero(face_kind == 1)
+    src = vsrc[faces[wf]]
+    cls = np.where(src >= 0, truth.face_class[np.maximum(src, 0)], 255)
+    mixed = (cls[:, 0] == 255) | (cls[:, 0] != cls[:, 1]) | (cls[:, 0] != cls[:, 2])
+    src = src[:, 0]
+    near = TruthCaster(truth, truth.face_building >= 0)
+    src[mixed] = near.face_index[near.closest(v[faces[wf[mixed]]].mean(axis=1))]
+    face_class[wf], face_building[wf], face_color[wf] = truth.face_class[src], truth.face_building[src], \
+        truth.face_color[src]
+    of = np.flatnonzero(face_kind == 2)
+    face_class[of], face_building[of] = part_class[face_part[of]], part_building[face_part[of]]
+    tkey = truth.face_building.astype(np.int64) * 16 + truth.face_class
+    uk, ui = np.unique(tkey, return_index=True)  # the truth colour of each (building, class)
+    fk = face_building[of].astype(np.int64) * 16 + face_class[of]
+    pos = np.minimum(np.searchsorted(uk, fk), len(uk) - 1)
+    default = np.array([CLASS_COLOR[FaceClass(c)] for c in range(8)], np.uint8)
+    face_color[of] = np.where((uk[pos] == fk)[:, None], truth.face_color[ui[pos]], default[face_class[of]])
+    tf = face_kind == 0
+    rd = on_road(v[faces[tf]].mean(axis=1)[:, :2])
+    face_class[tf] = np.where(rd, FaceClass.ROAD, FaceClass.GROUND)
+    face_color[tf] = default[face_class[tf]]
+    return face_class, face_building, face_color
+
+
 def make_mvs_mesh(rng: np.random.Generator, scene: Scene, params: MvsParams = MvsParams()
                   ) -> tuple[Mesh, list[dict]]:
     """Simulate the UAV photogrammetry mesh of ``scene`` and inject labelled defects.
 
     scene: from ``synth.buildings.make_scene`` (uses truth, buildings, extent and meta). Returns
-    (mesh, defects): building faces carry class/building/colour of the nearest truth building face,
-    terrain faces GROUND/ROAD with building -1; defects as listed in ``synth.defects`` (face indices
-    refer to the returned mesh). Deterministic in ``rng``.
+    (mesh, defects): building faces carry the class/building/colour of the truth face they
+    reproduce, terrain faces GROUND/ROAD with building -1; defects as listed in ``synth.defects``
+    (face indices refer to the returned mesh). Deterministic in ``rng``.
     """
     truth = scene.truth
     v, faces, charts, wall_n, face_kind, face_part, part_class, part_building, roads = _lattices(rng, scene, params)
     is_wall = np.any(wall_n != 0, axis=1)
-    disp = np.zeros(len(v))
-    if is_wall.any():
-        det = TruthCaster(truth, np.isin(truth.face_class, DETAIL_CLASSES) & (truth.face_building >= 0))
-        o = v[is_wall] + wall_n[is_wall] * params.ray_reach_m
-        t, prim = det.cast(o, -wall_n[is_wall])
-        d = params.ray_reach_m - t
-        ok = (prim >= 0) & (np.sum(det.normals[np.maximum(prim, 0)] * wall_n[is_wall], axis=1) > 0.5)
-        ok &= (d > -0.6) & (d < params.ray_reach_m - 0.02)
-        disp[is_wall] = np.where(ok, d, 0.0)
-        vsrc = np.full(len(v), -1, np.int64)  # truth face each wall vertex looked at
-        vsrc[is_wall] = np.where(ok, det.face_index[np.maximum(prim, 0)], -1)
-    on_road = lambda xy: np.any([np.abs(xy[:, ax] - c) < hw for ax, c, hw in roads], axis=0) \
-        if roads else np.zeros(len(xy), bool)  # noqa: E731
+    disp, vsrc = _wall_details(v, wall_n, truth, params.ray_reach_m)
+
+    def on_road(xy):
+        return np.any([np.abs(xy[:, ax] - c) < hw for ax, c, hw in roads], axis=0) if roads else \
+            np.zeros(len(xy), bool)
+
     tv = np.zeros(len(v), bool)
     tv[faces[face_kind == 0].ravel()] = True
     tv &= ~is_wall
@@ -341,47 +382,21 @@ def make_mvs_mesh(rng: np.random.Generator, scene: Scene, params: MvsParams = Mv
     Mw = NeighbourMean(faces[face_kind == 1], len(v))
     for _ in range(params.blur_iterations):
         disp = np.where(is_wall, disp + params.blur_lambda * (Mw(disp) - disp), 0.0)
-    del Mw
-    M = NeighbourMean(faces, len(v))
     v = v + wall_n * disp[:, None]
+    M = NeighbourMean(faces, len(v))
     for _ in range(params.round_iterations):
         v = v + 0.5 * (M(v) - v)
         v = v - 0.53 * (M(v) - v)
-    face_class = np.zeros(len(faces), np.uint8)
-    face_building = np.full(len(faces), -1, np.int32)
-    face_color = np.zeros((len(faces), 3), np.uint8)
-    # walls: the nearest truth face (glass, frame, balcony...); soffits, fascias, roofs: their chart's class
-    wf = np.flatnonzero(face_kind == 1)
-    src = vsrc[faces[wf]]
-    cls = np.where(src >= 0, truth.face_class[np.maximum(src, 0)], 255)
-    mixed = (cls[:, 0] == 255) | (cls[:, 0] != cls[:, 1]) | (cls[:, 0] != cls[:, 2])
-    src = src[:, 0]
-    near = TruthCaster(truth, truth.face_building >= 0)  # faces at class borders: the nearest truth face
-    src[mixed] = near.face_index[near.closest(v[faces[wf[mixed]]].mean(axis=1))]
-    face_class[wf], face_building[wf], face_color[wf] = truth.face_class[src], truth.face_building[src], \
-        truth.face_color[src]
-    of = np.flatnonzero(face_kind == 2)
-    face_class[of], face_building[of] = part_class[face_part[of]], part_building[face_part[of]]
-    tkey = truth.face_building.astype(np.int64) * 16 + truth.face_class
-    uk, ui = np.unique(tkey, return_index=True)  # truth colour per (building, class)
-    fk = face_building[of].astype(np.int64) * 16 + face_class[of]
-    pos = np.minimum(np.searchsorted(uk, fk), len(uk) - 1)
-    face_color[of] = np.where((uk[pos] == fk)[:, None], truth.face_color[ui[pos]],
-                              np.array([CLASS_COLOR[FaceClass(c)] for c in range(8)], np.uint8)[face_class[of]])
-    terrain_face = face_kind == 0
-    rd = on_road(v[faces[terrain_face]].mean(axis=1)[:, :2])
-    face_class[terrain_face] = np.where(rd, FaceClass.ROAD, FaceClass.GROUND)
-    face_color[terrain_face] = np.where(rd[:, None], CLASS_COLOR[FaceClass.ROAD], CLASS_COLOR[FaceClass.GROUND])
+    face_class, face_building, face_color = _transfer(v, faces, face_kind, face_part, part_class, part_building,
+                                                      vsrc, truth, on_road)
 
     def add_noise(x):
-        vn = vertex_normals(x, faces)
         off = _smooth_noise(rng, x, params.noise_lf_m, params.noise_lf_wavelength_m)
         off = off + rng.normal(0.0, params.noise_hf_m, len(x))
-        return x + vn * off[:, None]
+        return x + vertex_normals(x, faces) * off[:, None]
 
     mesh = Mesh(v, faces, face_class, face_building, face_color)
     if params.defects is None:
         mesh.vertices = add_noise(mesh.vertices)
         return mesh, []
-    return inject_defects(rng, mesh, wall_records(charts), scene, params.defects, add_noise,
-                          TruthCaster(truth))
+    return inject_defects(rng, mesh, wall_records(charts), scene, params.defects, add_noise, TruthCaster(truth))

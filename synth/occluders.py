@@ -12,6 +12,7 @@ from __future__ import annotations
 from dataclasses import dataclass
 
 import numpy as np
+
 from .scene import Mesh, OccluderClass, Occluders, Scene
 
 
@@ -71,9 +72,10 @@ def _car(L, W, H) -> np.ndarray:
     """Car along x centred at the origin, wheels on z = 0: body, tapered cabin, four wheels."""
     body = box((-L / 2, -W / 2, 0.3), (L / 2, W / 2, 0.55 * H + 0.1))
     zb = 0.55 * H + 0.1
-    q = lambda x0, x1, y: np.array([[x0, -y], [x1, -y], [x1, y], [x0, y]])  # noqa: E731
-    cab = hexahedron(np.column_stack([q(-0.32 * L, 0.22 * L, W / 2 - 0.05), np.full(4, zb)]),
-                     np.column_stack([q(-0.22 * L, 0.08 * L, W / 2 - 0.2), np.full(4, H)]))
+    def q(x0, x1, y, z):
+        return np.array([[x0, -y, z], [x1, -y, z], [x1, y, z], [x0, y, z]])
+
+    cab = hexahedron(q(-0.32 * L, 0.22 * L, W / 2 - 0.05, zb), q(-0.22 * L, 0.08 * L, W / 2 - 0.2, H))
     wheels = [box((sx * L * 0.32 - 0.3, sy * (W / 2 - 0.12) - 0.12, 0.0), (sx * L * 0.32 + 0.3,
                                                                           sy * (W / 2 - 0.12) + 0.12, 0.6))
               for sx in (-1, 1) for sy in (-1, 1)]
@@ -81,6 +83,7 @@ def _car(L, W, H) -> np.ndarray:
 
 
 def _tree(rng, p: OccluderParams):
+    """A tree at the origin: (trunk (16, 3, 3), crown (80, 3, 3)) triangles; 4-10 m tall."""
     h = rng.uniform(*p.tree_height_m)
     R = min(rng.uniform(*p.crown_radius_m), 0.35 * h)
     zb = max(2.2, h - 2.6 * R)
@@ -92,7 +95,23 @@ def _tree(rng, p: OccluderParams):
     trunk = np.concatenate([np.stack([lo[a], lo[b], hi[b]], 1), np.stack([lo[a], hi[b], hi[a]], 1)])
     crown = icosphere() * [R, R, 0.5 * (h - zb)] + [0, 0, 0.5 * (h + zb)]
     crown = crown + rng.normal(0, 0.04 * R, crown.shape)  # per corner: a lumpy, slightly open crown
-    return trunk, crown, R, zb, h, tr
+    return trunk, crown
+
+
+def _place(tris: np.ndarray, street, lateral: float, along: float) -> np.ndarray:
+    """Move an object built along x at the origin to a street side: street = (axis, centre, side);
+    ``lateral`` metres from the road centre line, ``along`` the road; turned to run with the road."""
+    ax, c, side = street
+    p = np.array(tris, float)
+    if ax == 0:  # road runs along y: turn local x (length) onto world y
+        p = np.stack([-p[..., 1], p[..., 0], p[..., 2]], axis=-1)
+    xy = np.zeros(2)
+    xy[ax], xy[1 - ax] = c + side * lateral, along
+    return p + [xy[0], xy[1], 0.0]
+
+
+def _bounds(p: np.ndarray):
+    return p.reshape(-1, 3).min(axis=0), p.reshape(-1, 3).max(axis=0)
 
 
 def _free(boxes_lo, boxes_hi, obstacles) -> bool:
@@ -155,42 +174,29 @@ def make_occluders(rng: np.random.Generator, scene: Scene, density: float = 1.0,
             cars.append({"id": oid, **extra})
         return True
 
-    def near_crossing(ax, along):
-        return any(a2 != ax and abs(along - c2) < hw2 + params.crossing_clear_m for a2, c2, hw2 in roads)
-
     for ax, c, hw in roads:
         b = 1 - ax
         length = ext[b + 2] - ext[b]
+        crossings = [(c2, hw2) for a2, c2, hw2 in roads if a2 != ax]
         for side in (-1.0, 1.0):
-            def spots(rate):
+            def spots(rate, b=b, length=length, crossings=crossings):
                 k = rng.poisson(rate * density * length / 100.0)
-                return [s for s in np.sort(rng.uniform(ext[b], ext[b + 2], k)) if not near_crossing(ax, s)]
+                return [s for s in np.sort(rng.uniform(ext[b], ext[b + 2], k))
+                        if all(abs(s - c2) >= hw2 + params.crossing_clear_m for c2, hw2 in crossings)]
 
-            def place(lateral, along, tris):
-                p = np.zeros((len(tris), 3, 3)) + tris
-                if ax == 0:  # road runs along y: turn local x (length) onto world y
-                    p = np.stack([-p[..., 1], p[..., 0], p[..., 2]], axis=-1)
-                xy = np.zeros(2)
-                xy[ax], xy[b] = c + side * lateral, along
-                return p + [xy[0], xy[1], 0.0]
-
-            def bounds(p):
-                return (p.reshape(-1, 3).min(0), p.reshape(-1, 3).max(0))
-
+            street = (ax, c, side)
             for s in spots(params.trees_per_100m):
-                trunk, crown, R, zb, h, tr = _tree(rng, params)
+                trunk, crown = _tree(rng, params)
                 lat = hw + rng.uniform(*params.tree_from_curb_m)
-                trunk, crown = place(lat, s, trunk), place(lat, s, crown)
+                trunk, crown = _place(trunk, street, lat, s), _place(crown, street, lat, s)
                 green = np.clip([60, 110, 50] + rng.integers(-20, 20, 3), 0, 255)
-                add(OccluderClass.TREE, [trunk, crown], [(95, 75, 55), green], [bounds(trunk), bounds(crown)])
+                add(OccluderClass.TREE, [trunk, crown], [(95, 75, 55), green], [_bounds(trunk), _bounds(crown)])
             for s in spots(params.cars_per_100m):
                 L, W, H = (rng.uniform(*params.car_length_m), rng.uniform(*params.car_width_m),
                            rng.uniform(*params.car_height_m))
-                lat = hw - rng.uniform(*params.car_centre_from_curb_m)
-                tris = place(lat, s, _car(L, W, H))
-                lo, hi = bounds(tris)
-                rgb = rng.integers(30, 230, 3)
-                add(OccluderClass.CAR, [tris], [rgb], [(lo - [0.4, 0.4, 0], hi + [0.4, 0.4, 0])],
+                tris = _place(_car(L, W, H), street, hw - rng.uniform(*params.car_centre_from_curb_m), s)
+                lo, hi = _bounds(tris)
+                add(OccluderClass.CAR, [tris], [rng.integers(30, 230, 3)], [(lo - [0.4, 0.4, 0], hi + [0.4, 0.4, 0])],
                     {"centre": [*map(float, 0.5 * (lo[:2] + hi[:2])), float(0.5 * hi[2])],
                      "size": [float(L), float(W), float(H)], "axis": int(b)})
             for s in spots(params.pedestrians_per_100m):
@@ -198,9 +204,9 @@ def make_occluders(rng: np.random.Generator, scene: Scene, density: float = 1.0,
                 body = hexahedron(np.array([[-0.22, -0.15, 0], [0.22, -0.15, 0], [0.22, 0.15, 0], [-0.22, 0.15, 0]]),
                                   np.array([[-0.25, -0.17, h - 0.25], [0.25, -0.17, h - 0.25], [0.25, 0.17, h - 0.25],
                                             [-0.25, 0.17, h - 0.25]]))
-                tris = place(hw + rng.uniform(*params.pedestrian_from_curb_m), s,
-                             np.concatenate([body, box((-0.1, -0.1, h - 0.25), (0.1, 0.1, h))]))
-                add(OccluderClass.PEDESTRIAN, [tris], [rng.integers(20, 220, 3)], [bounds(tris)])
+                tris = _place(np.concatenate([body, box((-0.1, -0.1, h - 0.25), (0.1, 0.1, h))]), street,
+                              hw + rng.uniform(*params.pedestrian_from_curb_m), s)
+                add(OccluderClass.PEDESTRIAN, [tris], [rng.integers(20, 220, 3)], [_bounds(tris)])
     _fences(rng, scene, params, add)
     if parts:
         tris = np.concatenate([p[0] for p in parts])

@@ -26,7 +26,7 @@ class SynthPreset:
 
 PRESETS = {
     # one small building beside one road: seconds, for tests
-    "tiny": SynthPreset("tiny", (60.0, 50.0), 1, (2, 4), 60.0, 0.08, 2, 20.0, (320, 240), mvs_edge_m=0.15),
+    "tiny": SynthPreset("tiny", (60.0, 50.0), 1, (2, 4), 60.0, 0.04, 2, 25.0, (240, 180), mvs_edge_m=0.15),
     # 4-8 buildings, a few million points, 1-2 minutes: the demo campus
     "demo": SynthPreset("demo", (220.0, 200.0), 6, (1, 12), 220.0, 0.35, 2, 12.0, (1024, 768)),
     # >= 0.25 km^2, >= 40 buildings, ~1e8 points, generated tile by tile in bounded memory

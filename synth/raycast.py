@@ -63,20 +63,24 @@ class SceneCaster:
 
     def cast(self, origins: np.ndarray, dirs: np.ndarray, nthreads: int = 0) -> Hits:
         """origins, dirs: (n, 3) float64, mesh frame, dirs unit length -> :class:`Hits`."""
-        rays = np.empty((len(origins), 6), np.float32)
+        rays = np.empty((len(dirs), 6), np.float32)
         rays[:, :3] = origins - self.origin_m
         rays[:, 3:] = dirs
+        return self.cast_local(rays, nthreads)
+
+    def cast_local(self, rays: np.ndarray, nthreads: int = 0) -> Hits:
+        """rays: (n, 6) float32 C-contiguous, origin relative to ``self.origin_m`` then unit
+        direction -> :class:`Hits`."""
         out = self._scene.cast_rays(o3d.core.Tensor.from_numpy(rays), nthreads=nthreads)
         t = out["t_hit"].numpy().astype(np.float64)
-        gid = out["geometry_ids"].numpy().astype(np.int64)
-        prim = out["primitive_ids"].numpy().astype(np.int64)
-        lut = np.full(max(self._geom_source, default=0) + 2, SOURCE_MISS, np.int8)
-        for g, s in self._geom_source.items():
-            lut[g] = s
+        gid = out["geometry_ids"].numpy()
         hit = gid != o3d.t.geometry.RaycastingScene.INVALID_ID
-        source = np.where(hit, lut[np.where(hit, gid, len(lut) - 1)], SOURCE_MISS).astype(np.int8)
+        source = np.full(len(t), SOURCE_MISS, np.int8)
+        for g, s in self._geom_source.items():
+            source[gid == g] = s
         t[~hit] = np.inf
-        return Hits(t=t, source=source, face=np.where(hit, prim, -1))
+        face = np.where(hit, out["primitive_ids"].numpy().astype(np.int64), -1)
+        return Hits(t=t, source=source, face=face)
 
     def global_face(self, source: np.ndarray, face: np.ndarray) -> np.ndarray:
         """Row of each hit (source >= 0) in the concatenated per-face tables below: (n,) int64."""

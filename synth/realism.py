@@ -92,10 +92,10 @@ class WallStats:
     def summary(self) -> str:
         lines = [f"wall density p50 {lo:g}-{hi:g} m: {d:,.0f} pts/m^2 ({c} cells)"
                  for (lo, hi), d, c in zip(self.bands_m, self.density_p50, self.density_cells)]
-        lines += [f"flat-wall noise RMS: {1e3 * self.noise_rms_rotation_m:.1f} mm within one rotation, "
-                  f"{1e3 * self.noise_rms_pass_m:.1f} mm over one pass",
-                  f"pass-to-pass wall offset: median |offset| {1e3 * self.pass_offset_median_m:.1f} mm "
-                  f"over {len(self.pass_pairs)} pass pairs"]
+        lines += [(f"flat-wall noise RMS: {1e3 * self.noise_rms_rotation_m:.1f} mm within one rotation, "
+                  f"{1e3 * self.noise_rms_pass_m:.1f} mm over one pass"),
+                  (f"pass-to-pass wall offset: median |offset| {1e3 * self.pass_offset_median_m:.1f} mm "
+                  f"over {len(self.pass_pairs)} pass pairs")]
         return "\n".join(lines)
 
 
@@ -170,7 +170,7 @@ def _noise(xyz, traj, plane, a, b, cloud, sel, cell, min_points) -> tuple[float,
         return np.nan, float(rms_pass)
     r, rc = _group(r[keep])
     dist = np.sum(pts[keep] * normal[g[keep]], axis=1)
-    res = dist - np.bincount(r, dist) [r] / rc[r]
+    res = dist - np.bincount(r, dist)[r] / rc[r]
     return float(np.sqrt(np.sum(res**2) / (rc - 1).sum())), float(rms_pass)
 
 

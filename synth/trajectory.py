@@ -19,6 +19,7 @@ metres, float64, z up.
 
 from __future__ import annotations
 
+import itertools
 from dataclasses import dataclass
 
 import numpy as np
@@ -162,7 +163,7 @@ def densify(line: np.ndarray, max_step_m: float) -> np.ndarray:
     keep = np.concatenate([[True], np.linalg.norm(np.diff(line, axis=0), axis=1) > 1e-9])
     line = line[keep]
     pieces = []
-    for a, b in zip(line[:-1], line[1:]):
+    for a, b in itertools.pairwise(line):
         n = max(1, int(np.ceil(np.linalg.norm(b - a) / max_step_m)))
         pieces.append(a + (b - a) * (np.arange(n) / n)[:, None])
     pieces.append(line[-1:])
@@ -170,15 +171,19 @@ def densify(line: np.ndarray, max_step_m: float) -> np.ndarray:
 
 
 def surface_z(xy: np.ndarray, truth: Mesh | None) -> np.ndarray:
-    """Height of the first truth surface below (x, y, +1 km): (n, 2) -> (n,) float64; 0 where none."""
+    """Height of the lowest truth surface at (x, y): (n, 2) -> (n,) float64; 0 where there is none.
+
+    Cast upwards from 1 km below, so balconies, eaves or trees above the lane are never taken
+    for the road.
+    """
     if truth is None or truth.n_faces == 0:
         return np.zeros(len(xy))
     from .raycast import SceneCaster  # open3d only when a terrain is given
 
     caster = SceneCaster(truth, None)
-    origins = np.column_stack([xy, np.full(len(xy), 1000.0)])
-    hits = caster.cast(origins, np.tile([0.0, 0.0, -1.0], (len(xy), 1)))
-    return np.where(np.isfinite(hits.t), 1000.0 - hits.t, 0.0)
+    origins = np.column_stack([xy, np.full(len(xy), -1000.0)])
+    hits = caster.cast(origins, np.tile([0.0, 0.0, 1.0], (len(xy), 1)))
+    return np.where(np.isfinite(hits.t), hits.t - 1000.0, 0.0)
 
 
 def _error_model(params: TrajectoryParams, rng: np.random.Generator):

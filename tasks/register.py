@@ -4,8 +4,9 @@ The paper registers the two captures in two steps: SAC-IA (FPFH features + sampl
 1000 iterations, 10 cm) for a coarse alignment, then Scale-ICP (1000 iterations, 1 mm) for the
 fine similarity. Here:
 
-* **coarse**: both clouds are voxel-downsampled (``cfg.voxel_m``), normals and FPFH descriptors are
-  computed, and Open3D's RANSAC on mutual feature matches estimates a rigid transform. The target
+* **coarse**: both clouds are voxel-downsampled (``cfg.voxel_m``), FPFH descriptors are computed at
+  curved keypoints and matched within a spatial gate, and Open3D's RANSAC on those matches
+  estimates a rigid transform. The target
   (mesh vertices, which include roofs and everything away from the street) is first cropped to the
   source's bounding box grown by ``CROP_MARGIN_M``. A rotation prior (``ROTATION_PRIOR_DEG``) rejects
   implausible hypotheses before they are scored.
@@ -31,8 +32,6 @@ from tasks.config import RegistrationConfig
 
 _reg = o3d.pipelines.registration
 
-_debug: dict = {}
-
 # Parameters not (yet) in RegistrationConfig; candidates for config fields.
 MIN_POINTS = 100  # fewer finite points than this cannot be registered
 CROP_MARGIN_M = 10.0  # target is cropped to the source bbox grown by this much
@@ -41,21 +40,22 @@ NORMAL_RADIUS_VOXELS = 2.5  # normal estimation radius, in voxels
 FPFH_RADIUS_VOXELS = 5.0  # FPFH radius, in voxels
 SAC_MIN_THRESHOLD_VOXELS = 0.5  # RANSAC inlier distance is at least this many voxels (see coarse_register)
 SAC_ATTEMPTS = 3  # independent RANSAC runs (different seeds); the best fitness wins
-SAC_EVAL_POINTS = 10_000  # source voxels on which RANSAC scores a hypothesis
+SAC_EVAL_POINTS = 5_000  # source voxels on which RANSAC scores a hypothesis
 SAC_MAX_KEYPOINTS = (2_000, 6_000)  # FPFH keypoints (source, target), drawn among the most curved voxels
 KEYPOINT_MIN_CURVATURE = 0.02  # surface variation l0 / (l0 + l1 + l2) of a keypoint (a plane is ~0)
-SAC_MUTUAL = False
 SAC_CONSISTENT_MATCHES = 300  # matches kept for RANSAC, by degree in the compatibility graph
 MAX_OFFSET_M = 10.0  # a feature match is only sought this far away (+ the rotation prior at that distance)
 FINE_DISTANCES_M = (1.0, 0.3, 0.15)  # ICP max correspondence distance schedule
 FINE_COARSE_POINTS = 60_000  # source points used in every ICP level but the last
 FINE_LEVEL_ITERATIONS = 30  # iteration cap of every ICP level but the last (which uses cfg.icp_iterations)
 FINE_METHOD = "plane"  # "plane": point-to-plane similarity ICP; "point": Open3D point-to-point with scaling
-TARGET_NORMAL_RADIUS_M = 0.3  # normals of mesh vertices when the caller has none (~3 vertex spacings)
+SURFACE_NEIGHBOURS = 24  # mesh vertices averaged into one local plane (denoises ~5x)
+SURFACE_SPACING_M = 0.2  # spacing of those planes (voxel-thinned vertices)
 TARGET_MAX_POINTS = 3_000_000  # random cap on cropped mesh vertices
 CHECK_POINTS = 50_000  # source points sampled by check_coregistered
 CHECK_VOXEL_M = 0.2  # ... after thinning at this voxel size
 CHECK_MIN_GROUP_SHARE = 0.05  # an orientation group counts in check_coregistered from this share of points
+LOW_FITNESS = 0.3  # register_clouds warns when fewer source points than this find the mesh
 PRE_CAP_FACTOR = 8  # random pre-cap (before voxelling) at this many times cfg.max_points
 
 
@@ -152,16 +152,6 @@ def compare_transforms(estimated: np.ndarray, truth: np.ndarray, at: np.ndarray 
     }
 
 
-def _rotation_vector(r: np.ndarray) -> np.ndarray:
-    """(3, 3) rotation -> (3,) axis * angle (radians)."""
-    cos = np.clip((np.trace(r) - 1.0) / 2.0, -1.0, 1.0)
-    angle = np.arccos(cos)
-    if angle < 1e-12:
-        return np.zeros(3)
-    w = np.array([r[2, 1] - r[1, 2], r[0, 2] - r[2, 0], r[1, 0] - r[0, 1]])
-    return w * angle / (2.0 * np.sin(angle))
-
-
 def _small_rotation(w: np.ndarray) -> np.ndarray:
     """(3,) rotation vector -> (3, 3) rotation (Rodrigues)."""
     angle = float(np.linalg.norm(w))
@@ -175,15 +165,38 @@ def _small_rotation(w: np.ndarray) -> np.ndarray:
 # --------------------------------------------------------------------------- input handling
 
 
-def _finite_xyz(xyz: np.ndarray, name: str) -> np.ndarray:
-    """Validate an (n, 3) array; drop non-finite rows; raise InputError when too few remain."""
+class _Clock:
+    """Wall and CPU seconds per named step (reported in RegistrationResult.details)."""
+
+    def __init__(self, t0: float):
+        self.t, self.c, self.laps = t0, time.process_time(), {}
+
+    def lap(self, name: str) -> None:
+        now, cpu = time.perf_counter(), time.process_time()
+        self.laps[name] = (round(now - self.t, 2), round(cpu - self.c, 2))
+        self.t, self.c = now, cpu
+
+
+def _check_shape(xyz: np.ndarray, name: str) -> np.ndarray:
     a = np.asarray(xyz)
     if a.ndim != 2 or a.shape[1] != 3:
         raise InputError(None, f"{name} must be an (n, 3) array of metres, got shape {a.shape}")
-    a = a.astype(np.float64, copy=False)
+    return a
+
+
+def _finite_xyz(
+    xyz: np.ndarray, name: str, cap: int | None = None, rng: np.random.Generator | None = None
+) -> np.ndarray:
+    """(n, 3) any float dtype -> (k, 3) float64 finite rows; raise InputError when < MIN_POINTS remain.
+
+    With ``cap``, at most ``cap`` random rows (drawn with ``rng``) are kept *before* the float64
+    copy, so a huge float32 input is never duplicated whole.
+    """
+    a = _check_shape(xyz, name)
+    if cap is not None and len(a) > cap:
+        a = a[np.sort(rng.choice(len(a), cap, replace=False))]
     ok = np.isfinite(a).all(axis=1)
-    if not ok.all():
-        a = a[ok]
+    a = (a if ok.all() else a[ok]).astype(np.float64, copy=False)
     if len(a) < MIN_POINTS:
         raise InputError(
             None,
@@ -191,6 +204,35 @@ def _finite_xyz(xyz: np.ndarray, name: str) -> np.ndarray:
             f"registration needs at least {MIN_POINTS}",
         )
     return a
+
+
+def _target_near(
+    target_xyz: np.ndarray, lo: np.ndarray, hi: np.ndarray, normals: np.ndarray | None = None
+) -> tuple[np.ndarray, np.ndarray | None]:
+    """Finite mesh vertices inside [lo, hi] (and their normals) as float64; InputError if < MIN_POINTS.
+
+    Cropping happens on the caller's dtype, so only the kept vertices are copied.
+    """
+    raw = _check_shape(target_xyz, "mesh vertices")
+    if normals is not None and np.shape(normals) != raw.shape:
+        raise InputError(None, f"target_normals has shape {np.shape(normals)}, mesh vertices {raw.shape}")
+    finite = np.isfinite(raw).all(axis=1)
+    if finite.sum() < MIN_POINTS:
+        raise InputError(
+            None,
+            f"mesh vertices have {int(finite.sum())} finite points (of {len(raw)}; the rest NaN/inf); "
+            f"registration needs at least {MIN_POINTS}",
+        )
+    keep = np.flatnonzero(finite & crop_to_box(raw, lo, hi))
+    if len(keep) < MIN_POINTS:
+        raise InputError(
+            None,
+            f"only {len(keep)} mesh vertices lie within {CROP_MARGIN_M} m of the MLS cloud's extent "
+            f"{np.round(lo, 1).tolist()} - {np.round(hi, 1).tolist()}: the inputs do not overlap "
+            "(wrong CRS, origin or units?)",
+        )
+    nrm = None if normals is None else np.asarray(normals)[keep].astype(np.float64)
+    return raw[keep].astype(np.float64), nrm
 
 
 def subsample_for_registration(
@@ -218,11 +260,8 @@ def crop_to_box(xyz: np.ndarray, lo: np.ndarray, hi: np.ndarray) -> np.ndarray:
     return np.all((xyz >= lo) & (xyz <= hi), axis=1)
 
 
-def _cloud(xyz: np.ndarray, normals: np.ndarray | None = None) -> o3d.geometry.PointCloud:
-    pc = o3d.geometry.PointCloud(o3d.utility.Vector3dVector(np.ascontiguousarray(xyz, dtype=np.float64)))
-    if normals is not None:
-        pc.normals = o3d.utility.Vector3dVector(np.ascontiguousarray(normals, dtype=np.float64))
-    return pc
+def _cloud(xyz: np.ndarray) -> o3d.geometry.PointCloud:
+    return o3d.geometry.PointCloud(o3d.utility.Vector3dVector(np.ascontiguousarray(xyz, dtype=np.float64)))
 
 
 def _estimate_normals(pc: o3d.geometry.PointCloud, radius_m: float, viewpoint: np.ndarray) -> None:
@@ -243,62 +282,47 @@ def _surface_variation(pc: o3d.geometry.PointCloud, radius_m: float) -> np.ndarr
     return ev[:, 0] / np.maximum(ev.sum(axis=1), 1e-18)
 
 
-def _keypoints(pc: o3d.geometry.PointCloud, radius_m: float, cap: int, rng: np.random.Generator) -> np.ndarray:
-    """Indices (k,) int64 of curved points (edges, corners), at most ``cap``, random among them."""
+def _keypoints(
+    pc: o3d.geometry.PointCloud, radius_m: float, cap: int, rng: np.random.Generator
+) -> np.ndarray:
+    """Indices (k,) int64 of curved points (edges, corners): at most ``cap``, drawn at random among them.
+
+    A nearly planar cloud (fewer than ``MIN_POINTS`` curved points) falls back to its most curved points.
+    """
     curv = _surface_variation(pc, radius_m)
     idx = np.flatnonzero(curv >= KEYPOINT_MIN_CURVATURE)
-    if len(idx) < 3 * MIN_POINTS // 10:  # a nearly planar scene: fall back to the most curved points
-        idx = np.argsort(curv)[-max(MIN_POINTS, min(cap, len(curv))):]
+    if len(idx) < MIN_POINTS:
+        idx = np.sort(np.argsort(curv)[-min(cap, len(curv)) :])
     if len(idx) > cap:
         idx = np.sort(rng.choice(idx, cap, replace=False))
     return idx
 
 
 def match_features(
-    src_xyz: np.ndarray,
-    src_feat: np.ndarray,
-    tgt_xyz: np.ndarray,
-    tgt_feat: np.ndarray,
-    gate_m: np.ndarray,
-    mutual: bool = False,
+    src_xyz: np.ndarray, src_feat: np.ndarray, tgt_xyz: np.ndarray, tgt_feat: np.ndarray, gate_m: np.ndarray
 ) -> np.ndarray:
-    """Nearest-descriptor matches, sought only among target points within ``gate_m`` of each source point.
+    """Nearest-descriptor match of each source point among the target points within its gate.
 
     src_xyz: (n, 3), src_feat: (n, d), tgt_xyz: (m, 3), tgt_feat: (m, d), gate_m: (n,) metres.
-    Returns (k, 2) int64 pairs (source index, target index), at most one per source point; with
-    ``mutual`` each pair is also the best source match of its target point (within the same gates).
+    Returns (k, 2) int64 pairs (source index, target index), at most one per source point (none
+    for a source point with no target point within its gate).
     """
     tree = cKDTree(tgt_xyz)
-    pi, pj, pd = [], [], []
+    pairs = []
     for lo in range(0, len(src_xyz), 1000):
         hi = min(lo + 1000, len(src_xyz))
         lists = tree.query_ball_point(src_xyz[lo:hi], gate_m[lo:hi], workers=-1)
         counts = np.fromiter(map(len, lists), dtype=np.int64, count=hi - lo)
         if not counts.sum():
             continue
-        i = np.repeat(np.arange(lo, hi), counts)
-        j = np.concatenate([np.asarray(l, dtype=np.int64) for l in lists if l])
+        i = np.repeat(np.arange(lo, hi), counts)  # sorted, so segments of one source point each
+        j = np.concatenate([np.asarray(c, dtype=np.int64) for c in lists if c])
         diff = src_feat[i] - tgt_feat[j]
         d = np.einsum("ij,ij->i", diff, diff)
-        # i is sorted: each source point's best candidate by a segmented argmin
         starts = np.flatnonzero(np.r_[True, i[1:] != i[:-1]])
         best = starts + _segmented_argmin(d, starts)
-        pi.append(i[best])
-        pj.append(j[best])
-        pd.append(d[best])
-        if mutual:
-            pd[-1] = (pd[-1], i, j, d)
-    if not pi:
-        return np.empty((0, 2), dtype=np.int64)
-    i, j = np.concatenate(pi), np.concatenate(pj)
-    if mutual:
-        d_best = np.concatenate([x[0] for x in pd])
-        min_for_j = np.full(len(tgt_xyz), np.inf)
-        for _, ii, jj, dd in pd:
-            np.minimum.at(min_for_j, jj, dd)
-        keep = d_best <= min_for_j[j]
-        i, j = i[keep], j[keep]
-    return np.stack([i, j], axis=1)
+        pairs.append(np.stack([i[best], j[best]], axis=1))
+    return np.concatenate(pairs) if pairs else np.empty((0, 2), dtype=np.int64)
 
 
 def _segmented_argmin(values: np.ndarray, starts: np.ndarray) -> np.ndarray:
@@ -337,78 +361,85 @@ def consistent_matches(
 
 def coarse_register(
     source_xyz: np.ndarray, target_xyz: np.ndarray, cfg: RegistrationConfig
-) -> tuple[np.ndarray, float, float]:
-    """SAC-IA: FPFH features + RANSAC on feature matches -> rigid (4, 4) source -> target.
+) -> tuple[np.ndarray, float, dict]:
+    """SAC-IA: FPFH features + sample consensus -> rigid (4, 4) source -> target.
 
     source_xyz, target_xyz: (n, 3) / (m, 3) float64 campus-local metres, already thinned and the
     target cropped around the source. Both are voxel-downsampled at ``cfg.voxel_m``; normals use a
     radius of ``NORMAL_RADIUS_VOXELS`` voxels and FPFH ``FPFH_RADIUS_VOXELS`` voxels.
 
-    Descriptors are computed only at keypoints: voxels whose neighbourhood is curved (edges and
-    corners; on planes every FPFH looks alike and only adds false matches). A source keypoint is
-    matched to the target keypoint with the nearest descriptor among those within
-    ``MAX_OFFSET_M`` (+ what the rotation prior moves a point at that distance from the data
-    centroid), mutually. This encodes the brief's prior (both clouds in one campus frame, off by a
-    few metres and degrees) and turns a repetitive street into a solvable matching problem.
+    Matching. Descriptors are computed only at keypoints: voxels whose neighbourhood is curved
+    (edges, corners; on planes every FPFH looks alike and only adds false matches). Each source
+    keypoint takes the target keypoint with the nearest descriptor among those within
+    ``MAX_OFFSET_M`` (+ what ``ROTATION_PRIOR_DEG`` moves a point at that distance from the data
+    centroid): both clouds are in one campus frame, off by metres and degrees, and the gate turns
+    a repetitive street into a solvable matching problem. On box streets ~5 % of these matches are
+    right (a mutual filter kept ~350 matches at ~8 %); ranking them by their degree in a
+    compatibility graph (:func:`consistent_matches`) and keeping ``SAC_CONSISTENT_MATCHES`` lifts
+    that to ~18 %, enough for 1000 RANSAC iterations.
 
-    The paper's 10 cm (``cfg.sac_threshold_m``) is the RANSAC inlier distance, but two independent
-    voxel grids put their centroids up to ~half a voxel apart on the same surface, so a 10 cm
-    threshold on 0.3 m voxels counts only a fraction of the true inliers and makes the consensus
-    noisy. The inlier distance used is ``max(cfg.sac_threshold_m, SAC_MIN_THRESHOLD_VOXELS *
-    cfg.voxel_m)``; the fine stage does the rest. Each of ``SAC_ATTEMPTS`` runs does
-    ``cfg.sac_iterations`` RANSAC iterations (seeded ``cfg.seed + attempt``); hypotheses whose
-    rotation exceeds ``ROTATION_PRIOR_DEG`` or whose sampled edges disagree in length by > 10 %
-    are rejected before scoring; the best-scoring run wins.
+    Consensus. Open3D's RANSAC on these correspondences, ``cfg.sac_iterations`` iterations (paper:
+    1000) per attempt, ``SAC_ATTEMPTS`` attempts seeded ``cfg.seed + attempt``, the best fitness
+    wins. Hypotheses whose rotation exceeds ``ROTATION_PRIOR_DEG`` or whose sampled edges differ in
+    length by > 10 % are rejected before scoring; scoring uses ``SAC_EVAL_POINTS`` source voxels.
+    The paper's 10 cm (``cfg.sac_threshold_m``) is the inlier distance, but two independent voxel
+    grids put their centroids up to ~half a voxel apart on one surface, so 10 cm on 0.3 m voxels
+    counts only part of the true inliers. The distance used is ``max(cfg.sac_threshold_m,
+    SAC_MIN_THRESHOLD_VOXELS * cfg.voxel_m)`` (15 cm by default); the result is good to ~1 deg and
+    ~0.5 m, which the fine stage's 1 m first level absorbs.
 
-    Returns (matrix, fitness, inlier_distance_m).
+    Returns (matrix, fitness, info): info holds the inlier distance, keypoint and match counts and
+    the (wall, CPU) seconds of each step.
     """
     voxel = float(cfg.voxel_m)
     rng = np.random.default_rng(cfg.seed)
+    clock = _Clock(time.perf_counter())
     centroid = source_xyz.mean(axis=0)
-    viewpoint = centroid + np.array([0.0, 0.0, 5.0])
     src = _cloud(source_xyz).voxel_down_sample(voxel)
     tgt = _cloud(target_xyz).voxel_down_sample(voxel)
     if len(src.points) < MIN_POINTS or len(tgt.points) < MIN_POINTS:
         raise InputError(
             None,
-            f"after {voxel} m voxels only {len(src.points)} source / {len(tgt.points)} target points remain "
-            f"(need {MIN_POINTS}); the clouds are too small or do not overlap",
+            f"after {voxel} m voxels only {len(src.points)} MLS / {len(tgt.points)} mesh points remain "
+            f"(need {MIN_POINTS}): the clouds are too small or do not overlap",
         )
     radius = NORMAL_RADIUS_VOXELS * voxel
-    ck = _Clock(time.perf_counter()); _debug["coarse_laps"] = ck.laps
-    ck.lap("voxel")
     ks = _keypoints(src, radius, SAC_MAX_KEYPOINTS[0], rng)
     kt = _keypoints(tgt, radius, SAC_MAX_KEYPOINTS[1], rng)
-    ck.lap("keypoints")
     for pc in (src, tgt):  # reuses the covariances _keypoints left on the cloud
-        _estimate_normals(pc, radius, viewpoint)
-    ck.lap("normals")
+        _estimate_normals(pc, radius, centroid + np.array([0.0, 0.0, 5.0]))
     search = o3d.geometry.KDTreeSearchParamHybrid(radius=FPFH_RADIUS_VOXELS * voxel, max_nn=100)
-    f_src = np.asarray(_reg.compute_fpfh_feature(src, search, o3d.utility.IntVector(ks.astype(np.int32))).data).T
-    f_tgt = np.asarray(_reg.compute_fpfh_feature(tgt, search, o3d.utility.IntVector(kt.astype(np.int32))).data).T
-    ck.lap("fpfh")
+    f_src = np.asarray(
+        _reg.compute_fpfh_feature(src, search, o3d.utility.IntVector(ks.astype(np.int32))).data
+    ).T
+    f_tgt = np.asarray(
+        _reg.compute_fpfh_feature(tgt, search, o3d.utility.IntVector(kt.astype(np.int32))).data
+    ).T
+    clock.lap("features")
+
     src_xyz, tgt_xyz = np.asarray(src.points), np.asarray(tgt.points)
-    sin_rot = np.sin(np.radians(max(ROTATION_PRIOR_DEG)))
-    gate = MAX_OFFSET_M + sin_rot * np.linalg.norm(src_xyz[ks] - centroid, axis=1)
-    pairs = match_features(src_xyz[ks], f_src, tgt_xyz[kt], f_tgt, gate, mutual=SAC_MUTUAL)
-    n_raw = len(pairs)
-    _debug['raw'] = (src_xyz[ks][pairs[:, 0]], tgt_xyz[kt][pairs[:, 1]])
-    if len(pairs) > 3:
-        top = consistent_matches(
-            src_xyz[ks][pairs[:, 0]], tgt_xyz[kt][pairs[:, 1]], 2.0 * voxel,
-            np.radians(max(ROTATION_PRIOR_DEG)), SAC_CONSISTENT_MATCHES,
-        )
-        pairs = pairs[top]
-    if len(pairs) < 3:
+    max_rot = np.radians(max(ROTATION_PRIOR_DEG))
+    gate = MAX_OFFSET_M + np.sin(max_rot) * np.linalg.norm(src_xyz[ks] - centroid, axis=1)
+    pairs = match_features(src_xyz[ks], f_src, tgt_xyz[kt], f_tgt, gate)
+    n_matches = len(pairs)
+    if n_matches < 3:
         raise InputError(None, "no FPFH matches between the MLS cloud and the mesh: do they overlap?")
-    ck.lap("match")
-    # RANSAC scores hypotheses on a subset of source voxels: the matched keypoints plus random others.
+    top = consistent_matches(
+        src_xyz[ks[pairs[:, 0]]], tgt_xyz[kt[pairs[:, 1]]], 2.0 * voxel, max_rot, SAC_CONSISTENT_MATCHES
+    )
+    pairs = pairs[top]
+    clock.lap("matching")
+
+    # hypotheses are scored on the matched keypoints plus random other source voxels
     matched = ks[pairs[:, 0]]
     others = np.setdiff1d(np.arange(len(src_xyz)), matched)
     n_more = max(0, min(len(others), SAC_EVAL_POINTS - len(matched)))
-    eval_idx = np.concatenate([matched, np.sort(rng.choice(others, n_more, replace=False))])
-    corres = np.stack([np.arange(len(matched)), kt[pairs[:, 1]]], axis=1).astype(np.int32)
-    src_eval = _cloud(src_xyz[eval_idx])
+    src_eval = _cloud(
+        np.concatenate([src_xyz[matched], src_xyz[np.sort(rng.choice(others, n_more, replace=False))]])
+    )
+    corres = o3d.utility.Vector2iVector(
+        np.stack([np.arange(len(matched)), kt[pairs[:, 1]]], axis=1).astype(np.int32)
+    )
     distance = max(float(cfg.sac_threshold_m), SAC_MIN_THRESHOLD_VOXELS * voxel)
     checkers = [
         _reg.CorrespondenceCheckerBasedOnEdgeLength(0.9),
@@ -419,16 +450,25 @@ def coarse_register(
     for attempt in range(SAC_ATTEMPTS):
         o3d.utility.random.seed(int(cfg.seed) + attempt)
         res = _reg.registration_ransac_based_on_correspondence(
-            src_eval, tgt, o3d.utility.Vector2iVector(corres), distance,
-            _reg.TransformationEstimationPointToPoint(False), 3, checkers,
+            src_eval,
+            tgt,
+            corres,
+            distance,
+            _reg.TransformationEstimationPointToPoint(False),
+            3,
+            checkers,
             _reg.RANSACConvergenceCriteria(int(cfg.sac_iterations), 0.9999),
         )
         if best is None or (res.fitness, -res.inlier_rmse) > (best.fitness, -best.inlier_rmse):
             best = res
-    ck.lap("ransac")
-    _debug.update(n_keypoints=(len(ks), len(kt)), n_matches=(n_raw, len(pairs)), pairs_xyz=(src_xyz[ks][pairs[:, 0]], tgt_xyz[kt][pairs[:, 1]]))
-    return np.asarray(best.transformation).copy(), float(best.fitness), distance
-
+    clock.lap("ransac")
+    info = {
+        "inlier_distance_m": distance,
+        "keypoints": (len(ks), len(kt)),
+        "matches": (n_matches, len(pairs)),
+        "seconds": clock.laps,
+    }
+    return np.asarray(best.transformation).copy(), float(best.fitness), info
 
 
 # --------------------------------------------------------------------------- fine: Scale-ICP
@@ -457,16 +497,17 @@ def plane_similarity_icp(
 ) -> tuple[np.ndarray, float, float, int]:
     """Point-to-plane ICP estimating a similarity (Gauss-Newton on 7 parameters, Tukey-weighted).
 
-    source_xyz: (n, 3), target_xyz: (m, 3), target_normals: (m, 3) unit, float64 metres.
-    init: (4, 4) source -> target. Each iteration pairs every transformed source point with its
-    nearest target point within ``max_distance_m`` and minimises ``sum w (n . (s R p + t - q))^2``
+    source_xyz: (n, 3); target_xyz, target_normals: (m, 3) points and unit normals of planes on the
+    target surface (:func:`surface_planes`); float64 metres. init: (4, 4) source -> target. Each
+    iteration pairs every transformed source point with its nearest plane (by its point) within
+    ``max_distance_m`` and minimises ``sum w (n . (s R p + t - q))^2``
     over a rotation, translation and (with ``with_scale``) a scale about the paired points'
     centroid, linearised. Weights: Tukey biweight with c = 4.685 x 1.4826 x MAD of the residuals
     (at least 1 cm, at most ``max_distance_m``). Stops when an update moves no corner of the source
     bounding box by more than ``tolerance_m`` or after ``max_iterations``.
 
-    Measuring the residual along the target normal makes it insensitive to where on the surface the
-    (noisy, ~10 cm spaced) mesh vertex lies, which is what biases point-to-point ICP.
+    Measuring the residual along the normal makes it insensitive to where on the surface the paired
+    plane point lies; point-to-point ICP to ~10 cm spaced, noisy vertices is not.
     Returns (matrix, fitness, rmse_m, iterations): fitness = share of source points paired, rmse =
     RMS point-to-plane residual of the paired points under the returned matrix.
     """
@@ -479,11 +520,15 @@ def plane_similarity_icp(
         dist, idx = tree.query(p, distance_upper_bound=max_distance_m, workers=-1)
         ok = np.isfinite(dist)
         if ok.sum() < 10:
-            raise InputError(None, f"ICP lost the overlap: {int(ok.sum())} source points within {max_distance_m} m")
+            raise InputError(
+                None, f"ICP lost the overlap: {int(ok.sum())} source points within {max_distance_m} m"
+            )
         p, q, nrm = p[ok], target_xyz[idx[ok]], target_normals[idx[ok]]
         r = np.einsum("ij,ij->i", p - q, nrm)
         c = np.clip(4.685 * 1.4826 * np.median(np.abs(r - np.median(r))), 0.01, max_distance_m)
         w = np.where(np.abs(r) < c, (1.0 - (r / c) ** 2) ** 2, 0.0)
+        if w.sum() <= 0:
+            break
         c0 = (w[:, None] * p).sum(axis=0) / w.sum()
         a = p - c0
         cols = [np.cross(a, nrm), nrm]
@@ -498,8 +543,9 @@ def plane_similarity_icp(
         step = np.eye(4)
         step[:3, :3] = (1.0 + ds) * _small_rotation(x[:3])
         step[:3, 3] = c0 + x[3:6] - step[:3, :3] @ c0
+        moved = _max_motion(step, apply_similarity(m, corners))
         m = step @ m
-        if _max_motion(step, apply_similarity(m, corners)) < tolerance_m:
+        if moved < tolerance_m:
             break
     p = apply_similarity(m, source_xyz)
     dist, idx = tree.query(p, distance_upper_bound=max_distance_m, workers=-1)
@@ -523,11 +569,53 @@ def point_similarity_icp(
     is not reported by Open3D, -1). Converges on relative fitness / RMSE changes of 1e-6.
     """
     res = _reg.registration_icp(
-        _cloud(source_xyz), _cloud(target_xyz), max_distance_m, np.asarray(init, dtype=np.float64),
+        _cloud(source_xyz),
+        _cloud(target_xyz),
+        max_distance_m,
+        np.asarray(init, dtype=np.float64),
         _reg.TransformationEstimationPointToPoint(with_scale),
-        _reg.ICPConvergenceCriteria(relative_fitness=1e-6, relative_rmse=1e-6, max_iteration=int(max_iterations)),
+        _reg.ICPConvergenceCriteria(
+            relative_fitness=1e-6, relative_rmse=1e-6, max_iteration=int(max_iterations)
+        ),
     )
     return np.asarray(res.transformation).copy(), float(res.fitness), float(res.inlier_rmse), -1
+
+
+def surface_planes(
+    xyz: np.ndarray,
+    normals: np.ndarray | None = None,
+    k: int = SURFACE_NEIGHBOURS,
+    spacing_m: float = SURFACE_SPACING_M,
+) -> tuple[np.ndarray, np.ndarray]:
+    """Denoised local planes through a noisy vertex set, about ``spacing_m`` apart.
+
+    xyz: (m, 3) float64 metres (mesh vertices, ~10 cm apart with a few cm of noise);
+    normals: optional (m, 3) vertex normals to use instead of the estimated ones.
+    The vertices are voxel-thinned at ``spacing_m`` (<= 0: every vertex); at each thinned point a
+    plane is fitted to its ``k`` nearest original vertices. Returns (centres, normals), both
+    (m', 3) float64: the mean of those neighbours and their direction of least spread (unit, sign
+    arbitrary; with ``normals`` given, the normal of the nearest vertex).
+    Pairing an MLS point with such a plane instead of a raw vertex divides the vertex noise by
+    ~sqrt(k), so the ICP's robust weights can tell a real mesh defect (a facade 15 cm proud) from
+    noise.
+    """
+    tree = cKDTree(xyz)
+    query = np.asarray(_cloud(xyz).voxel_down_sample(spacing_m).points) if spacing_m > 0 else xyz
+    k = min(k, len(xyz))
+    centres, out = np.empty_like(query), np.empty_like(query)
+    for lo in range(0, len(query), 100_000):
+        hi = min(lo + 100_000, len(query))
+        _, idx = tree.query(query[lo:hi], k=k, workers=-1)
+        nb = xyz[idx]
+        c = nb.mean(axis=1)
+        d = nb - c[:, None]
+        centres[lo:hi] = c
+        if normals is None:
+            out[lo:hi] = np.linalg.eigh(np.einsum("nki,nkj->nij", d, d))[1][:, :, 0]
+        else:
+            n = normals[idx[:, 0]]
+            out[lo:hi] = n / np.maximum(np.linalg.norm(n, axis=1, keepdims=True), 1e-12)
+    return centres, out
 
 
 def fine_register(
@@ -540,8 +628,10 @@ def fine_register(
 ) -> tuple[np.ndarray, float, float, str]:
     """Scale-ICP from a coarse alignment, over the distance schedule ``FINE_DISTANCES_M``.
 
-    source_xyz: (n, 3) thinned MLS points; target_xyz/target_normals: (m, 3) mesh vertices and unit
-    normals near the source; init: (4, 4) coarse source -> target; all float64 campus-local metres.
+    source_xyz: (n, 3) thinned MLS points; target_xyz/target_normals: (m, 3) points and unit normals
+    of the mesh near the source (the :func:`surface_planes` of its vertices for the "plane" method,
+    the raw vertices for "point", which ignores the normals); init: (4, 4) coarse source -> target;
+    all float64 campus-local metres.
 
     Every level but the last runs at most ``FINE_LEVEL_ITERATIONS`` iterations on
     ``FINE_COARSE_POINTS`` random source points; the last uses all of them and
@@ -564,7 +654,15 @@ def fine_register(
         iters = int(cfg.icp_iterations) if last else min(FINE_LEVEL_ITERATIONS, int(cfg.icp_iterations))
         if FINE_METHOD == "plane":
             m, fit, rmse, _ = plane_similarity_icp(
-                pts, target_xyz, target_normals, m, dist, iters, float(cfg.icp_threshold_m), cfg.with_scale, tree
+                pts,
+                target_xyz,
+                target_normals,
+                m,
+                dist,
+                iters,
+                float(cfg.icp_threshold_m),
+                cfg.with_scale,
+                tree,
             )
         else:
             m, fit, rmse, _ = point_similarity_icp(pts, target_xyz, m, dist, iters, cfg.with_scale)
@@ -572,18 +670,6 @@ def fine_register(
 
 
 # --------------------------------------------------------------------------- public entry points
-
-
-class _Clock:
-    """Wall and CPU seconds per named step (reported in RegistrationResult.details)."""
-
-    def __init__(self, t0: float):
-        self.t, self.c, self.laps = t0, time.process_time(), {}
-
-    def lap(self, name: str) -> None:
-        now, cpu = time.perf_counter(), time.process_time()
-        self.laps[name] = (round(now - self.t, 2), round(cpu - self.c, 2))
-        self.t, self.c = now, cpu
 
 
 def _near(points: np.ndarray, reference: np.ndarray, distance_m: float) -> np.ndarray:
@@ -626,17 +712,20 @@ def check_coregistered(
     ``CHECK_MIN_GROUP_SHARE`` of the points is used. Returns (that median <= tol_m, that median in
     metres). A shift parallel to every well-populated surface family stays invisible.
     """
-    src = _finite_xyz(source_xyz, "MLS point cloud")
-    tgt = _finite_xyz(target_xyz, "mesh vertices")
-    src = subsample_for_registration(src, CHECK_POINTS, CHECK_VOXEL_M, np.random.default_rng(seed))
+    rng = np.random.default_rng(seed)
+    src = _finite_xyz(source_xyz, "MLS point cloud", PRE_CAP_FACTOR * CHECK_POINTS, rng)
+    src = subsample_for_registration(src, CHECK_POINTS, CHECK_VOXEL_M, rng)
     lo, hi = src.min(axis=0) - CROP_MARGIN_M, src.max(axis=0) + CROP_MARGIN_M
-    tgt = tgt[crop_to_box(tgt, lo, hi)]
-    if len(tgt) == 0:
+    try:
+        tgt, _ = _target_near(target_xyz, lo, hi)
+    except InputError:
         return False, float("inf")
     dist, _ = cKDTree(tgt).query(src, workers=-1)
     groups = _orientation_groups(src)
     counts = np.bincount(groups, minlength=7)
-    medians = [np.median(dist[groups == g]) for g in range(7) if counts[g] >= CHECK_MIN_GROUP_SHARE * len(src)]
+    medians = [
+        np.median(dist[groups == g]) for g in range(7) if counts[g] >= CHECK_MIN_GROUP_SHARE * len(src)
+    ]
     worst = float(max(medians)) if medians else float(np.median(dist))
     return worst <= tol_m, worst
 
@@ -660,20 +749,16 @@ def register_clouds(
     :func:`check_coregistered`, which warns when the clouds do not look co-registered.
 
     Raises InputError when an input has fewer than ``MIN_POINTS`` finite points or the clouds do
-    not overlap. Deterministic for a given ``cfg.seed``.
+    not overlap; warns when the final fitness is below ``LOW_FITNESS``. Deterministic for a given
+    ``cfg.seed`` (and Open3D thread count). ``details`` of the result holds the coarse matrix,
+    keypoint / match counts and the (wall, CPU) seconds of each step.
     """
     t0 = time.perf_counter()
-    src = _finite_xyz(source_xyz, "MLS point cloud")
-    tgt_all = np.asarray(target_xyz)
-    tgt = _finite_xyz(tgt_all, "mesh vertices")
-    nrm = None
-    if target_normals is not None:
-        nrm = np.asarray(target_normals, dtype=np.float64)
-        if nrm.shape != tgt_all.shape:
-            raise InputError(None, f"target_normals has shape {nrm.shape}, mesh vertices {tgt_all.shape}")
-        nrm = nrm[np.isfinite(tgt_all.astype(np.float64)).all(axis=1)]
+    rng = np.random.default_rng(cfg.seed)
+    clock = _Clock(t0)
+    src = _finite_xyz(source_xyz, "MLS point cloud", PRE_CAP_FACTOR * cfg.max_points, rng)
     if not cfg.enabled:
-        ok, median = check_coregistered(src, tgt, seed=cfg.seed)
+        ok, median = check_coregistered(src, target_xyz, seed=cfg.seed)
         if not ok:
             warnings.warn(
                 f"registration is disabled but the MLS cloud lies a median {median:.2f} m from the mesh: "
@@ -681,46 +766,54 @@ def register_clouds(
                 stacklevel=2,
             )
         return RegistrationResult(
-            np.eye(4), 1.0, float("nan"), float("nan"), float("nan"), len(src), len(tgt),
-            time.perf_counter() - t0, "identity (registration disabled)", {"median_distance_m": median},
+            np.eye(4),
+            1.0,
+            float("nan"),
+            float("nan"),
+            float("nan"),
+            len(src),
+            len(target_xyz),
+            time.perf_counter() - t0,
+            "identity (registration disabled)",
+            {"median_distance_m": median},
         )
-    rng = np.random.default_rng(cfg.seed)
-    clock = _Clock(t0)
     src = subsample_for_registration(src, cfg.max_points, cfg.fine_voxel_m, rng)
     lo, hi = src.min(axis=0) - CROP_MARGIN_M, src.max(axis=0) + CROP_MARGIN_M
-    keep = crop_to_box(tgt, lo, hi)
-    if keep.sum() < MIN_POINTS:
-        raise InputError(
-            None,
-            f"only {int(keep.sum())} mesh vertices lie within {CROP_MARGIN_M} m of the MLS cloud's extent "
-            f"{np.round(lo, 1).tolist()} - {np.round(hi, 1).tolist()}: the inputs do not overlap "
-            "(wrong CRS, origin or units?)",
-        )
-    tgt = tgt[keep]
-    nrm = None if nrm is None else nrm[keep]
+    tgt, nrm = _target_near(target_xyz, lo, hi, target_normals)
     if len(tgt) > TARGET_MAX_POINTS:
         pick = np.sort(rng.choice(len(tgt), TARGET_MAX_POINTS, replace=False))
         tgt, nrm = tgt[pick], (None if nrm is None else nrm[pick])
-
     clock.lap("thin+crop")
-    coarse, coarse_fit, _ = coarse_register(src, tgt, cfg)
+    coarse, coarse_fit, coarse_info = coarse_register(src, tgt, cfg)
     clock.lap("coarse")
 
     near = _near(tgt, apply_similarity(coarse, src), FINE_DISTANCES_M[0])
     tgt_f = tgt[near]
     if len(tgt_f) < MIN_POINTS:
         raise InputError(None, "the coarse registration left no mesh vertices near the MLS cloud")
-    if nrm is None:
-        pc = _cloud(tgt_f)
-        pc.estimate_normals(o3d.geometry.KDTreeSearchParamHybrid(radius=TARGET_NORMAL_RADIUS_M, max_nn=30))
-        nrm_f = np.asarray(pc.normals)
+    if FINE_METHOD == "plane":
+        tgt_f, nrm_f = surface_planes(tgt_f, None if nrm is None else nrm[near])
     else:
-        nrm_f = nrm[near] / np.maximum(np.linalg.norm(nrm[near], axis=1, keepdims=True), 1e-12)
+        nrm_f = None
     clock.lap("fine-prep")
     matrix, fit, rmse, method = fine_register(src, tgt_f, nrm_f, coarse, cfg, rng)
     clock.lap("fine")
+    if fit < LOW_FITNESS:
+        warnings.warn(
+            f"only {100 * fit:.0f} % of the MLS points lie within {FINE_DISTANCES_M[-1]} m of the mesh after "
+            "registration: check the result (do the inputs overlap? is the mesh badly degraded?)",
+            stacklevel=2,
+        )
     scale = decompose_similarity(matrix)[0]
     return RegistrationResult(
-        matrix, float(scale), fit, rmse, coarse_fit, len(src), len(tgt_f),
-        time.perf_counter() - t0, f"sac-ia+{method}", {"coarse_matrix": coarse, "seconds": clock.laps},
+        matrix,
+        float(scale),
+        fit,
+        rmse,
+        coarse_fit,
+        len(src),
+        len(tgt_f),
+        time.perf_counter() - t0,
+        f"sac-ia+{method}",
+        {"coarse_matrix": coarse, "coarse": coarse_info, "seconds": clock.laps},
     )

@@ -25,3 +25,11 @@ def prefect_api(tmp_path_factory):
     server.stop()
     os.environ.clear()
     os.environ.update(saved)
+
+
+@pytest.fixture(scope="session")
+def tiny_campus(tmp_path_factory):
+    """The synth 'tiny' campus (seed 1), generated once per test session. Read-only for tests."""
+    from synth.generate import generate
+
+    return generate("tiny", seed=1, out=tmp_path_factory.mktemp("tiny") / "campus")

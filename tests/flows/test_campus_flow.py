@@ -24,22 +24,27 @@ def _task_runs_on_server(api_url: str) -> int:
     return int(r.json())
 
 
-def test_flow_on_dask_processes_then_resume(handmade_campus, prefect_api):
-    cfg = CampusConfig.from_yaml(handmade_campus())
+def test_tiny_campus_on_dask_processes_then_resume(tiny_campus, tmp_path, prefect_api):
+    cfg = CampusConfig.from_yaml(tiny_campus / "campus.yaml", {"work_dir": str(tmp_path / "work")})
     before = _task_runs_on_server(prefect_api)
     summary = run_campus(cfg, progress=False)
     wd = WorkDir(cfg.work_dir)
-    assert summary["tiles_failed"] == [] and len(summary["tiles_done"]) >= 6
+    assert summary["tiles_failed"] == [] and summary["tiles_done"]
     recs = {r.unit: r for r in all_records(wd) if r.stage == "partition" and r.status == "done"}
     # the tiles ran in Dask worker processes, not in this process ...
     pids = {r.summary["worker"].split(":")[1] for r in recs.values()}
-    assert str(os.getpid()) not in pids and len(pids) >= 1
+    assert str(os.getpid()) not in pids
     # ... and every task run was recorded by the one server of this session (no per-worker servers)
-    n_tasks = 1 + len([r for r in all_records(wd) if r.stage == "ingest"]) + len(summary["tile_rows"]) // 3 + 1
-    assert _task_runs_on_server(prefect_api) - before >= n_tasks - 2
-    # every point of the inputs is in exactly one patch of one tile
-    n_points = sum(PatchStore(wd.tile_dir(t)).n_points for t in wd.done_tiles())
-    assert n_points == 3 * 20_000
+    n_ingest = len([r for r in all_records(wd) if r.stage == "ingest"])
+    n_tasks = 1 + n_ingest + -(-len(summary["tile_rows"]) // cfg.cluster.tiles_per_task) + 1
+    assert _task_runs_on_server(prefect_api) - before == n_tasks
+    # every MLS point is in exactly one patch of one tile
+    from storage.pointcloud_io import read_header
+
+    n_las = sum(read_header(p).point_count for p in (tiny_campus / "mls").glob("*.laz"))
+    assert sum(PatchStore(wd.tile_dir(t)).n_points for t in wd.done_tiles()) == n_las
+    # labels from the synth defects reached the patch stores
+    assert sum(r.summary["n_bad"] for r in recs.values()) > 0
     stamps = {k: r.updated_at for k, r in recs.items()}
 
     again = run_campus(cfg, progress=False)  # second run: everything is done already

@@ -9,8 +9,18 @@ import numpy as np
 import pytest
 from PIL import Image
 
-from synth.cameras import (LEFT, RIGHT, Camera, CameraParams, place_cameras, project, render,
-                           render_cameras, transform_pose, write_images)
+from synth.cameras import (
+    LEFT,
+    RIGHT,
+    Camera,
+    CameraParams,
+    place_cameras,
+    project,
+    render,
+    render_cameras,
+    transform_pose,
+    write_images,
+)
 from synth.raycast import SceneCaster
 from synth.scene import FaceClass, Mesh, OccluderClass, Occluders, Scene
 from synth.trajectory import TrajectoryParams, build_trajectories
@@ -80,7 +90,7 @@ def test_projected_truth_point_lands_on_its_face(scene, cams):
     r = render(caster, c, PARAMS)
     point = np.array([[12.0, 8.0, 1.0]])  # on wall face 0 (truth face 2), lower-right half of the facade quad
     (u, v), depth = project(point, c)[0][0], project(point, c)[1][0]
-    row, col = int(round(v)), int(round(u))
+    row, col = round(v), round(u)
     assert 0 <= row < 120 and 0 <= col < 160
     assert r.source[row, col] == 0 and r.face[row, col] == 2
     assert r.depth[row, col] == pytest.approx(depth, abs=0.05)
@@ -94,7 +104,7 @@ def test_parked_car_hides_the_wall_behind_it(scene, cams):
     r = render(caster, c, PARAMS)
     for point, source, face in [((22.0, 5.5, 1.0), 1, 1), ((22.0, 8.0, 0.5), 1, None), ((22.0, 8.0, 5.0), 0, 3)]:
         (u, v) = project(np.array([point]), c)[0][0]
-        row, col = int(round(v)), int(round(u))
+        row, col = round(v), round(u)
         assert r.source[row, col] == source
         if face is not None:
             assert r.face[row, col] == face

@@ -11,7 +11,7 @@ from synth.realism import mls_wall_stats
 from synth.scene import FaceClass, Mesh, OccluderClass, Occluders, Scene
 from synth.trajectory import TrajectoryParams, build_trajectories, densify, round_corners
 
-NO_ERROR = dict(pass_offset_m=(0.0, 0.0), drift_m_per_s=0.0, jitter_m=0.0)
+NO_ERROR = {"pass_offset_m": (0.0, 0.0), "drift_m_per_s": 0.0, "jitter_m": 0.0}
 SOUTH = (0, 1)  # box(): faces 0, 1 face -y; 2, 3 +x; 4, 5 +y; 6, 7 -x; 8, 9 top; 10, 11 bottom
 
 
@@ -118,7 +118,7 @@ def test_noise_and_pass_offsets_on_a_flat_wall():
     scene, _ = make_scene([box((-40, 12, 0), (100, 13, 8))], road_x=(0.0, 60.0))
     # errors off, except known constant per-pass offsets: noise is the 5 mm range noise only
     clean = MlsParams.vmx450(head_bias_m=0.0, density_scale=0.1)
-    kw = dict(pass_offset_m=(0.02, 0.04), drift_m_per_s=0.0, jitter_m=0.0)
+    kw = {"pass_offset_m": (0.02, 0.04), "drift_m_per_s": 0.0, "jitter_m": 0.0}
     cloud, trajs = scan(scene, clean, n_passes=2, traj_kw=kw)
     st = mls_wall_stats(cloud, trajs, scene.truth)
     assert st.noise_rms_pass_m == pytest.approx(0.005, abs=0.0015)
@@ -140,7 +140,7 @@ def test_nothing_beyond_max_range():
     near, far = box((-70, 80, 0), (80, 81, 30)), box((-130, -151, 0), (140, -150, 30))
     scene, off = make_scene([near, far], road_x=(0.0, 10.0))
     params = MlsParams(density_scale=0.05, max_range_m=120.0)
-    cloud, trajs = scan(scene, params, traj_kw=NO_ERROR)
+    cloud, _trajs = scan(scene, params, traj_kw=NO_ERROR)
     assert np.all(cloud.range_m <= 120.0)
     assert on_faces(cloud, off[0] + np.array(SOUTH)).sum() > 100  # wall facing the road at 82-100 m
     assert on_faces(cloud, off[1] + np.arange(12)).sum() == 0  # wall at ~148 m: nothing
@@ -183,7 +183,7 @@ def test_tall_flat_roof_unseen_low_gable_roof_glimpsed():
 
 def test_deterministic_time_ordered_and_consistent():
     car = box((8, 3, 0), (12.5, 4.8, 1.5), OccluderClass.CAR, OccluderClass.CAR, building=1, color=(20, 40, 200))
-    scene, off = make_scene([box((-5, 8, 0), (30, 9, 6), color=(201, 180, 160))], road_x=(0.0, 20.0), occluders=car)
+    scene, _off = make_scene([box((-5, 8, 0), (30, 9, 6), color=(201, 180, 160))], road_x=(0.0, 20.0), occluders=car)
     params = MlsParams(density_scale=0.02, max_rays_per_chunk=20_000)
     trajs = build_trajectories(scene.roads, TrajectoryParams(n_passes=2), np.random.default_rng(5))
     runs = [list(simulate_mls(scene, trajs, params, np.random.default_rng(9))) for _ in range(2)]

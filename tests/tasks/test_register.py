@@ -20,8 +20,10 @@ from tasks.register import (
     check_coregistered,
     compare_transforms,
     decompose_similarity,
+    fine_register,
     register_clouds,
     subsample_for_registration,
+    surface_planes,
 )
 
 # (x0, x1, facade y, depth, height), metres; north buildings extend to +y, south ones to -y
@@ -130,6 +132,8 @@ def test_degenerate_inputs_raise_input_error():
         register_clouds(good[:50], good, cfg)
     with pytest.raises(InputError, match="NaN"):
         register_clouds(np.full((500, 3), np.nan), good, cfg)
+    with pytest.raises(InputError, match="mesh vertices.*NaN"):
+        register_clouds(good, np.full((500, 3), np.nan), cfg)
     with pytest.raises(InputError, match=r"\(n, 3\)"):
         register_clouds(good[:, :2], good, cfg)
     with pytest.raises(InputError, match="do not overlap"):
@@ -162,3 +166,30 @@ def test_subsample_caps_and_is_deterministic():
     assert a.min() >= 0 and a.max() <= 10
     thinned = subsample_for_registration(xyz, 10**6, 0.5, np.random.default_rng(1))
     assert 20**3 <= len(thinned) <= 21**3  # one centroid per occupied 0.5 m voxel of the 10 m cube
+
+
+def test_surface_planes_denoise_a_plane():
+    rng = np.random.default_rng(2)
+    xyz = _rect((0, 0, 0), (10, 0, 0), (0, 10, 0), 0.1, rng) + rng.normal(0, 0.02, (10_000, 3))
+    centres, normals = surface_planes(xyz)
+    assert centres.shape == normals.shape and len(centres) < 0.5 * len(xyz)  # ~0.2 m apart
+    assert np.std(centres[:, 2]) < 0.3 * np.std(xyz[:, 2])  # 24 neighbours average the noise
+    assert np.median(np.abs(normals[:, 2])) > 0.99
+
+
+def test_fine_stage_ignores_a_proud_facade(street):
+    """A mesh facade 15 cm proud of the truth (a 'melted' MVS facade) must not drag the fit."""
+    moved, _, tgt = street
+    tgt = tgt.copy()
+    proud = (np.abs(tgt[:, 1] - 9.5) < 0.2) & (tgt[:, 0] > -9) & (tgt[:, 0] < 8)
+    tgt[proud, 1] -= 0.15
+    cfg = RegistrationConfig()
+    src = subsample_for_registration(moved, 100_000, cfg.fine_voxel_m, np.random.default_rng(0))
+    init = _similarity(0.5, 0.1, -0.1, (0.2, -0.2, 0.1), 1.0 / 1.003) @ TRUTH  # a typical coarse result
+    centres, normals = surface_planes(tgt[np.abs(tgt[:, 1]) < 15])
+    matrix, fitness, rmse, _ = fine_register(src, centres, normals, init, cfg, np.random.default_rng(0))
+    err = compare_transforms(matrix, TRUTH, at=moved.mean(axis=0))
+    assert fitness > 0.8 and rmse < 0.05
+    assert err["rotation_error_deg"] < 0.01
+    assert err["translation_error_m"] < 0.005
+    assert abs(err["scale_error_pct"]) < 0.01
