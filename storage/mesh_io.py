@@ -541,6 +541,7 @@ def write_obj(
     face_texture: np.ndarray | None = None,
     face_colors: np.ndarray | None = None,
     offset=None,
+    texture_format: str = "png",
 ) -> Path:
     """Write an OBJ with its MTL and texture images beside it, each atomically: images, then MTL, then OBJ.
 
@@ -563,7 +564,7 @@ def write_obj(
     if len(face_texture) != m or (face_texture >= len(texture_images)).any():
         raise ValueError(f"{path}: face_texture must be (m,) with values < {len(texture_images)} or -1")
 
-    names = _write_textures(path, texture_images)
+    names = _write_textures(path, texture_images, texture_format)
     # material code per face: a texture index, else a distinct colour, else the default material
     code = face_texture.copy()
     mtl_lines = [f"newmtl tex{k}\nKd 1 1 1\nKs 0 0 0\nillum 1\nmap_Kd {n}\n" for k, n in enumerate(names)]
@@ -608,7 +609,9 @@ def write_obj(
     return path
 
 
-def _write_textures(path: Path, images: list) -> list[str]:
+def _write_textures(path: Path, images: list, fmt: str = "png") -> list[str]:
+    """Write texture images beside ``path``: arrays as PNG (lossless) or JPEG (quality 90, as
+    photogrammetry packages deliver them; much faster for large atlases); paths are copied."""
     from PIL import Image
 
     names = []
@@ -618,9 +621,11 @@ def _write_textures(path: Path, images: list) -> list[str]:
             with atomic_path(path.parent / name) as tmp:
                 shutil.copyfile(image, tmp)
         else:
-            name = f"{path.stem}_tex{k}.png"
+            ext = "jpg" if fmt.lower() in ("jpg", "jpeg") else "png"
+            name = f"{path.stem}_tex{k}.{ext}"
+            opts = {"format": "JPEG", "quality": 90} if ext == "jpg" else {"format": "PNG", "compress_level": 3}
             with atomic_path(path.parent / name) as tmp:
-                Image.fromarray(np.asarray(image, np.uint8)).save(tmp, format="PNG")
+                Image.fromarray(np.asarray(image, np.uint8)).save(tmp, **opts)
         names.append(name)
     return names
 

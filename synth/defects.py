@@ -1,7 +1,7 @@
 """Labelled defects of a simulated photogrammetry mesh: holes, melted eaves, bumps, dents, warps.
 
-Defects are placed on the building walls (the envelope wall charts), Poisson-distributed with a
-rate per 100 m^2 of wall, non-overlapping on one building. Deformations move mesh vertices (before
+Defects are placed on the building walls (the envelope wall charts), uniformly, as many as a
+rate per 100 m^2 of wall gives, larger ones first, non-overlapping on one building. Deformations move mesh vertices (before
 the MVS noise is added); holes remove faces (after it). Each defect is recorded as a dict:
 
     id            int, unique in the mesh
@@ -123,7 +123,8 @@ def plan_defects(rng, walls: list[dict], scene: Scene, p: DefectParams) -> list[
     for typ in DEFECT_TYPES:
         spec = p.specs.get(typ)
         if spec is not None and spec.rate_per_100m2 > 0:
-            n = rng.poisson(spec.rate_per_100m2 * area.sum() / 100.0)
+            lam = spec.rate_per_100m2 * area.sum() / 100.0
+            n = int(lam) + int(rng.random() < lam - int(lam))  # the expected count, not Poisson: steadier labels
             draws += [(typ, float(r)) for r in rng.uniform(*spec.radius_m, n)]
     draws.sort(key=lambda d: -d[1])  # large defects first, while the walls are still free
     plan = []

@@ -105,7 +105,7 @@ def write_mvs_tile(folder: Path, name: str, mvs: Mesh, rng: np.random.Generator)
 
     uv, atlases, face_atlas = bake_atlas(mvs, rng)
     path = write_obj(folder / f"{name}.obj", mvs.vertices, mvs.faces, uv=uv, texture_images=atlases,
-                     face_texture=face_atlas)
+                     face_texture=face_atlas, texture_format="jpg")
     return path
 
 

@@ -2,17 +2,20 @@
 
 How it is built, per building and for the terrain:
 
-1. every envelope chart (``synth.envelope``: walls, soffits, fascias, roof planes) and the terrain
-   (the extent minus the footprints) is covered with a jittered equilateral lattice of edge
-   ``edge_*_m`` and Delaunay-triangulated; chart edges are sampled identically from both sides,
-   so the charts weld into one connected surface (and tiles of one campus meet on their borders);
+1. every envelope chart (``synth.envelope``: walls, soffits, fascias, roof planes) and every
+   terrain cell (``synth.buildings.terrain_cells``) is covered with staggered rows of near-
+   equilateral triangles of edge ``edge_*_m``, slightly jittered; chart edges are sampled the same
+   way from both sides, so the charts weld into one connected, manifold surface whose only border
+   is the extent's; a few random edge flips bring valence-6 vertices down to real-mesh levels;
 2. wall vertices are moved along the wall normal onto the truth details seen from 1.8 m in front
    (glass at the back of window recesses, balcony fronts, ledges): balconies become solid blobs,
    recesses dips (only ``recess_gain`` of their depth: MVS bridges them); terrain vertices drop
    onto the ground/road surface;
 3. that displacement is diffused over the wall (edges round off, balconies melt), corners are
    rounded by a little Taubin smoothing;
-4. class, building and colour come from the nearest truth face;
+4. wall faces take class, building and colour from the truth faces their corners looked at (the
+   nearest truth face where those differ), roof/soffit/fascia faces from their chart, terrain
+   faces from the road grid;
 5. defects are injected (``synth.defects``), then low-frequency (a few cm) and high-frequency
    (mm) noise along the vertex normals, then the holes are cut.
 
@@ -28,7 +31,8 @@ import open3d as o3d
 
 from .buildings import charts_of
 from .defects import DefectParams, inject_defects, wall_records
-from .envelope import Chart, insert_points, polygon_normal
+from .envelope import Chart, insert_points
+from .lattice import NeighbourMean, random_edge_flips, strip_chart, vertex_normals
 from .scene import CLASS_COLOR, FaceClass, Mesh, Scene
 
 DETAIL_CLASSES = (FaceClass.WALL, FaceClass.GLASS, FaceClass.FRAME, FaceClass.BALCONY)
@@ -41,7 +45,8 @@ class MvsParams:
     edge_facade_m: float = 0.12  # walls, soffits, fascias, and every building chart edge
     edge_roof_m: float = 0.16  # roof plane interiors
     edge_ground_m: float = 0.40  # terrain interior (footprint edges use edge_facade_m)
-    lattice_jitter: float = 0.12  # tangential jitter of lattice points, fraction of the edge
+    lattice_jitter: float = 0.2  # tangential jitter of lattice points, fraction of the edge
+    flip_fraction: float = 0.006  # share of interior edges flipped (real meshes: ~91 % valence-6 vertices)
     ray_reach_m: float = 1.8  # wall details are looked for this far in front of the wall
     recess_gain: float = 0.6  # MVS bridges recesses: window/door depth kept (the rest fills in)
     blur_iterations: int = 6  # diffusion of the wall displacement (edges round off, balconies melt)
@@ -49,119 +54,9 @@ class MvsParams:
     round_iterations: int = 1  # Taubin passes over the whole mesh (rounds corners)
     noise_lf_m: float = 0.015  # RMS of the smooth (long-wavelength) normal offset
     noise_lf_wavelength_m: tuple[float, float] = (2.0, 10.0)
-    noise_hf_m: float = 0.007  # RMS of the per-vertex normal offset
+    noise_hf_m: float = 0.008  # RMS of the per-vertex normal offset
     include_terrain: bool = True
     defects: DefectParams | None = field(default_factory=DefectParams)  # None: no defects
-
-
-# -- lattices over planar charts -------------------------------------------------------------------
-
-def _edge_samples(a: np.ndarray, b: np.ndarray, h: float) -> np.ndarray:
-    """Points every <= h metres on segment a-b (both (3,)), ends included exactly; the same floats
-    whichever way round the segment is given (so charts sharing an edge share its samples)."""
-    if tuple(np.round(b, 9)) < tuple(np.round(a, 9)):
-        a, b = b, a
-    n = max(1, int(np.ceil(np.linalg.norm(b - a) / h - 1e-9)))
-    s = a + (b - a) * (np.arange(n + 1) / n)[:, None]
-    s[-1] = b
-    return s
-
-
-def _chain(poly, i0, i1, edge_h) -> np.ndarray:
-    """Samples along the polygon edges from vertex i0 forward to vertex i1."""
-    pts, i = [], i0
-    while i != i1:
-        j = (i + 1) % len(poly)
-        s = _edge_samples(poly[i], poly[j], edge_h[i])
-        if not np.array_equal(s[0], poly[i]):
-            s = s[::-1]
-        pts.append(s if not pts else s[1:])
-        i = j
-    return np.concatenate(pts)
-
-
-def _corners(poly) -> np.ndarray:
-    n = polygon_normal(poly)
-    e1, e2 = poly - np.roll(poly, 1, axis=0), np.roll(poly, -1, axis=0) - poly
-    turn = np.cross(e1, e2) @ n / np.maximum(np.linalg.norm(e1, axis=1) * np.linalg.norm(e2, axis=1), 1e-18)
-    return np.flatnonzero(turn > 1e-7)
-
-
-def strip_chart(poly: np.ndarray, edge_h, h: float, rng: np.random.Generator, jitter: float = 0.0
-                ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """Cover a convex planar 3- or 4-cornered polygon with staggered rows of near-equilateral triangles.
-
-    poly: (k, 3) metres (collinear extra vertices allowed; they split sides into sub-edges);
-    edge_h: (k,) sample spacing of each polygon edge (edges are sampled canonically, so two charts
-    sharing an edge conform); h: spacing inside rows. Rows run parallel to the longest side, one
-    per sample of the side edges; consecutive rows are zipped into triangles. Interior points get a
-    tangential Gaussian jitter of ``jitter * h``. Returns (vertices (n, 3), triangles (m, 3) int64
-    wound like ``poly``, boundary (n,) bool).
-    """
-    c = _corners(poly)
-    k = len(c)
-    if k not in (3, 4):
-        raise ValueError(f"strip_chart needs 3 or 4 corners, got {k}")
-    side = [np.linalg.norm(poly[c[(i + 1) % k]] - poly[c[i]]) for i in range(k)]
-    c = np.roll(c, -int(np.argmax(side)))
-    bottom, right = _chain(poly, c[0], c[1], edge_h), _chain(poly, c[1], c[2], edge_h)
-    if k == 4:
-        top, left = _chain(poly, c[2], c[3], edge_h)[::-1], _chain(poly, c[3], c[0], edge_h)[::-1]
-    else:
-        top, left = poly[c[2]][None], _chain(poly, c[2], c[0], edge_h)[::-1]
-    nl, nr = len(left) - 1, len(right) - 1
-    N = max(nl, nr)
-    kk = np.arange(1, N)
-    Lk, Rk = left[np.rint(kk * nl / N).astype(int)], right[np.rint(kk * nr / N).astype(int)]
-    m = np.maximum(1, np.rint(np.linalg.norm(Rk - Lk, axis=1) / h)).astype(int)
-    odd = (kk % 2 == 1).astype(int)
-    cnt = m + 1 + odd  # odd rows are staggered by half a step
-    row = np.repeat(np.arange(N - 1), cnt)
-    j = np.arange(cnt.sum()) - np.repeat(np.cumsum(cnt) - cnt, cnt)
-    last = j == cnt[row] - 1
-    par = np.where(odd[row] == 1, np.where(j == 0, 0.0, np.where(last, 1.0, (j - 0.5) / m[row])), j / m[row])
-    mid_pts = Lk[row] + par[:, None] * (Rk - Lk)[row]
-
-    def along(p):
-        span = np.linalg.norm(p[-1] - p[0])
-        return np.linalg.norm(p - p[0], axis=1) / span if span > 0 else np.full(len(p), 0.5)
-
-    pts = np.concatenate([bottom, mid_pts, top])
-    params = np.concatenate([along(bottom), par, along(top)])
-    prow = np.concatenate([np.zeros(len(bottom), int), row + 1, np.full(len(top), N)])
-    boundary = np.concatenate([np.ones(len(bottom), bool), (j == 0) | last, np.ones(len(top), bool)])
-    counts = np.bincount(prow, minlength=N + 1)
-    row_off = np.cumsum(counts) - counts
-    seg = np.flatnonzero(np.diff(prow) == 0)  # segment p -> p + 1 inside a row
-    mid, srow = 0.5 * (params[seg] + params[seg + 1]), prow[seg]
-    a_sel, b_sel = srow < N, srow > 0
-    keys = np.concatenate([srow[a_sel] + mid[a_sel], srow[b_sel] - 1 + mid[b_sel]])
-    isA = np.concatenate([np.ones(a_sel.sum(), bool), np.zeros(b_sel.sum(), bool)])
-    pair = np.concatenate([srow[a_sel], srow[b_sel] - 1])
-    sp_ = np.concatenate([seg[a_sel], seg[b_sel]])
-    o = np.argsort(keys, kind="stable")
-    isA, pair, sp_ = isA[o], pair[o], sp_[o]
-    cA, cB = np.cumsum(isA) - isA, np.cumsum(~isA) - ~isA
-    g = np.searchsorted(pair, pair, side="left")
-    a_before, b_before = cA - cA[g], cB - cB[g]
-    tri = np.where(isA[:, None],
-                   np.column_stack([sp_, sp_ + 1, row_off[np.minimum(pair + 1, N)] + b_before]),
-                   np.column_stack([row_off[pair] + a_before, sp_ + 1, sp_]))
-    t = pts[tri]
-    cr = np.cross(t[:, 1] - t[:, 0], t[:, 2] - t[:, 0])
-    n = polygon_normal(poly)
-    area = cr @ n
-    tri = tri[np.abs(area) > 1e-12]
-    if area.sum() < 0:
-        tri = tri[:, ::-1]
-    if jitter > 0:
-        e1 = np.cross(n, [0.0, 0.0, 1.0]) if abs(n[2]) < 0.9 else np.cross(n, [1.0, 0.0, 0.0])
-        e1 /= np.linalg.norm(e1)
-        e2 = np.cross(n, e1)
-        inner = ~boundary
-        d = rng.normal(0.0, jitter * h, (int(inner.sum()), 2))
-        pts[inner] += d[:, :1] * e1 + d[:, 1:] * e2
-    return pts, tri.astype(np.int64), boundary
 
 
 # -- helpers over the assembled mesh ---------------------------------------------------------------
@@ -194,32 +89,6 @@ class TruthCaster:
         """(n, 3) -> local face index (n,) of the nearest face."""
         q = o3d.core.Tensor(np.ascontiguousarray(points - self.origin, np.float32))
         return self.scene.compute_closest_points(q)["primitive_ids"].numpy().astype(np.int64)
-
-
-class NeighbourMean:
-    """x -> mean of x over each vertex's edge neighbours (interior edges counted from both faces).
-
-    faces: (m, 3) int64; n: vertex count. Works on (n,) and (n, 3) arrays.
-    """
-
-    def __init__(self, faces: np.ndarray, n: int):
-        e = np.concatenate([faces[:, [0, 1]], faces[:, [1, 2]], faces[:, [2, 0]]])
-        self.src, self.dst, self.n = np.concatenate([e[:, 0], e[:, 1]]), np.concatenate([e[:, 1], e[:, 0]]), n
-        self.deg = np.maximum(np.bincount(self.src, minlength=n), 1)
-
-    def __call__(self, x: np.ndarray) -> np.ndarray:
-        if x.ndim == 1:
-            return np.bincount(self.src, weights=x[self.dst], minlength=self.n) / self.deg
-        return np.column_stack([self(x[:, k]) for k in range(x.shape[1])])
-
-
-def vertex_normals(vertices: np.ndarray, faces: np.ndarray) -> np.ndarray:
-    """Area-weighted unit vertex normals (n, 3)."""
-    t = vertices[faces]
-    fn = np.cross(t[:, 1] - t[:, 0], t[:, 2] - t[:, 0])
-    vn = np.column_stack([sum(np.bincount(faces[:, k], weights=fn[:, c], minlength=len(vertices)) for k in range(3))
-                          for c in range(3)])
-    return vn / np.maximum(np.linalg.norm(vn, axis=1, keepdims=True), 1e-12)
 
 
 def _smooth_noise(rng, p, sigma, wavelengths, k=8) -> np.ndarray:
@@ -367,6 +236,8 @@ def make_mvs_mesh(rng: np.random.Generator, scene: Scene, params: MvsParams = Mv
     """
     truth = scene.truth
     v, faces, charts, wall_n, face_kind, face_part, part_class, part_building, roads = _lattices(rng, scene, params)
+    if params.flip_fraction > 0:
+        faces = random_edge_flips(v, faces, face_part, params.flip_fraction, rng)
     is_wall = np.any(wall_n != 0, axis=1)
     disp, vsrc = _wall_details(v, wall_n, truth, params.ray_reach_m)
 

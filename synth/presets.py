@@ -27,8 +27,8 @@ class SynthPreset:
 PRESETS = {
     # one small building beside one road: seconds, for tests
     "tiny": SynthPreset("tiny", (60.0, 50.0), 1, (2, 4), 60.0, 0.04, 2, 25.0, (240, 180), mvs_edge_m=0.15),
-    # 4-8 buildings, a few million points, 1-2 minutes: the demo campus
-    "demo": SynthPreset("demo", (220.0, 200.0), 6, (1, 12), 220.0, 0.35, 2, 12.0, (1024, 768)),
+    # 4-8 buildings along three streets near real street-MLS density (~15 M points): the demo campus
+    "demo": SynthPreset("demo", (200.0, 100.0), 6, (1, 12), 200.0, 0.1, 2, 15.0, (1024, 768)),
     # >= 0.25 km^2, >= 40 buildings, ~1e8 points, generated tile by tile in bounded memory
     "campus": SynthPreset("campus", (520.0, 520.0), 44, (1, 12), 130.0, 1.0, 2, 0.0, (1024, 768),
                           tiled_mesh=True),

@@ -5,7 +5,8 @@ import pytest
 
 from synth.buildings import make_scene
 from synth.defects import DEFECT_TYPES, HOLE_CLASSES, HOLE_TYPES, facade_patch_bad_fraction
-from synth.mvs import MvsParams, make_mvs_mesh, strip_chart
+from synth.lattice import strip_chart
+from synth.mvs import MvsParams, make_mvs_mesh
 from synth.scene import FaceClass, Mesh
 from synth.texture import bake_atlas
 
@@ -148,7 +149,7 @@ def test_holes_have_no_faces(mvs, clean):
         removed += in_hole(clean, d).sum()
         s = np.asarray(d["samples"])  # the removed truth surface, on the wall disc
         rel = s - d["centre"]
-        assert np.hypot(rel @ np.array(d["axis_u"]), rel[:, 2]).max() < d["radius_m"] + 1e-6
+        assert np.hypot(rel @ np.array(d["axis_u"]), rel[:, 2]).max() < d["radius_m"] + 1e-3  # samples: 0.1 mm
     assert clean.n_faces - m.n_faces >= 0.9 * removed
 
 
