@@ -264,3 +264,11 @@ def run_campus(cfg: CampusConfig, progress: bool = True) -> dict:
     with embedded_prefect(wd.prefect_dir, cfg.cluster.prefect_api_url):
         runner = make_task_runner(cfg)
         return reprocess_campus.with_options(task_runner=runner)(cfg.model_dump(mode="json"), progress=progress)
+
+
+@flow(name="reprocess-campus-from-config")
+def reprocess_from_config(config_path: str, overrides: dict | None = None) -> dict:
+    """Deployment entry point: load a YAML config and reprocess its campus (uses the flow's task runner,
+    configured in deploy/prefect.yaml; the Prefect API is the deployment's server)."""
+    cfg = CampusConfig.from_yaml(config_path, overrides)
+    return reprocess_campus.with_options(task_runner=make_task_runner(cfg))(cfg.model_dump(mode="json"), progress=False)

@@ -195,8 +195,10 @@ def random_edge_flips(vertices: np.ndarray, faces: np.ndarray, group: np.ndarray
     n1, n2 = normal(a, b, c), normal(b, a, d)
     new1, new2 = normal(a, d, c), normal(d, b, c)
     cd = np.minimum(c, d) * len(vertices) + np.maximum(c, d)
+    sorted_key = key[o]
+    exists = sorted_key[np.minimum(np.searchsorted(sorted_key, cd), len(sorted_key) - 1)] == cd
     valid = (np.sum(n1 * n2, axis=1) > 0.999) & (np.sum(new1 * n1, axis=1) > 0.99) & \
-        (np.sum(new2 * n1, axis=1) > 0.99) & ~np.isin(cd, key)
+        (np.sum(new2 * n1, axis=1) > 0.99) & ~exists
     out = faces.copy()
     out[f1[valid]] = np.column_stack([a, d, c])[valid]
     out[f2[valid]] = np.column_stack([d, b, c])[valid]

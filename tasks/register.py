@@ -4,14 +4,18 @@ The paper registers the two captures in two steps: SAC-IA (FPFH features + sampl
 1000 iterations, 10 cm) for a coarse alignment, then Scale-ICP (1000 iterations, 1 mm) for the
 fine similarity. Here:
 
-* **coarse**: both clouds are voxel-downsampled (``cfg.voxel_m``), FPFH descriptors are computed at
-  curved keypoints and matched within a spatial gate, and Open3D's RANSAC on those matches
-  estimates a rigid transform. The target
-  (mesh vertices, which include roofs and everything away from the street) is first cropped to the
-  source's bounding box grown by ``CROP_MARGIN_M``. A rotation prior (``ROTATION_PRIOR_DEG``) rejects
+* **coarse** (:func:`coarse_register`): the target (mesh vertices, which include roofs and
+  everything away from the street) is cropped to the source's bounding box grown by
+  ``CROP_MARGIN_M``; both clouds are voxel-downsampled (``cfg.voxel_m``), FPFH descriptors are
+  computed at curved keypoints and matched within a spatial gate, and Open3D's RANSAC on those
+  matches estimates a rigid transform. A rotation prior (``ROTATION_PRIOR_DEG``) rejects
   implausible hypotheses before they are scored.
-* **fine**: a similarity ICP over a coarse-to-fine schedule of correspondence distances
-  (``FINE_DISTANCES_M``). See :func:`fine_register` for what the paper's "1 mm" means here.
+* **fine** (:func:`fine_register`): a point-to-plane similarity ICP against denoised local planes
+  of the mesh (:func:`surface_planes`), Tukey-weighted, over a coarse-to-fine schedule of
+  correspondence distances (``FINE_DISTANCES_M``). Open3D's point-to-point ICP with scaling (the
+  literal Scale-ICP) is kept as ``FINE_METHOD = "point"``; it is slower and, against noisy or
+  defective mesh vertices, less accurate (figures in fine_register).
+  The paper's "1 mm" is the convergence threshold (see :func:`fine_register`).
 
 Frames: every array is campus-local metres (float64), x east, y north, z up. The returned matrix
 maps *source* (MLS) coordinates to *target* (mesh) coordinates: ``target ~= s R source + t``.
@@ -49,6 +53,7 @@ MAX_OFFSET_M = 10.0  # a feature match is only sought this far away (+ the rotat
 FINE_DISTANCES_M = (2.0, 1.0, 0.3, 0.15)  # ICP max correspondence distance schedule, metres
 FINE_COARSE_POINTS = 60_000  # source points used in every ICP level but the last
 FINE_LEVEL_ITERATIONS = 30  # iteration cap of every ICP level but the last (which uses cfg.icp_iterations)
+FINE_MIN_KERNEL_M = 0.05  # floor of the adaptive Tukey kernel in the last ICP level (see fine_register)
 FINE_CROP_M = 3.0  # fine stage keeps mesh vertices this near the coarsely aligned source
 FINE_METHOD = "plane"  # "plane": point-to-plane similarity ICP; "point": Open3D point-to-point with scaling
 SURFACE_NEIGHBOURS = 24  # mesh vertices averaged into one local plane (denoises ~5x)
@@ -510,6 +515,8 @@ def plane_similarity_icp(
     tolerance_m: float,
     with_scale: bool = True,
     tree: cKDTree | None = None,
+    kernel_m: float | None = None,
+    min_kernel_m: float = 0.01,
 ) -> tuple[np.ndarray, float, float, int]:
     """Point-to-plane ICP estimating a similarity (Gauss-Newton on 7 parameters, Tukey-weighted).
 
@@ -518,8 +525,8 @@ def plane_similarity_icp(
     iteration pairs every transformed source point with its nearest plane (by its point) within
     ``max_distance_m`` and minimises ``sum w (n . (s R p + t - q))^2``
     over a rotation, translation and (with ``with_scale``) a scale about the paired points'
-    centroid, linearised. Weights: Tukey biweight with c = 4.685 x 1.4826 x MAD of the residuals
-    (at least 1 cm, at most ``max_distance_m``). Stops when an update moves no corner of the source
+    centroid, linearised. Weights: Tukey biweight with c = ``kernel_m``, or when None adaptively
+    4.685 x 1.4826 x median |residual| (clipped to [``min_kernel_m``, ``max_distance_m``]). Stops when an update moves no corner of the source
     bounding box by more than ``tolerance_m`` or after ``max_iterations``.
 
     Measuring the residual along the normal makes it insensitive to where on the surface the paired
@@ -541,7 +548,9 @@ def plane_similarity_icp(
             )
         p, q, nrm = p[ok], target_xyz[idx[ok]], target_normals[idx[ok]]
         r = np.einsum("ij,ij->i", p - q, nrm)
-        c = np.clip(4.685 * 1.4826 * np.median(np.abs(r - np.median(r))), 0.01, max_distance_m)
+        c = kernel_m
+        if c is None:
+            c = np.clip(4.685 * 1.4826 * np.median(np.abs(r)), min_kernel_m, max_distance_m)
         w = np.where(np.abs(r) < c, (1.0 - (r / c) ** 2) ** 2, 0.0)
         if w.sum() <= 0:
             break
@@ -650,11 +659,21 @@ def fine_register(
     all float64 campus-local metres.
 
     Every level but the last runs at most ``FINE_LEVEL_ITERATIONS`` iterations on
-    ``FINE_COARSE_POINTS`` random source points; the last uses all of them and
-    ``cfg.icp_iterations`` (paper: 1000). The paper's "1 mm" (``cfg.icp_threshold_m``) cannot be a
+    ``FINE_COARSE_POINTS`` random source points, with a Tukey kernel as wide as its distance; the
+    last uses all of them, ``cfg.icp_iterations`` (paper: 1000) and a kernel adapted to the
+    residuals but not below ``FINE_MIN_KERNEL_M``. (A kernel adapted from the start let the
+    facades, the majority, converge first and then reject the whole ground as outliers, freezing
+    the height 10 cm off: vertical facades do not constrain it.) The paper's "1 mm" (``cfg.icp_threshold_m``) cannot be a
     correspondence distance here: mesh vertices are ~10 cm apart and carry a few cm of noise, so
     almost no MLS point has a vertex within 1 mm. It is used as the convergence threshold instead:
     a level ends when one update moves no corner of the source's bounding box by more than 1 mm.
+
+    Measured on a synthetic street (truth yaw 3 deg, t 2.5 m, scale 1.003; mesh vertices 10 cm
+    apart), errors in rotation / translation at the centroid / scale:
+    2 cm vertex noise: "plane" 0.0005 deg / 0.1 mm / 0.0004 %, "point" 0.006 deg / 0.8 mm / 0.001 %;
+    5 cm noise + one facade 15 cm proud + a hole: "plane" 0.002 deg / 0.5 mm / 0.001 %, "point"
+    0.046 deg / 36 mm / 0.14 % (0.012 deg / 5 mm / 0.05 % with an extra 3 cm level, 8x slower);
+    "plane" against raw vertices instead of surface_planes: 0.050 deg / 28 mm / 0.12 %.
 
     Returns (matrix, fitness, rmse_m, method name).
     """
@@ -679,6 +698,8 @@ def fine_register(
                 float(cfg.icp_threshold_m),
                 cfg.with_scale,
                 tree,
+                kernel_m=None if last else dist,
+                min_kernel_m=FINE_MIN_KERNEL_M,
             )
         else:
             m, fit, rmse, _ = point_similarity_icp(pts, target_xyz, m, dist, iters, cfg.with_scale)

@@ -54,7 +54,7 @@ def test_tiny_campus_on_dask_processes_then_resume(tiny_campus, tmp_path, prefec
     assert (wd.report_dir / "patch_points_histogram.png").exists()
 
 
-def test_bad_inputs_fail_only_their_tiles(tmp_path, handmade_campus, prefect_api):
+def test_bad_inputs_fail_only_their_tiles(tmp_path, handmade_campus, prefect_api, capsys):
     cfg = CampusConfig.from_yaml(handmade_campus(extra_stray=True))
     laz = tmp_path / "mls" / "west.laz"
     laz.write_bytes(laz.read_bytes()[: laz.stat().st_size // 2])  # truncated LAZ
@@ -81,3 +81,10 @@ def test_bad_inputs_fail_only_their_tiles(tmp_path, handmade_campus, prefect_api
     for k in east_done:
         store = PatchStore(WorkDir(cfg.work_dir).root / "tiles" / k)
         assert store.n_points > 0 and np.all(store.patches()["n_faces"] >= 0)
+
+    # ms3d status reports the failed tiles with their errors, and exits 1
+    from flows.cli import main
+
+    assert main(["status", cfg.work_dir]) == 1
+    out = capsys.readouterr().out
+    assert "FAILED" in out and "truncated" in out and "empty" in out

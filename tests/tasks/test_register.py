@@ -100,6 +100,7 @@ def test_recovers_known_similarity(street):
 
 def test_aligned_pair_returns_identity(street):
     _, src, tgt = street
+    src, tgt = src[src[:, 0] < 0.0], tgt[tgt[:, 0] < 10.0]  # the west half keeps the test fast
     res = register_clouds(src, tgt, RegistrationConfig(max_points=100_000))
     err = compare_transforms(res.matrix, np.eye(4), at=src.mean(axis=0))
     assert err["rotation_error_deg"] < 0.05
