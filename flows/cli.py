@@ -135,6 +135,11 @@ def build_parser() -> argparse.ArgumentParser:
 def main(argv: list[str] | None = None) -> int:
     a = build_parser().parse_args(argv)
     logging.basicConfig(level=logging.INFO if a.verbose else logging.WARNING, format="%(levelname)s %(name)s: %(message)s")
+    if not a.verbose:  # Dask and Prefect log every worker start and task run at INFO: keep the terminal readable
+        os.environ.setdefault("PREFECT_LOGGING_LEVEL", "WARNING")
+        os.environ.setdefault("DASK_LOGGING__DISTRIBUTED", "warning")
+        for name in ("distributed", "prefect"):
+            logging.getLogger(name).setLevel(logging.WARNING)
     from storage.errors import InputError
 
     try:

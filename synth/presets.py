@@ -30,7 +30,7 @@ PRESETS = {
     # 4-8 buildings along three streets near real street-MLS density (~15 M points): the demo campus
     "demo": SynthPreset("demo", (200.0, 100.0), 6, (1, 12), 200.0, 0.1, 2, 15.0, (1024, 768)),
     # >= 0.25 km^2, >= 40 buildings, ~1e8 points, generated tile by tile in bounded memory
-    "campus": SynthPreset("campus", (520.0, 520.0), 44, (1, 12), 130.0, 1.0, 2, 0.0, (1024, 768),
+    "campus": SynthPreset("campus", (520.0, 520.0), 44, (1, 12), 130.0, 0.06, 2, 0.0, (1024, 768),
                           tiled_mesh=True),
 }
 

@@ -75,7 +75,10 @@ class RegistrationResult:
     fitness: share of (subsampled) source points with a target point within the last ICP distance.
     inlier_rmse_m: RMS point-to-plane residual of those points, metres.
     coarse_fitness: the coarse (RANSAC) stage's fitness at its inlier distance.
-    n_source, n_target: points actually used (after NaN removal, cropping and subsampling).
+    n_source: MLS points used (after NaN removal, voxelling and the cap).
+    n_target: local mesh planes the fine stage used (``surface_planes`` of the cropped vertices;
+    raw cropped vertices with ``FINE_METHOD = "point"``).
+    details: coarse matrix, keypoint / match counts and (wall, CPU) seconds per step.
     seconds: wall time of the whole registration.
     method: short description of what ran (e.g. "sac-ia+plane-scale-icp", "identity").
     """
