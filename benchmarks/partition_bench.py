@@ -246,20 +246,9 @@ def stage_campus(cfg) -> dict:
 
 def load_staged_tile(wd, tile) -> tuple[dict | None, dict | None, list]:
     """A tile's staging files as the partition stage reads them: (points, faces, textures)."""
-    from storage.columns import read_columns
+    from tasks.patches import load_staged_tile as load
 
-    pts, faces, textures = [], [], []
-    for p in sorted(wd.staging_dir(tile).glob("*.parquet")):
-        cols, meta = read_columns(p)
-        if p.name.startswith("points-"):
-            pts.append(cols)
-        else:
-            base = len(textures)
-            textures += meta.get("textures", [])
-            cols["texture"] = np.where(cols["texture"] >= 0, cols["texture"] + base, -1).astype(np.int16)
-            faces.append(cols)
-    cat = lambda parts: {k: np.concatenate([q[k] for q in parts]) for k in parts[0]} if parts else None
-    return cat(pts), cat(faces), textures
+    return load(sorted(wd.staging_dir(tile).glob("*.parquet")))
 
 
 def measure_partition_write(cfg, staged: dict) -> dict:

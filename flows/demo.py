@@ -40,6 +40,10 @@ def run_demo(out: Path, work: Path, seed: int = 7, preset: str = "demo") -> int:
         rc = 1
         summary = None
     print(f"      done in {time.perf_counter() - t1:.0f} s")
+    if summary:
+        print(f"      orchestration: sum of task times {summary['task_seconds']:.0f} s against flow wall time "
+              f"{summary['wall_seconds']:.0f} s on {cfg.cluster.n_workers} workers "
+              f"(parallel efficiency {summary['task_seconds'] / summary['wall_seconds'] / cfg.cluster.n_workers:.0%})")
     print("[3/3] baseline quality of the MVS mesh against the truth (what later stages must beat):", flush=True)
     try:
         from tasks.quality_io import quality_of_campus

@@ -33,6 +33,22 @@ def _concat(parts: list[dict[str, np.ndarray]]) -> dict[str, np.ndarray] | None:
     return {k: np.concatenate([p[k] for p in parts]) for k in parts[0]}
 
 
+def load_staged_tile(parts: list[Path]) -> tuple[dict | None, dict | None, list[str]]:
+    """A tile's staging files (sorted paths) as column dicts: (points, faces, textures), texture
+    indices of each mesh file shifted into the tile's concatenated texture list."""
+    pts_parts, face_parts, textures = [], [], []
+    for p in parts:
+        cols, meta = read_columns(p)
+        if p.name.startswith("points-"):
+            pts_parts.append(cols)
+        else:
+            base = len(textures)
+            textures += meta.get("textures", [])
+            cols["texture"] = np.where(cols["texture"] >= 0, cols["texture"] + base, -1).astype(np.int16)
+            face_parts.append(cols)
+    return _concat(pts_parts), _concat(face_parts), textures
+
+
 def bad_patch_keys(labels_path: str, origin: np.ndarray, patch_size) -> np.ndarray:
     """Packed keys of bad patches from a synth defects.json or a CSV of patch ids. (k,) int64 sorted."""
     from storage.labels import bad_keys_from_csv, bad_keys_from_defects
@@ -69,17 +85,7 @@ def run_partition_tile(tile: TileId, cfg: CampusConfig, wd: WorkDir, blocked: st
         write_record(wd, ManifestRecord("partition", tile.key, "failed", fp, ph, error=str(err)))
         raise err
     try:
-        pts_parts, face_parts, textures = [], [], []
-        for p in parts:
-            cols, meta = read_columns(p)
-            if p.name.startswith("points-"):
-                pts_parts.append(cols)
-            else:
-                base = len(textures)
-                textures += meta.get("textures", [])
-                cols["texture"] = np.where(cols["texture"] >= 0, cols["texture"] + base, -1).astype(np.int16)
-                face_parts.append(cols)
-        points, faces = _concat(pts_parts), _concat(face_parts)
+        points, faces, textures = load_staged_tile(parts)
         if points is None and faces is None:
             raise EmptyTileError(staging, f"tile {tile.key} holds no points and no faces")
         pts_s, faces_s, patches = build_tile_tables(points, faces, cfg.partition.patch_size_m)
