@@ -96,6 +96,7 @@ def run_partition_tile(tile: TileId, cfg: CampusConfig, wd: WorkDir, blocked: st
                         crs=campus["frame"].get("crs"), textures=tuple(textures))
         write_tile_tables(wd.tile_dir(tile), pts_s or None, faces_s or None, patches, meta)
     except EmptyTileError as e:
+        (wd.tile_dir(tile) / "patches.parquet").unlink(missing_ok=True)  # a tile that lost its data
         write_record(wd, ManifestRecord("partition", tile.key, "empty", fp, ph, error=str(e),
                                         seconds=time.perf_counter() - t0))
         return {"tile": tile.key, "status": "empty"}
