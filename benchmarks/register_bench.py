@@ -16,7 +16,7 @@ from pathlib import Path
 import numpy as np
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
-from _common import ensure_demo, machine, truth_in_campus_frame  # noqa: E402
+from _common import ensure_demo, machine, truth_in_campus_frame
 
 
 def main(argv=None) -> dict:

@@ -57,8 +57,8 @@ def register_task(cfg_json: dict) -> dict:
 @task(name="ingest", cache_policy=NO_CACHE)
 def ingest_task(units: list[dict], cfg_json: dict) -> list[dict]:
     """Route a batch of ingest units; a bad unit fails this task after the others are done."""
-    from tasks.ingest import IngestUnit, run_ingest_unit
     from storage.workdir import read_campus
+    from tasks.ingest import IngestUnit, run_ingest_unit
 
     cfg = _cfg(cfg_json)
     wd = WorkDir(cfg.work_dir)
@@ -145,9 +145,10 @@ def _wait_all(futures, label: str, progress: bool) -> list:
 @flow(name="reprocess-campus", log_prints=True)
 def reprocess_campus(cfg_json: dict, progress: bool = True) -> dict:
     """Register -> ingest -> partition -> outliers over the campus of ``cfg_json`` (a CampusConfig)."""
-    from tasks.ingest import InputFile, plan_units, tiles_hint, unit_to_json
-    from storage.frame import CampusFrame
     import numpy as np
+
+    from storage.frame import CampusFrame
+    from tasks.ingest import InputFile, plan_units, tiles_hint, unit_to_json
 
     cfg = _cfg(cfg_json)
     wd = WorkDir(cfg.work_dir)

@@ -19,8 +19,8 @@ import socket
 import subprocess
 import sys
 import time
+from collections.abc import Iterator
 from pathlib import Path
-from typing import Iterator
 
 log = logging.getLogger("ms3d.runtime")
 
@@ -69,7 +69,7 @@ class PrefectServer:
     def api_url(self) -> str:
         return f"http://127.0.0.1:{self.port}/api"
 
-    def start(self, timeout_s: float = 120) -> "PrefectServer":
+    def start(self, timeout_s: float = 120) -> PrefectServer:
         env = {**os.environ, **prefect_env(self.prefect_dir), "PREFECT_UI_ENABLED": "0",
                "PREFECT_LOGGING_LEVEL": "WARNING"}
         env.pop("PREFECT_API_URL", None)

@@ -26,8 +26,8 @@ def campus_status(work_dir: str) -> dict:
 def format_status(st: dict) -> str:
     lines = [f"work dir {st['work_dir']}",
              f"registered: {'yes' if st['registered'] else 'no'}",
-             f"tiles: {len(st['done'])} done, {len(st['empty'])} empty, {len(st['failed'])} failed, "
-             f"{len(st['pending'])} pending"]
+             (f"tiles: {len(st['done'])} done, {len(st['empty'])} empty, {len(st['failed'])} failed, "
+              f"{len(st['pending'])} pending")]
     for k, err in st["failed"].items():
         lines.append(f"  FAILED {k}: {err}")
     for k, err in st["ingest_failed"].items():

@@ -65,7 +65,7 @@ class CampusFrame:
         }
 
     @classmethod
-    def from_json(cls, d: dict) -> "CampusFrame":
+    def from_json(cls, d: dict) -> CampusFrame:
         return cls(
             origin=tuple(float(v) for v in d["origin"]),
             crs=d.get("crs"),
@@ -74,7 +74,7 @@ class CampusFrame:
         )
 
     @classmethod
-    def around(cls, world: np.ndarray, crs: str | None = None, snap_m: float = 100.0) -> "CampusFrame":
+    def around(cls, world: np.ndarray, crs: str | None = None, snap_m: float = 100.0) -> CampusFrame:
         """A frame whose origin is the (snapped) minimum corner of the x/y extent and z = 0."""
         world = np.asarray(world, dtype=np.float64)
         lo = np.nanmin(world[:, :2], axis=0)

@@ -21,7 +21,7 @@ class TileId:
         return f"{self.ix}_{self.iy}"
 
     @classmethod
-    def from_key(cls, key: str) -> "TileId":
+    def from_key(cls, key: str) -> TileId:
         ix, iy = key.split("_")
         return cls(int(ix), int(iy))
 

@@ -16,7 +16,6 @@ Layout of ``OUT``::
 from __future__ import annotations
 
 import datetime as _dt
-import json
 import logging
 import shutil
 import time

@@ -79,7 +79,7 @@ class Mesh:
 
     @property
     def n_faces(self) -> int:
-        return int(len(self.faces))
+        return len(self.faces)
 
     def triangles(self) -> np.ndarray:
         """(m, 3, 3) float64."""
@@ -95,7 +95,7 @@ class Mesh:
         return n / np.maximum(np.linalg.norm(n, axis=1, keepdims=True), 1e-12)
 
     @staticmethod
-    def concat(meshes: list["Mesh"]) -> "Mesh":
+    def concat(meshes: list[Mesh]) -> Mesh:
         meshes = [m for m in meshes if m.n_faces]
         if not meshes:
             return Mesh.empty()
@@ -109,7 +109,7 @@ class Mesh:
         )
 
     @staticmethod
-    def empty() -> "Mesh":
+    def empty() -> Mesh:
         return Mesh(
             np.zeros((0, 3)), np.zeros((0, 3), np.int64), np.zeros(0, np.uint8),
             np.zeros(0, np.int32), np.zeros((0, 3), np.uint8),

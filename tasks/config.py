@@ -80,7 +80,7 @@ class CampusConfig(_Model):
     runner: Literal["dask", "local"] = Field("dask", description="'local' runs tasks in the flow process (debugging)")
 
     @classmethod
-    def from_yaml(cls, path: str | Path, overrides: dict | None = None) -> "CampusConfig":
+    def from_yaml(cls, path: str | Path, overrides: dict | None = None) -> CampusConfig:
         path = Path(path)
         data = yaml.safe_load(path.read_text()) or {}
         base = path.parent

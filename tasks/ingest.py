@@ -370,7 +370,6 @@ def run_register(cfg: CampusConfig, wd: WorkDir) -> dict:
     if not mesh_vertices:
         raise InputError(None, "no readable mesh: " + "; ".join(r.error for r in mesh_recs))
     target = np.concatenate(mesh_vertices) - frame.origin_array
-    rng = np.random.default_rng(cfg.registration.seed)
     n_each = max(cfg.registration.max_points * 4 // max(len(point_recs), 1), 10_000)
     source = [sample_points_for_registration(r, n_each, cfg) for r in point_recs if not r.error]
     source = np.concatenate(source) - frame.origin_array if source else np.zeros((0, 3))

@@ -104,10 +104,10 @@ def run_partition_tile(tile: TileId, cfg: CampusConfig, wd: WorkDir, blocked: st
         write_record(wd, ManifestRecord("partition", tile.key, "failed", fp, ph, error=str(e),
                                         seconds=time.perf_counter() - t0))
         raise
-    n_pts = int(len(pts_s.get("x", []))) if pts_s else 0
-    n_faces = int(len(faces_s.get("x0", []))) if faces_s else 0
+    n_pts = len(pts_s.get("x", [])) if pts_s else 0
+    n_faces = len(faces_s.get("x0", [])) if faces_s else 0
     summary = {"tile": tile.key, "status": "done", "n_points": n_pts, "n_faces": n_faces,
-               "n_patches": int(len(patches["patch"])),
+               "n_patches": len(patches["patch"]),
                "n_bad": int((patches["label"] == 1).sum()), "n_labelled": int((patches["label"] >= 0).sum()),
                "worker": f"{socket.gethostname()}:{os.getpid()}"}
     outputs = [str((wd.tile_dir(tile) / f).relative_to(wd.root)) for f in ("patches.parquet",)]
@@ -146,7 +146,7 @@ def run_outliers(cfg: CampusConfig, wd: WorkDir) -> dict:
         missing = (tb["n_points"] < cfg.partition.min_points) | (tb["n_faces"] < cfg.partition.min_faces)
         update_patch_columns(wd.tile_dir(t), {"outlier_points": fp_, "outlier_faces": ff, "outlier": fp_ | ff | missing})
         at += n
-    out = {"n_patches": int(len(n_pts)), "seconds": time.perf_counter() - t0}
+    out = {"n_patches": len(n_pts), "seconds": time.perf_counter() - t0}
     for name, (fit, flags) in fits.items():
         out[name] = {"mean_log10": float(fit.mean), "std_log10": float(fit.std), "low": float(fit.low),
                      "high": float(fit.high), "flagged": int(flags.sum())}

@@ -2,8 +2,6 @@
 
 from __future__ import annotations
 
-import numpy as np
-
 from storage.ids import TileId
 from storage.manifest import all_records
 from storage.pointcloud_io import PointChunk, read_points, write_points

@@ -13,6 +13,7 @@ import numpy as np
 import pytest
 
 from storage.errors import InputError
+from synth.generate import similarity
 from tasks.config import RegistrationConfig
 from tasks.register import (
     RegistrationResult,
@@ -64,14 +65,7 @@ def _street(seed=0):
 
 
 def _similarity(yaw_deg, roll_deg, pitch_deg, t, scale):
-    y, r, p = np.radians([yaw_deg, roll_deg, pitch_deg])
-    rz = np.array([[np.cos(y), -np.sin(y), 0], [np.sin(y), np.cos(y), 0], [0, 0, 1]])
-    ry = np.array([[np.cos(p), 0, np.sin(p)], [0, 1, 0], [-np.sin(p), 0, np.cos(p)]])
-    rx = np.array([[1, 0, 0], [0, np.cos(r), -np.sin(r)], [0, np.sin(r), np.cos(r)]])
-    m = np.eye(4)
-    m[:3, :3] = scale * rz @ ry @ rx
-    m[:3, 3] = t
-    return m
+    return similarity(scale, yaw_deg, pitch_deg, roll_deg, t)  # R = Rz(yaw) Ry(pitch) Rx(roll)
 
 
 TRUTH = _similarity(3.0, 0.5, -0.3, (2.5, -1.7, 0.8), 1.003)
