@@ -88,9 +88,18 @@ def main(argv=None) -> None:
     ap.add_argument("--seed", type=int, default=7)
     ap.add_argument("--campus-scales", type=float, nargs=2, default=(0.5, 1.0))
     ap.add_argument("--skip-campus", action="store_true")
+    ap.add_argument("--campus-only", action="store_true")
     ap.add_argument("--keep", type=Path, default=None, help="keep the generated demo campus here")
     a = ap.parse_args(argv)
     print(f"machine: {machine()}\n")
+    if not a.campus_only:
+        demo_and_realism(a)
+    if a.skip_campus:
+        return
+    campus_scaling(a)
+
+
+def demo_and_realism(a) -> None:
     with tempfile.TemporaryDirectory() as tmp:
         demo_dir = a.keep or Path(tmp) / "demo"
         d = generate_in_child("demo", a.seed, demo_dir)
@@ -127,8 +136,8 @@ def main(argv=None) -> None:
         print(q)
         print(f"(evaluated in {time.perf_counter() - t0:.0f} s)\n")
 
-    if a.skip_campus:
-        return
+
+def campus_scaling(a) -> None:
     print("== campus preset at two sizes (tile by tile; peak RSS must not grow with the campus) ==")
     rows = []
     for s in a.campus_scales:

@@ -16,6 +16,7 @@ Layout of ``OUT``::
 from __future__ import annotations
 
 import datetime as _dt
+import json
 import logging
 import shutil
 import time
@@ -205,7 +206,10 @@ def generate(preset: str = "tiny", seed: int = 0, out: str | Path = "synth-out",
     perturb = np.linalg.inv(truth_reg)  # mesh local -> MLS local
     nx, ny = int(np.ceil(p.extent_m[0] / p.tile_m)), int(np.ceil(p.extent_m[1] / p.tile_m))
     origin = np.asarray(WORLD_ORIGIN)
-    defects, buildings, stats = [], [], {}
+    buildings, stats = [], {}
+    defects_part = out / "truth" / ".defects.part"  # one JSON array body per tile: memory stays per tile
+    defects_part.parent.mkdir(parents=True, exist_ok=True)
+    n_defects = 0
     mesh_inputs, cameras = [], []
     cache: dict[tuple[int, int], Scene] = {}
 
@@ -223,7 +227,11 @@ def generate(preset: str = "tiny", seed: int = 0, out: str | Path = "synth-out",
             for d in tile_defects:
                 d["id"] = f"{ix}_{iy}_{d['id']}"
                 d["mesh_file"] = f"mesh/{name}/{name}.obj" if p.tiled_mesh else "mesh/mvs.obj"
-            defects += tile_defects
+            with open(defects_part, "a") as fp:
+                for d in tile_defects:
+                    fp.write((",\n" if n_defects else "") + json.dumps(d, indent=None, default=_json_default))
+                    n_defects += 1
+            del tile_defects
             folder = out / "mesh" / name if p.tiled_mesh else out / "mesh"
             write_mvs_tile(folder, name, mvs, r_tex)
             stats["mvs_faces"] = stats.get("mvs_faces", 0) + mvs.n_faces
@@ -258,8 +266,7 @@ def generate(preset: str = "tiny", seed: int = 0, out: str | Path = "synth-out",
         "matrix_mls_to_mesh": truth_reg.tolist(),
         "note": "mesh_world - frame_origin = M (mls_world - frame_origin); M = [s R | t]",
     })
-    write_json_atomic(out / "truth" / "defects.json", {"frame_origin": list(WORLD_ORIGIN), "frame": "mesh",
-                                                       "defects": defects})
+    _assemble_defects(out / "truth" / "defects.json", defects_part)
     write_json_atomic(out / "truth" / "scene.json", {"preset": p.name, "seed": seed, "scale": scale,
                                                      "extent_m": list(p.extent_m), "buildings": buildings,
                                                      "stats": {k: v for k, v in stats.items() if k != "scan_seconds"}})
@@ -267,6 +274,28 @@ def generate(preset: str = "tiny", seed: int = 0, out: str | Path = "synth-out",
     write_manifest(out, {"preset": p.name, "seed": seed, "scale": scale})
     log.info("synth %s seed %d: %s in %.1f s", p.name, seed, stats, time.perf_counter() - t_start)
     return out
+
+
+def _json_default(o):
+    if isinstance(o, np.ndarray):
+        return o.tolist()
+    if isinstance(o, np.generic):
+        return o.item()
+    raise TypeError(f"not JSON serialisable: {type(o)}")
+
+
+def _assemble_defects(path: Path, part: Path) -> None:
+    """defects.json from the per-tile fragments, streamed (atomically), then drop the fragments."""
+    from storage.atomic import atomic_path
+
+    head = json.dumps({"frame_origin": list(WORLD_ORIGIN), "frame": "mesh"})[:-1] + ', "defects": [\n'
+    with atomic_path(path) as tmp, open(tmp, "w") as out:
+        out.write(head)
+        if part.exists():
+            with open(part) as src:
+                shutil.copyfileobj(src, out, 1 << 22)
+        out.write("\n]}\n")
+    part.unlink(missing_ok=True)
 
 
 def _save_npz(path: Path, **arrays) -> None:
