@@ -153,6 +153,7 @@ def reprocess_campus(cfg_json: dict, progress: bool = True) -> dict:
     cfg = _cfg(cfg_json)
     wd = WorkDir(cfg.work_dir)
     t_wall = time.perf_counter()
+    t_start = time.time()
     campus = register_task.submit(cfg_json).result()
 
     inputs = [InputFile(**r) for r in campus["inputs"]]
@@ -162,7 +163,7 @@ def reprocess_campus(cfg_json: dict, progress: bool = True) -> dict:
     hints = {r.index: tiles_hint(r, frame, matrix, cfg.tiling.tile_size_m) for r in inputs}
     all_hinted = sorted({k for h in hints.values() for k in h})
 
-    unit_batches = _batches(units, 1)
+    unit_batches = _batches(units, 1)  # one ingest unit (a point range or a mesh file) per task
     ingest_futs = ingest_task.map([[unit_to_json(u) for u in b] for b in unit_batches], cfg_json=unmapped(cfg_json))
     states = _wait_all(ingest_futs, "ingest", progress)
     failed: dict[str, str] = {}
@@ -193,7 +194,7 @@ def reprocess_campus(cfg_json: dict, progress: bool = True) -> dict:
 
     outliers = outliers_task.submit(cfg_json).result()
     consolidate(wd)
-    summary = _summarise(wd, time.perf_counter() - t_wall, failed, outliers)
+    summary = _summarise(wd, time.perf_counter() - t_wall, failed, outliers, since=t_start)
     _publish_artifact(summary)
     if failed:
         raise CampusRunFailed(summary)
@@ -208,12 +209,12 @@ def _state_error(state) -> str:
     return state.message or "failed"
 
 
-def _summarise(wd: WorkDir, wall_s: float, failed: dict, outliers: dict) -> dict:
+def _summarise(wd: WorkDir, wall_s: float, failed: dict, outliers: dict, since: float = 0.0) -> dict:
     from storage.manifest import all_records
 
     recs = all_records(wd)
     tiles = [r for r in recs if r.stage == "partition"]
-    task_s = sum(r.seconds for r in recs)
+    task_s = sum(r.seconds for r in recs if r.updated_at >= since)  # work done by this run only
     return {
         "work_dir": str(wd.root),
         "wall_seconds": wall_s,
