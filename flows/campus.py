@@ -1,23 +1,29 @@
-"""The campus flow: register -> ingest (route to tiles) -> partition per tile -> patch outliers.
+"""The campus flow: scan -> register (while meshes ingest) -> ingest points -> prune -> partition +
+labels per tile -> patch outliers.
 
-Per-unit and per-tile stages are mapped over a Dask cluster with ``prefect_dask.DaskTaskRunner`` (a
-local cluster by default, an existing one by address). Tasks receive ids, paths and the config as
-JSON, never arrays; every stage's outputs live in the work dir, and each task skips a unit whose
-manifest record is done with matching fingerprints, so re-running resumes.
+Per-file and per-tile stages are mapped over a Dask cluster with ``prefect_dask.DaskTaskRunner`` (a
+local cluster by default, an existing one by address). Tasks receive ids, paths, small JSON records and
+the config, never arrays; every stage's outputs live in the work dir, and each unit is skipped when its
+manifest record is done with matching fingerprints (``tasks.units.run_unit``), so re-running resumes.
+
+Expected failures (a bad input, a full disk) come back from tasks as failed unit summaries, not as
+exceptions: the user sees each once, in the summary and in ``ms3d status``; Prefect's logs keep the
+tracebacks of anything unexpected.
 """
 
 from __future__ import annotations
 
 import logging
+import os
 import time
-from dataclasses import dataclass, field
 from pathlib import Path
 
 from prefect import flow, task, unmapped
 from prefect.artifacts import create_table_artifact
 from prefect.cache_policies import NONE as NO_CACHE
-from prefect.futures import as_completed
 
+from flows.progress import wait_all
+from flows.summary import CampusRunFailed, summarise
 from storage.errors import InputError
 from storage.manifest import consolidate
 from storage.workdir import WorkDir
@@ -25,19 +31,7 @@ from tasks.config import CampusConfig
 
 log = logging.getLogger("ms3d.flow")
 
-
-class CampusRunFailed(RuntimeError):
-    """Some units failed; the others are done and the manifest says which."""
-
-    def __init__(self, summary: dict):
-        self.summary = summary
-        failed = summary["failed"]
-        lines = [f"{len(failed)} unit(s) failed:"] + [f"  {u}: {e}" for u, e in list(failed.items())[:20]]
-        super().__init__("\n".join(lines))
-
-    def __reduce__(self):
-        return (type(self), (self.summary,))
-
+__all__ = ["CampusRunFailed", "reprocess_campus", "run_campus", "reprocess_from_config", "make_task_runner"]
 
 # ------------------------------------------------------------------------------------------ tasks
 
@@ -46,36 +40,66 @@ def _cfg(cfg_json: dict) -> CampusConfig:
     return CampusConfig.model_validate(cfg_json)
 
 
-@task(name="register", cache_policy=NO_CACHE)
-def register_task(cfg_json: dict) -> dict:
-    from tasks.ingest import run_register
+@task(name="scan", cache_policy=NO_CACHE)
+def scan_task(files: list[dict], cfg_json: dict) -> list[dict]:
+    """Scan a batch of input files ({"path", "kind", "source"})."""
+    from tasks.scan import run_scan_file
 
     cfg = _cfg(cfg_json)
-    return run_register(cfg, WorkDir(cfg.work_dir))
+    wd = WorkDir(cfg.work_dir)
+    return [run_scan_file(f["path"], f["kind"], f["source"], cfg, wd) for f in files]
+
+
+@task(name="register", cache_policy=NO_CACHE)
+def register_task(records: list[dict], frame_json: dict, cfg_json: dict) -> dict:
+    from storage.frame import CampusFrame
+    from storage.inputs import InputFile
+    from tasks.register_stage import run_register
+
+    cfg = _cfg(cfg_json)
+    try:
+        return run_register([InputFile(**r) for r in records], CampusFrame.from_json(frame_json), cfg,
+                            WorkDir(cfg.work_dir))
+    except InputError as e:
+        return {"error": str(e)}
 
 
 @task(name="ingest", cache_policy=NO_CACHE)
-def ingest_task(units: list[dict], cfg_json: dict) -> list[dict]:
-    """Route a batch of ingest units; a bad unit fails this task after the others are done."""
-    from storage.workdir import read_campus
+def ingest_task(units: list[dict], cfg_json: dict, frame_json: dict, matrix: list | None) -> list[dict]:
+    """Route a batch of ingest units to staging files."""
+    import numpy as np
+
+    from storage.frame import CampusFrame
     from tasks.ingest import IngestUnit, run_ingest_unit
 
     cfg = _cfg(cfg_json)
-    wd = WorkDir(cfg.work_dir)
-    campus = read_campus(wd)
-    return _run_batch([IngestUnit(**u) for u in units], lambda u: run_ingest_unit(u, cfg, wd, campus), lambda u: u.key)
+    wd, frame = WorkDir(cfg.work_dir), CampusFrame.from_json(frame_json)
+    m = None if matrix is None else np.asarray(matrix, np.float64)
+    return [run_ingest_unit(IngestUnit(**u), cfg, wd, frame, m) for u in units]
 
 
 @task(name="partition", cache_policy=NO_CACHE)
-def partition_task(tile_keys: list[str], cfg_json: dict, blocked: dict[str, str]) -> list[dict]:
-    """Partition a batch of tiles into patch stores; a bad tile fails this task after the others are done."""
+def partition_task(tile_keys: list[str], cfg_json: dict, frame_json: dict, blocked: dict[str, str]) -> list[dict]:
+    """Partition a batch of tiles into patch stores, then label them."""
+    from storage.frame import CampusFrame
     from storage.ids import TileId
-    from tasks.patches import run_partition_tile
+    from tasks.patches import run_labels_tile, run_partition_tile
 
+    delay = float(os.environ.get("MS3D_FAULT_PARTITION_DELAY_S", "0") or 0)  # fault-injection hook for tests
     cfg = _cfg(cfg_json)
-    wd = WorkDir(cfg.work_dir)
-    return _run_batch([TileId.from_key(k) for k in tile_keys],
-                      lambda t: run_partition_tile(t, cfg, wd, blocked.get(t.key)), lambda t: t.key)
+    wd, frame = WorkDir(cfg.work_dir), CampusFrame.from_json(frame_json)
+    out = []
+    for k in tile_keys:
+        if delay:
+            time.sleep(delay)
+        t = TileId.from_key(k)
+        res = run_partition_tile(t, cfg, wd, frame, blocked.get(k))
+        if res["status"] == "done":
+            lab = run_labels_tile(t, cfg, wd)
+            if lab is not None and lab["status"] == "failed":
+                res = {**res, "labels_error": lab["error"]}
+        out.append(res)
+    return out
 
 
 @task(name="outliers", cache_policy=NO_CACHE)
@@ -86,148 +110,228 @@ def outliers_task(cfg_json: dict) -> dict:
     return run_outliers(cfg, WorkDir(cfg.work_dir))
 
 
-def _run_batch(items, run, key) -> list[dict]:
-    results, errors = [], []
-    for it in items:
-        try:
-            results.append(run(it))
-        except InputError as e:
-            errors.append(f"{key(it)}: {e}")
-    if errors:
-        raise InputError(None, "; ".join(errors))
-    return results
+# ------------------------------------------------------------------------------------------ executors
 
 
-# ------------------------------------------------------------------------------------------ flow
+class PrefectExecutor:
+    """Runs tasks as Prefect task runs on the flow's task runner (Dask workers)."""
+
+    def __init__(self, progress: bool):
+        self.progress = progress
+
+    def map(self, tsk, batches: list, label: str, **consts) -> _Mapped:
+        futs = tsk.map(batches, **{k: unmapped(v) for k, v in consts.items()}) if batches else []
+        return _Mapped(batches, futs, label, self.progress)
+
+    def submit(self, tsk, *args):
+        return tsk.submit(*args)
 
 
-@dataclass
-class _Progress:
-    """A terminal progress bar over futures (rich), silent when not a terminal."""
+class _Mapped:
+    def __init__(self, batches, futs, label, progress):
+        self.batches, self.futs, self.label, self.progress = batches, futs, label, progress
 
-    label: str
-    total: int
-    enabled: bool = True
-    _bar: object = field(default=None, repr=False)
+    def results(self) -> list[dict]:
+        return _collect(self.batches, wait_all(self.futs, self.label, self.progress), self.label)
 
-    def __enter__(self):
-        if self.enabled:
-            from rich.progress import BarColumn, MofNCompleteColumn, Progress, TextColumn, TimeElapsedColumn
 
-            self._bar = Progress(TextColumn("{task.description}"), BarColumn(), MofNCompleteColumn(), TimeElapsedColumn())
-            self._bar.start()
-            self._id = self._bar.add_task(self.label, total=self.total)
-        return self
+class InlineExecutor:
+    """Runs the task functions in this process, one after the other, without Prefect (tests, debugging)."""
 
-    def advance(self):
-        if self._bar is not None:
-            self._bar.advance(self._id)
+    def map(self, tsk, batches: list, label: str, **consts) -> _Done:
+        return _Done([r for b in batches for r in tsk.fn(b, **consts)])
 
-    def __exit__(self, *exc):
-        if self._bar is not None:
-            self._bar.stop()
+    def submit(self, tsk, *args) -> _Done:
+        return _Done(tsk.fn(*args))
+
+
+class _Done:
+    def __init__(self, value):
+        self.value = value
+
+    def results(self):
+        return self.value
+
+    def result(self):
+        return self.value
+
+
+# ------------------------------------------------------------------------------------------ planning
+
+
+def balanced_batches(items: list, weights: list[float], n_batches: int) -> list[list]:
+    """Split items into at most ``n_batches`` batches of about equal total weight (largest first,
+    greedy), each batch in input order. Task runs cost ~0.3 s each: a thousand small files must not
+    become a thousand tasks."""
+    n = max(1, min(n_batches, len(items)))
+    order = sorted(range(len(items)), key=lambda i: -weights[i])
+    loads, members = [0.0] * n, [[] for _ in range(n)]
+    for i in order:
+        b = loads.index(min(loads))
+        loads[b] += weights[i]
+        members[b].append(i)
+    return [[items[i] for i in sorted(m)] for m in members if m]
 
 
 def _batches(items: list, size: int) -> list[list]:
     return [items[i:i + size] for i in range(0, len(items), size)]
 
 
-def _wait_all(futures, label: str, progress: bool) -> list:
-    """Wait for every future; return their states in submission order."""
-    with _Progress(label, len(futures), enabled=progress) as bar:
-        for _ in as_completed(futures):
-            bar.advance()
-    for f in futures:
-        f.wait()  # sets the future's final state from the Dask result, not from the (lagging) API
-    return [f.state for f in futures]
+def _collect(batches: list[list], states: list, what: str) -> list[dict]:
+    """Unit summaries of mapped tasks; a task that crashed (a bug, a killed worker beyond Dask's
+    retries) fails each of its units with its one-line error."""
+    out = []
+    for batch, st in zip(batches, states):
+        if st.is_completed():
+            out += st.result()
+        else:
+            err = _state_error(st)
+            out += [{"unit": _unit_name(u), "status": "failed", "error": f"{what} task failed: {err}",
+                     "skipped": False} for u in batch]
+    return out
 
 
-@flow(name="reprocess-campus", log_prints=True)
-def reprocess_campus(cfg_json: dict, progress: bool = True) -> dict:
-    """Register -> ingest -> partition -> outliers over the campus of ``cfg_json`` (a CampusConfig)."""
-    import numpy as np
-
-    from storage.frame import CampusFrame
-    from tasks.ingest import InputFile, plan_units, tiles_hint, unit_to_json
-
-    cfg = _cfg(cfg_json)
-    wd = WorkDir(cfg.work_dir)
-    t_wall = time.perf_counter()
-    t_start = time.time()
-    campus = register_task.submit(cfg_json).result()
-
-    inputs = [InputFile(**r) for r in campus["inputs"]]
-    frame = CampusFrame.from_json(campus["frame"])
-    matrix = np.asarray(campus["registration"]["matrix"])
-    units = plan_units([r for r in inputs if not r.error or r.lo], cfg)
-    hints = {r.index: tiles_hint(r, frame, matrix, cfg.tiling.tile_size_m) for r in inputs}
-    all_hinted = sorted({k for h in hints.values() for k in h})
-
-    unit_batches = _batches(units, 1)  # one ingest unit (a point range or a mesh file) per task
-    ingest_futs = ingest_task.map([[unit_to_json(u) for u in b] for b in unit_batches], cfg_json=unmapped(cfg_json))
-    states = _wait_all(ingest_futs, "ingest", progress)
-    failed: dict[str, str] = {}
-    blocked: dict[str, str] = {}
-    for b, st in zip(unit_batches, states):
-        if not st.is_completed():
-            for u in b:
-                err = _state_error(st)
-                failed[f"ingest/{u.key}"] = err
-                for tk in hints.get(u.file_index) or all_hinted:
-                    blocked.setdefault(tk, f"input {Path(u.path).name} failed: {err}")
-    for r in inputs:
-        if r.error:
-            failed[f"input/{Path(r.path).name}"] = r.error
-            for tk in hints.get(r.index) or all_hinted:
-                blocked.setdefault(tk, f"input {Path(r.path).name} failed: {r.error}")
-
-    tiles = sorted(set(all_hinted) | {t.key for t in wd.staged_tiles()})
-    tile_batches = _batches(tiles, cfg.cluster.tiles_per_task)
-    part_futs = partition_task.map(tile_batches, cfg_json=unmapped(cfg_json), blocked=unmapped(blocked))
-    states = _wait_all(part_futs, "partition", progress)
-    for b, st in zip(tile_batches, states):
-        if not st.is_completed():
-            for msg in _state_error(st).split("; "):
-                key, _, err = msg.partition(": ")
-                if key in b:
-                    failed[f"partition/{key}"] = err
-
-    outliers = outliers_task.submit(cfg_json).result()
-    consolidate(wd)
-    summary = _summarise(wd, time.perf_counter() - t_wall, failed, outliers, since=t_start)
-    _publish_artifact(summary)
-    if failed:
-        raise CampusRunFailed(summary)
-    return summary
+def _unit_name(u) -> str:
+    if isinstance(u, dict):
+        return u.get("key") or f"{u.get('source', 0):08x}"
+    return str(u)
 
 
 def _state_error(state) -> str:
     try:
         state.result()
     except Exception as e:  # noqa: BLE001 - the message is what we report
-        return str(e)
+        return f"{type(e).__name__}: {e}".splitlines()[0]
     return state.message or "failed"
 
 
-def _summarise(wd: WorkDir, wall_s: float, failed: dict, outliers: dict, since: float = 0.0) -> dict:
-    from storage.manifest import all_records
+# ------------------------------------------------------------------------------------------ flow
 
-    recs = all_records(wd)
-    tiles = [r for r in recs if r.stage == "partition"]
-    task_s = sum(r.seconds for r in recs if r.updated_at >= since)  # work done by this run only
-    return {
-        "work_dir": str(wd.root),
-        "wall_seconds": wall_s,
-        "task_seconds": task_s,
-        "tiles_done": sorted(r.unit for r in tiles if r.status == "done"),
-        "tiles_empty": sorted(r.unit for r in tiles if r.status == "empty"),
-        "tiles_failed": sorted(r.unit for r in tiles if r.status == "failed"),
-        "tile_rows": [{"tile": r.unit, "status": r.status, "points": r.summary.get("n_points", 0),
-                       "faces": r.summary.get("n_faces", 0), "patches": r.summary.get("n_patches", 0),
-                       "seconds": round(r.seconds, 2), "error": r.error[:200]} for r in tiles],
-        "failed": failed,
-        "outliers": outliers,
-    }
+
+@flow(name="reprocess-campus", log_prints=True)
+def reprocess_campus(cfg_json: dict, progress: bool = True) -> dict:
+    """Scan -> register -> ingest -> partition (+ labels) -> outliers over the campus of ``cfg_json``."""
+    from tasks.plan import work_dir_lock
+
+    cfg = _cfg(cfg_json)
+    return reprocess(cfg, PrefectExecutor(progress), publish=_publish_artifact)
+
+
+def reprocess(cfg: CampusConfig, ex, publish=None) -> dict:
+    """The campus run on an executor (:class:`PrefectExecutor` inside the flow, :class:`InlineExecutor`
+    for a run without Prefect). Raises CampusRunFailed when units failed or the campus is incomplete."""
+    from tasks.plan import work_dir_lock
+
+    wd = WorkDir(cfg.work_dir)
+    with work_dir_lock(wd):
+        summary = _reprocess(cfg, cfg.model_dump(mode="json"), wd, ex)
+    if publish is not None:
+        publish(summary)
+    if summary["failed"] or summary["incomplete"]:
+        raise CampusRunFailed(summary)
+    return summary
+
+
+def _reprocess(cfg: CampusConfig, cfg_json: dict, wd: WorkDir, ex) -> dict:
+    import numpy as np
+
+    from storage.frame import CampusFrame
+    from storage.inputs import InputFile, assign_source_ids, discover
+    from storage.workdir import write_campus
+    from tasks.ingest import plan_units, prune_staging, tiles_hint
+    from tasks.plan import drop_unplanned_records, sweep_temporary_files
+    from tasks.scan import campus_frame
+
+    t_wall, t_start = time.perf_counter(), time.time()
+    n_workers = max(cfg.cluster.n_workers, 1)
+    sweep_temporary_files(wd)
+
+    # scan: every input file once per content
+    found = discover(cfg.inputs.mesh, cfg.inputs.points)
+    ids = assign_source_ids(list(found.meshes) + list(found.points))
+    files = [{"path": p, "kind": "mesh", "source": ids[p]} for p in found.meshes] + \
+            [{"path": p, "kind": "points", "source": ids[p]} for p in found.points]
+    sizes = [_size(f["path"]) * (20 if f["kind"] == "mesh" else 1) for f in files]  # meshes are read whole
+    scan_batches = balanced_batches(files, sizes, 4 * n_workers)
+    scans = ex.map(scan_task, scan_batches, "scan", cfg_json=cfg_json).results()
+    records = []
+    for f, s in zip([f for b in scan_batches for f in b], scans):
+        rec = s.get("record") or InputFile(f["source"], f["path"], f["kind"], "", error=s.get("error", "scan failed")).to_json()
+        records.append(InputFile(**rec))
+    frame = campus_frame(records, cfg)
+    grid = cfg.grid()
+
+    # register (once) while the meshes are routed: mesh ingest needs the frame only
+    rec_json = [r.to_json() for r in records]
+    reg_future = ex.submit(register_task, rec_json, frame.to_json(), cfg_json)
+    units = plan_units(records, cfg.tiling.chunk_points)
+    mesh_units = [u for u in units if u.kind == "mesh"]
+    point_units = [u for u in units if u.kind == "points"]
+    mesh_batches = balanced_batches([u.to_json() for u in mesh_units],
+                                    [_size(u.path) for u in mesh_units], 4 * n_workers)
+    mesh_ingest = ex.map(ingest_task, mesh_batches, "ingest meshes", cfg_json=cfg_json, frame_json=frame.to_json(),
+                         matrix=None)
+    registration = reg_future.result()
+    if "error" in registration:
+        mesh_ingest.results()
+        raise InputError(None, f"registration failed: {registration['error']}")
+    write_campus(wd, frame, registration, cfg.model_dump(mode="json"),
+                 extra={"name": cfg.name, "inputs": rec_json, "grid": grid.to_json(),
+                        "skipped_files": [list(s) for s in found.skipped]})
+    matrix = np.asarray(registration["matrix"], np.float64)
+    point_batches = _batches([u.to_json() for u in point_units], 1)
+    point_ingest = ex.map(ingest_task, point_batches, "ingest points", cfg_json=cfg_json, frame_json=frame.to_json(),
+                          matrix=matrix.tolist())
+    ingests = mesh_ingest.results() + point_ingest.results()
+
+    # what each bad input blocks: the tiles its bounds cover; unknown bounds make the campus incomplete
+    by_source = {r.source: r for r in records}
+    hints = {r.source: tiles_hint(r, frame, matrix, grid) for r in records}
+    blocked: dict[str, str] = {}
+    failed: dict[str, str] = {}
+    incomplete: list[str] = []
+    bad_inputs = [(r, r.error) for r in records if r.error]
+    unit_src = {u.key: u.source for u in units}
+    bad_inputs += [(by_source[unit_src[s["unit"]]], s["error"]) for s in ingests
+                   if s["status"] == "failed" and s["unit"] in unit_src]
+    for r, err in bad_inputs:
+        failed[f"input {r.name}"] = err
+        if not hints[r.source]:
+            incomplete.append(r.path)
+        for tk in hints[r.source]:
+            blocked.setdefault(tk, f"input {r.name} failed: {err}")
+
+    # the plan names the staging files and tiles that should exist; everything else goes
+    prune_staging(wd, {u.key for u in units})
+    drop_unplanned_records(wd, "ingest", {u.key for u in units})
+    drop_unplanned_records(wd, "scan", {f"{s:08x}" for s in ids.values()})
+    tiles = sorted({k for h in hints.values() for k in h} | {t.key for t in wd.staged_tiles()}
+                   | set(wd.tile_keys_on_disk()))
+    tile_batches = _batches(tiles, cfg.cluster.tiles_per_task)
+    parts = ex.map(partition_task, tile_batches, "partition", cfg_json=cfg_json, frame_json=frame.to_json(),
+                   blocked=blocked).results()
+    for s in parts:
+        if s["status"] == "failed":
+            failed[f"tile {s['unit']}"] = s["error"]
+        elif s.get("labels_error"):
+            failed[f"labels {s['unit']}"] = s["labels_error"]
+    drop_unplanned_records(wd, "partition", set(tiles))
+    drop_unplanned_records(wd, "labels", set(tiles))
+
+    outliers = ex.submit(outliers_task, cfg_json).result()
+    consolidate(wd)
+    summary = summarise(wd, time.perf_counter() - t_wall, failed, outliers, since=t_start,
+                        stages={"scan": scans, "ingest": ingests, "partition": parts},
+                        incomplete=incomplete, skipped_files=list(found.skipped),
+                        registration=registration)
+    return summary
+
+
+def _size(path: str) -> float:
+    try:
+        return float(Path(path).stat().st_size) + 1.0
+    except OSError:
+        return 1.0
 
 
 def _publish_artifact(summary: dict) -> None:
@@ -243,7 +347,7 @@ def _publish_artifact(summary: dict) -> None:
 
 def make_task_runner(cfg: CampusConfig):
     """A DaskTaskRunner for an existing cluster (``cluster.address``) or a new local one."""
-    if cfg.runner == "local":
+    if cfg.runner in ("local", "inline"):
         from prefect.task_runners import ThreadPoolTaskRunner
 
         return ThreadPoolTaskRunner(max_workers=1)
@@ -253,16 +357,19 @@ def make_task_runner(cfg: CampusConfig):
         return DaskTaskRunner(address=cfg.cluster.address)
     return DaskTaskRunner(cluster_kwargs={
         "n_workers": cfg.cluster.n_workers, "threads_per_worker": cfg.cluster.threads_per_worker,
-        "processes": True, "memory_limit": cfg.cluster.memory_limit, "dashboard_address": ":0",
+        "processes": True, "memory_limit": cfg.cluster.memory_limit, "dashboard_address": None,
     })
 
 
 def run_campus(cfg: CampusConfig, progress: bool = True) -> dict:
     """Run the campus flow with one embedded Prefect API (unless one is configured) and a Dask cluster."""
     from flows.runtime import embedded_prefect
+    from tasks.plan import check_work_dir_writable
 
     wd = WorkDir(cfg.work_dir)
-    wd.root.mkdir(parents=True, exist_ok=True)
+    check_work_dir_writable(wd)
+    if cfg.runner == "inline":
+        return reprocess(cfg, InlineExecutor())
     with embedded_prefect(wd.prefect_dir, cfg.cluster.prefect_api_url):
         runner = make_task_runner(cfg)
         return reprocess_campus.with_options(task_runner=runner)(cfg.model_dump(mode="json"), progress=progress)

@@ -2,9 +2,13 @@
 
     ms3d synth --preset demo --seed 7 --out DIR     generate a synthetic campus with ground truth
     ms3d run CONFIG [--dask-address tcp://...]      reprocess a campus (embedded Prefect + Dask)
+    ms3d serve CONFIG --cron "0 2 * * *"            scheduled reprocessing (a served Prefect deployment)
     ms3d status WORKDIR                             tiles done / failed / pending, with errors
     ms3d demo                                       synth demo campus + run + print where things are
     ms3d ui WORKDIR                                 show the run history in the Prefect UI
+
+Every user error (config, YAML, inputs, CRS, work dir) prints one line ``ms3d: error: ...`` and exits
+with code 2; ``--debug`` shows the traceback. A run with failed tiles or an incomplete campus exits 1.
 """
 
 from __future__ import annotations
@@ -44,37 +48,34 @@ def _overrides(a) -> dict:
 
 def _cmd_run(a) -> int:
     from flows.campus import CampusRunFailed, run_campus
+    from flows.summary import format_summary
     from tasks.config import CampusConfig
 
     cfg = CampusConfig.from_yaml(a.config, _overrides(a))
     try:
         summary = run_campus(cfg, progress=sys.stderr.isatty())
     except CampusRunFailed as e:
+        print(format_summary(e.summary))
         print(str(e), file=sys.stderr)
-        _print_status(cfg.work_dir)
         return 1
-    _print_summary(summary)
+    print(format_summary(summary))
     return 0
 
 
-def _print_summary(s: dict) -> None:
-    print(f"work dir: {s['work_dir']}")
-    print(f"tiles: {len(s['tiles_done'])} done, {len(s['tiles_empty'])} empty, {len(s['tiles_failed'])} failed")
-    print(f"wall {s['wall_seconds']:.1f} s, sum of task times {s['task_seconds']:.1f} s")
+def _cmd_serve(a) -> int:
+    from flows.serve import serve_campus
+    from tasks.config import CampusConfig
 
-
-def _print_status(work_dir: str) -> None:
-    from flows.status import campus_status, format_status
-
-    print(format_status(campus_status(work_dir)))
+    cfg = CampusConfig.from_yaml(a.config, _overrides(a))
+    return serve_campus(Path(a.config), cfg, cron=a.cron, name=a.name, overrides=_overrides(a))
 
 
 def _cmd_status(a) -> int:
-    from flows.status import campus_status, format_status
+    from flows.status import campus_status, format_status, status_exit_code
 
     st = campus_status(a.work_dir)
     print(format_status(st))
-    return 0 if not st["failed"] else 1
+    return status_exit_code(st)
 
 
 def _cmd_demo(a) -> int:
@@ -96,7 +97,8 @@ def _cmd_ui(a) -> int:
 
 def build_parser() -> argparse.ArgumentParser:
     p = argparse.ArgumentParser(prog="ms3d", description="MLS + photogrammetric mesh fusion for 3D building models")
-    p.add_argument("-v", "--verbose", action="store_true")
+    p.add_argument("-v", "--verbose", action="store_true", help="show Prefect and Dask logs")
+    p.add_argument("--debug", action="store_true", help="show tracebacks of errors (implies --verbose)")
     sub = p.add_subparsers(dest="cmd", required=True)
 
     s = sub.add_parser("synth", help="generate a synthetic campus with ground truth")
@@ -115,6 +117,14 @@ def build_parser() -> argparse.ArgumentParser:
     r.add_argument("--set", action="append", metavar="KEY=VALUE", help="override a config field, e.g. tiling.tile_size_m=50")
     r.set_defaults(func=_cmd_run)
 
+    sv = sub.add_parser("serve", help="serve a scheduled Prefect deployment that reprocesses the campus")
+    sv.add_argument("config")
+    sv.add_argument("--cron", default="0 2 * * *", help="schedule (cron syntax, UTC); default nightly at 02:00")
+    sv.add_argument("--name", default=None, help="deployment name (default: the campus name)")
+    sv.add_argument("--work-dir")
+    sv.add_argument("--set", action="append", metavar="KEY=VALUE", help="override a config field")
+    sv.set_defaults(func=_cmd_serve)
+
     st = sub.add_parser("status", help="tiles done, failed and pending of a work dir")
     st.add_argument("work_dir")
     st.set_defaults(func=_cmd_status)
@@ -132,21 +142,46 @@ def build_parser() -> argparse.ArgumentParser:
     return p
 
 
+def _quiet_logs() -> None:
+    """Dask and Prefect log every worker start and task run, and Prefect prints tracebacks of failed runs
+    on the console: keep the terminal to ms3d's own lines (the run history keeps everything)."""
+    os.environ.setdefault("PREFECT_LOGGING_LEVEL", "WARNING")
+    os.environ.setdefault("PREFECT_LOGGING_HANDLERS_CONSOLE_LEVEL", "CRITICAL")
+    os.environ.setdefault("DASK_LOGGING__DISTRIBUTED", "error")
+    os.environ.setdefault("PREFECT_SERVER_ANALYTICS_ENABLED", "false")
+    for name in ("distributed", "prefect"):
+        logging.getLogger(name).setLevel(logging.ERROR)
+
+
+def error_line(e: BaseException) -> tuple[str, int]:
+    """The one line a user sees for an exception, and the exit code."""
+    from storage.errors import Ms3dError
+    from tasks.units import os_error_message
+
+    if isinstance(e, Ms3dError):
+        return f"ms3d: error: {e}", 2
+    if isinstance(e, OSError):
+        return f"ms3d: error: {os_error_message(e)}", 2
+    if isinstance(e, KeyboardInterrupt):
+        return "ms3d: interrupted; run the same command again to resume", 130
+    first = (str(e).splitlines() or [""])[0]
+    return f"ms3d: internal error: {type(e).__name__}: {first} (run with --debug for the traceback)", 3
+
+
 def main(argv: list[str] | None = None) -> int:
     a = build_parser().parse_args(argv)
-    logging.basicConfig(level=logging.INFO if a.verbose else logging.WARNING, format="%(levelname)s %(name)s: %(message)s")
-    if not a.verbose:  # Dask and Prefect log every worker start and task run at INFO: keep the terminal readable
-        os.environ.setdefault("PREFECT_LOGGING_LEVEL", "WARNING")
-        os.environ.setdefault("DASK_LOGGING__DISTRIBUTED", "warning")
-        for name in ("distributed", "prefect"):
-            logging.getLogger(name).setLevel(logging.WARNING)
-    from storage.errors import InputError
-
+    verbose = a.verbose or a.debug
+    logging.basicConfig(level=logging.INFO if verbose else logging.WARNING, format="%(levelname)s %(name)s: %(message)s")
+    if not verbose:
+        _quiet_logs()
     try:
         return a.func(a)
-    except InputError as e:
-        print(f"ms3d: error: {e}", file=sys.stderr)
-        return 2
+    except (Exception, KeyboardInterrupt) as e:  # noqa: BLE001 - the CLI turns every error into one line
+        if a.debug:
+            raise
+        line, code = error_line(e)
+        print(line, file=sys.stderr)
+        return code
 
 
 if __name__ == "__main__":

@@ -31,7 +31,8 @@ def prefect_env(prefect_dir: Path) -> dict[str, str]:
     return {
         "PREFECT_HOME": str(prefect_dir),
         "PREFECT_API_DATABASE_CONNECTION_URL": f"sqlite+aiosqlite:///{prefect_dir / 'prefect.db'}",
-        "PREFECT_SERVER_ANALYTICS_ENABLED": "false",
+        "PREFECT_SERVER_ANALYTICS_ENABLED": "false",  # the embedded server is private: no usage banner
+        "PREFECT_SERVER_LOGGING_LEVEL": "WARNING",
         "PREFECT_SERVER_EPHEMERAL_STARTUP_TIMEOUT_SECONDS": "120",
     }
 
@@ -76,8 +77,7 @@ class PrefectServer:
         log_path = self.prefect_dir / "server.log"
         self._log = open(log_path, "ab")
         self.proc = subprocess.Popen(
-            [sys.executable, "-m", "uvicorn", "--factory", "prefect.server.api.server:create_app",
-             "--host", "127.0.0.1", "--port", str(self.port), "--log-level", "error", "--lifespan", "on"],
+            [sys.executable, "-m", "flows._server", str(self.port)],
             env=env, stdout=self._log, stderr=subprocess.STDOUT,
         )
         _wait_healthy(self.api_url, self.proc, timeout_s, log_path)
@@ -123,8 +123,10 @@ def embedded_prefect(prefect_dir: Path, api_url: str | None = None) -> Iterator[
 
     try:
         with temporary_settings(updates={PREFECT_API_URL: api_url}):
-            yield api_url
-            drain_prefect_services()
+            try:
+                yield api_url
+            finally:
+                drain_prefect_services()  # also after a failed run: else "Error logging to API" at exit
     finally:
         if server is not None:
             server.stop()

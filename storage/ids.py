@@ -11,7 +11,8 @@ from dataclasses import dataclass
 @dataclass(frozen=True, order=True)
 class TileId:
     """A cell of the ground tile grid (default 100 m): tile (ix, iy) covers
-    ``[ix*size, (ix+1)*size) x [iy*size, (iy+1)*size)`` in campus-local x/y metres."""
+    ``[ix*size, (ix+1)*size) x [iy*size, (iy+1)*size)`` in world x/y metres (projected CRS), so a tile
+    keeps its key whatever the campus extent (see :class:`storage.grid.PatchGrid`)."""
 
     ix: int
     iy: int
@@ -28,7 +29,7 @@ class TileId:
 
 @dataclass(frozen=True, order=True)
 class PatchId:
-    """A cell (i, j, k) of the global 3D patch grid (default 2.3 x 1.0 x 0.7 m) in campus-local metres."""
+    """A cell (i, j, k) of the global, world-anchored 3D patch grid (default 2.3 x 1.0 x 0.7 m)."""
 
     i: int
     j: int

@@ -9,9 +9,8 @@ Two sources:
 - a CSV of patch ids ``i,j,k[,label]`` (an optional header line ``i,j,k[,label]``; label defaults to
   1 = bad, 0 = good). Listed-good and unlisted patches are both good.
 
-Patch keys here are the store's ``patch`` column: ``tasks.partition.pack_patch_key``. Storage may not
-import tasks, so the two lines of grid arithmetic are repeated in :func:`_patch_keys` and checked
-against tasks.partition by tests/storage/test_labels.py.
+Patch keys here are the store's ``patch`` column (:class:`storage.grid.PatchGrid`): the grid is
+anchored in world coordinates, so a CSV of ``i,j,k`` stays valid whatever the campus extent.
 """
 
 from __future__ import annotations
@@ -23,22 +22,7 @@ from pathlib import Path
 import numpy as np
 
 from .errors import InputError
-
-_FIELD_BITS = 21
-_BIAS = 1 << (_FIELD_BITS - 1)
-
-
-def _pack(ijk: np.ndarray) -> np.ndarray:
-    b = np.asarray(ijk, dtype=np.int64) + _BIAS
-    if b.size and (b.min() < 0 or b.max() >= (1 << _FIELD_BITS)):
-        raise ValueError("patch indices must satisfy -2**20 <= i, j, k < 2**20")
-    return (b[:, 0] << (2 * _FIELD_BITS)) | (b[:, 1] << _FIELD_BITS) | b[:, 2]
-
-
-def _patch_keys(local_xyz: np.ndarray, patch_size) -> np.ndarray:
-    """(n, 3) float64 campus-local metres -> (n,) int64 packed keys of the containing patches."""
-    size = np.asarray(patch_size, dtype=np.float64).reshape(3)
-    return _pack(np.floor(np.asarray(local_xyz, dtype=np.float64) / size).astype(np.int64))
+from .grid import PatchGrid
 
 
 def _load_json(path: Path) -> dict:
@@ -98,20 +82,14 @@ def load_defect_faces(path: str | Path) -> tuple[np.ndarray, np.ndarray]:
             np.concatenate(ids) if ids else np.zeros(0, np.int64))
 
 
-def bad_keys_from_defects(path: str | Path, campus_origin, patch_size) -> np.ndarray:
-    """Patches touched by any defect sample.
+def bad_keys_from_defects(path: str | Path, grid: PatchGrid) -> np.ndarray:
+    """Patches touched by any defect sample: (b,) int64 packed keys of ``grid``, sorted unique.
 
-    Args:
-        path: synth defects.json.
-        campus_origin: (3,) float64 world origin of the campus frame (campus.json).
-        patch_size: (3,) metres.
-    Returns:
-        (b,) int64 packed keys, sorted unique.
+    path: synth defects.json (samples in world coordinates once its ``frame_origin`` is added).
     """
     world, _ = load_defect_samples(path)
-    local = world - np.asarray(campus_origin, dtype=np.float64).reshape(3)
     try:
-        return np.unique(_patch_keys(local, patch_size))
+        return np.unique(grid.pack(grid.cells_world(world)))
     except ValueError as exc:
         raise InputError(path, f"defect samples do not lie near the campus ({exc}): wrong frame_origin?") from None
 
@@ -154,7 +132,7 @@ def read_labels_csv(path: str | Path) -> tuple[np.ndarray, np.ndarray]:
                 raise InputError(path, f"line {line}: label must be 0 (good) or 1 (bad), got {values[3]}")
             labels[r] = values[3]
     try:
-        keys = _pack(ijk)
+        keys = PatchGrid.pack(ijk)
     except ValueError as exc:
         raise InputError(path, str(exc)) from None
     return keys, labels

@@ -1,24 +1,45 @@
-"""The Parquet patch store: one folder per tile, three tables sorted by patch.
+"""The Parquet patch store (schema v2): one folder per tile, tables sorted by patch.
 
 ::
 
     tiles/{ix}_{iy}/points.parquet    MLS points, sorted by patch (one row per point)
     tiles/{ix}_{iy}/faces.parquet     mesh faces, 3 vertices inline, sorted by patch (one row per face)
-    tiles/{ix}_{iy}/patches.parquet   one row per patch: ids, counts, row ranges, bbox, flags, label, score
+    tiles/{ix}_{iy}/patches.parquet   one row per patch: ids, counts, row ranges, bbox
+    tiles/{ix}_{iy}/labels.parquet    side table, one row per patch: ground-truth label (label stage)
+    tiles/{ix}_{iy}/outliers.parquet  side table: count-outlier flags (outlier stage)
+    tiles/{ix}_{iy}/grades.parquet    side table: score, grade (classify stage)
+
+The partition output (points, faces, patches) is never rewritten by a later stage: labels, flags and
+grades live in small side tables, aligned row for row with ``patches.parquet`` (same ``patch`` column;
+a reader refuses a side table that does not match, so a stale one is never joined).
 
 Coordinates are float32 metres, campus-local (offsets from the campus.json origin). ``patch`` is the
-packed int64 key of ``tasks.partition.pack_patch_key`` (three biased 21-bit fields, i highest); rows of
-patch p are ``point_start:point_stop`` / ``face_start:face_stop`` of the sorted tables.
+packed int64 key of :class:`storage.grid.PatchGrid` (world-anchored cells, so stable across runs and
+campus extents); rows of patch p are ``point_start:point_stop`` / ``face_start:face_stop`` of the sorted
+tables.
+
+What v2 adds for the stages after partition:
+
+- ``vid0, vid1, vid2`` (faces): a vertex id per corner, unique in the campus: ``source << 32 | vertex index``
+  where ``source`` is the input file's stable id (:func:`storage.inputs.source_id`) and the index is the
+  file's vertex index after welding exactly coincident vertices (seam-split glTF/PLY vertices get one
+  id). Faces of a patch or a region weld exactly, and edge neighbours are exact (a shared vertex-id pair).
+- ``vp0, vp1, vp2`` (faces): the patch holding each corner vertex (the paper's Algorithm 1, step 3).
+- ``nx, ny, nz`` (faces): unit face normal (right hand on v0 -> v1 -> v2), computed in float64 world
+  coordinates before the cast.
+- ``source`` is the stable uint32 input id (points and faces), not a list position.
+- Point normals are not stored: they cost a k-NN PCA over every point (the fusion stage needs them
+  only in bad regions, a fraction of the campus, and computes them there).
 
 Every file carries Parquet key-value metadata ``ms3d`` = JSON ``{"schema_version", "table", "units",
 "frame", "patch_size_m", "tile", "crs", "n_rows"}`` (+ ``"textures"`` in faces, + ``"points_rows"``,
 ``"faces_rows"`` in patches so a reader can tell the three files belong together). Files are written to a
 temporary name and renamed; ``patches.parquet`` is removed first and written last, so its presence marks
-a complete tile.
+a complete tile. Stores of schema v1 are refused with a message saying to re-run.
 
 Missing optional input columns are written with documented defaults (:data:`POINT_DEFAULTS`,
-:data:`FACE_DEFAULTS`): zeros for attributes, NaN for uv, -1 for ``texture`` and ``src_face``. Unknown
-columns are rejected: the schema is fixed per ``schema_version``.
+:data:`FACE_DEFAULTS`): zeros for attributes, NaN for uv and normals, -1 for ``texture``, ``src_face``
+and vertex ids. Unknown columns are rejected: the schema is fixed per ``schema_version``.
 
 Compression ("auto"): coordinates, uv and gps_time are stored uncompressed (float32 mantissas of metre
 offsets are close to random: lz4/zstd gain ~10 % and halve write speed); patch, source, texture and
@@ -40,9 +61,10 @@ import pyarrow.parquet as pq
 
 from .atomic import atomic_path
 from .errors import InputError
+from .grid import PatchGrid
 from .ids import PatchId
 
-SCHEMA_VERSION = 1
+SCHEMA_VERSION = 2
 META_KEY = b"ms3d"
 FRAME = "campus-local float32 offsets from campus.json origin"
 DEFAULT_ROW_GROUP_SIZE = 65536
@@ -57,50 +79,60 @@ POINT_DTYPES: dict[str, np.dtype] = {
     "gps_time": _F64,
     "red": np.dtype(np.uint16), "green": np.dtype(np.uint16), "blue": np.dtype(np.uint16),
     "classification": np.dtype(np.uint8),
-    "source": np.dtype(np.uint16),
+    "source": np.dtype(np.uint32),
     "patch": np.dtype(np.int64),
 }
 POINT_DEFAULTS = {"intensity": 0, "gps_time": 0.0, "red": 0, "green": 0, "blue": 0, "classification": 0, "source": 0}
 
 FACE_DTYPES: dict[str, np.dtype] = {
     **{f"{a}{v}": _F32 for v in range(3) for a in "xyz"},
+    **{f"vid{v}": np.dtype(np.int64) for v in range(3)},
+    **{f"vp{v}": np.dtype(np.int64) for v in range(3)},
+    "nx": _F32, "ny": _F32, "nz": _F32,
     **{f"{a}{v}": _F32 for v in range(3) for a in "uv"},
     "texture": np.dtype(np.int16),
     "red": np.dtype(np.uint8), "green": np.dtype(np.uint8), "blue": np.dtype(np.uint8),
     "src_face": np.dtype(np.int64),
-    "source": np.dtype(np.uint16),
+    "source": np.dtype(np.uint32),
     "patch": np.dtype(np.int64),
 }
 FACE_DEFAULTS = {**{f"{a}{v}": np.nan for v in range(3) for a in "uv"},
+                 **{f"vid{v}": -1 for v in range(3)}, **{f"vp{v}": -1 for v in range(3)},
+                 "nx": np.nan, "ny": np.nan, "nz": np.nan,
                  "texture": -1, "red": 0, "green": 0, "blue": 0, "src_face": -1, "source": 0}
 
 PATCH_DTYPES: dict[str, np.dtype] = {
     "patch": np.dtype(np.int64),
-    "i": np.dtype(np.int32), "j": np.dtype(np.int32), "k": np.dtype(np.int32),
+    "i": np.dtype(np.int64), "j": np.dtype(np.int64), "k": np.dtype(np.int64),
     "n_points": np.dtype(np.int32), "n_faces": np.dtype(np.int32),
     "point_start": np.dtype(np.int64), "point_stop": np.dtype(np.int64),
     "face_start": np.dtype(np.int64), "face_stop": np.dtype(np.int64),
     **{c: _F32 for c in ("xmin", "ymin", "zmin", "xmax", "ymax", "zmax")},
-    "outlier_points": np.dtype(bool), "outlier_faces": np.dtype(bool), "outlier": np.dtype(bool),
-    "label": np.dtype(np.int8),
-    "score": _F32,
 }
-PATCH_DEFAULTS = {**{c: np.nan for c in ("xmin", "ymin", "zmin", "xmax", "ymax", "zmax")},
-                  "outlier_points": False, "outlier_faces": False, "outlier": False, "label": -1, "score": np.nan}
-UPDATABLE_PATCH_COLUMNS = ("outlier_points", "outlier_faces", "outlier", "label", "score")
+PATCH_DEFAULTS = {c: np.nan for c in ("xmin", "ymin", "zmin", "xmax", "ymax", "zmax")}
+
+# Side tables: one row per patch of patches.parquet, same order, written by later stages.
+SIDE_TABLES: dict[str, dict[str, np.dtype]] = {
+    "labels": {"patch": np.dtype(np.int64), "label": np.dtype(np.int8)},  # -1 unknown, 0 good, 1 bad
+    "outliers": {"patch": np.dtype(np.int64), "outlier_points": np.dtype(bool),
+                 "outlier_faces": np.dtype(bool), "outlier": np.dtype(bool)},
+    "grades": {"patch": np.dtype(np.int64), "score": _F32, "grade": np.dtype(np.int8)},  # grade -1 unknown
+}
 
 _TABLES = {"points": (POINTS_FILE, POINT_DTYPES, POINT_DEFAULTS),
            "faces": (FACES_FILE, FACE_DTYPES, FACE_DEFAULTS),
            "patches": (PATCHES_FILE, PATCH_DTYPES, PATCH_DEFAULTS)}
-_DICT_COLUMNS = ["patch", "source", "texture", "classification"]  # few distinct values: dictionary + RLE
-_RAW_COLUMNS = {"x", "y", "z", "gps_time", *_DICT_COLUMNS} | {f"{a}{v}" for v in range(3) for a in "xyzuv"}
+_DICT_COLUMNS = ["patch", "source", "texture", "classification", "vp0", "vp1", "vp2"]  # dictionary + RLE
+_RAW_COLUMNS = {"x", "y", "z", "gps_time", "nx", "ny", "nz", *_DICT_COLUMNS} | {
+    f"{a}{v}" for v in range(3) for a in "xyzuv"}
 
 
 def _arrow_schema(dtypes: dict[str, np.dtype]) -> pa.Schema:
     return pa.schema([pa.field(name, pa.from_numpy_dtype(dt), nullable=False) for name, dt in dtypes.items()])
 
 
-SCHEMAS = {name: _arrow_schema(spec[1]) for name, spec in _TABLES.items()}
+SCHEMAS = {name: _arrow_schema(spec[1]) for name, spec in _TABLES.items()} | {
+    name: _arrow_schema(dtypes) for name, dtypes in SIDE_TABLES.items()}
 
 
 @dataclass(frozen=True)
@@ -169,6 +201,14 @@ class PatchData:
     def triangles(self) -> np.ndarray:
         """(m, 3, 3) float32 face vertices, metres, campus-local."""
         return np.stack([np.stack([self.faces[f"{a}{v}"] for a in "xyz"], axis=1) for v in range(3)], axis=1)
+
+    def vertex_ids(self) -> np.ndarray:
+        """(m, 3) int64 campus-unique vertex id of each face corner."""
+        return np.stack([self.faces[f"vid{v}"] for v in range(3)], axis=1)
+
+    def normals(self) -> np.ndarray:
+        """(m, 3) float32 unit face normals."""
+        return np.stack([self.faces[c] for c in ("nx", "ny", "nz")], axis=1)
 
     def __repr__(self) -> str:
         return f"PatchData(key={self.key}, ijk={self.ijk}, n_points={self.n_points}, n_faces={self.n_faces})"
@@ -241,7 +281,7 @@ def _compression(table: str, compression) -> str | dict:
     if compression != "auto":
         return compression
     return {name: ("none" if name in _RAW_COLUMNS else "lz4") for name in _TABLES[table][1]} \
-        if table != "patches" else "zstd"
+        if table in ("points", "faces") else "zstd"
 
 
 def _write_table(path: Path, cols: dict, table: str, meta_json: dict, row_group_size: int, compression) -> int:
@@ -250,7 +290,7 @@ def _write_table(path: Path, cols: dict, table: str, meta_json: dict, row_group_
     with atomic_path(path) as tmp:
         pq.write_table(
             t, tmp, row_group_size=row_group_size, compression=_compression(table, compression),
-            use_dictionary=[c for c in _DICT_COLUMNS if c in cols] if table != "patches" else True,
+            use_dictionary=[c for c in _DICT_COLUMNS if c in cols] if table in ("points", "faces") else True,
             sorting_columns=[pq.SortingColumn(schema.get_field_index("patch"))],
         )
     return path.stat().st_size
@@ -312,8 +352,9 @@ def _open(path: Path, table: str) -> tuple[pq.ParquetFile, dict]:
     except ValueError:
         raise InputError(path, "the 'ms3d' metadata is not valid JSON") from None
     if meta.get("schema_version") != SCHEMA_VERSION:
-        raise InputError(path, f"schema_version {meta.get('schema_version')!r}, this ms3d reads {SCHEMA_VERSION}: "
-                               "re-run the partition stage")
+        raise InputError(path, f"patch store schema_version {meta.get('schema_version')!r}; this ms3d reads only "
+                               f"v{SCHEMA_VERSION} (vertex ids, world-anchored patch ids): re-run `ms3d run` on the "
+                               "work dir to rebuild the stores")
     if meta.get("table") != table:
         raise InputError(path, f"holds table {meta.get('table')!r}, expected {table!r}")
     expected = SCHEMAS[table]
@@ -431,6 +472,12 @@ class PatchStore:
         """The patches table: column name -> (u,) array (PATCH_DTYPES), rows ascending by ``patch``."""
         return dict(self._patches)
 
+    def side(self, name: str) -> dict[str, np.ndarray] | None:
+        """A side table ("labels", "outliers", "grades") aligned row for row with :meth:`patches`, or
+        None when the stage that writes it has not run. Raises InputError for a stale one."""
+        got = read_side_table(self.tile_dir, name, self._patches["patch"])
+        return None if got is None else got[0]
+
     @property
     def n_points(self) -> int:
         return int(self._points.bounds[-1])
@@ -449,17 +496,8 @@ class PatchStore:
             want = np.array([k for k, m in zip(keys, is_id) if not m], dtype=np.int64)
             rows[~is_id] = _find_sorted(p["patch"], want, f"patch keys not in tile {self.meta.tile}")
         if is_id.any():
-            # Rows ascend by key, i.e. by (i, j, k): a mixed-radix rank of (i, j, k) over the table and the
-            # query is ascending too, so PatchIds are found without re-implementing the key packing here.
             q = np.array([(k.i, k.j, k.k) for k, m in zip(keys, is_id) if m], dtype=np.int64)
-            t = np.stack([p["i"], p["j"], p["k"]], axis=1).astype(np.int64)
-            both = np.concatenate((t, q))
-            lo, ext = both.min(axis=0), both.max(axis=0) - both.min(axis=0) + 1
-
-            def rank(a):
-                return ((a[:, 0] - lo[0]) * ext[1] + (a[:, 1] - lo[1])) * ext[2] + (a[:, 2] - lo[2])
-
-            rows[is_id] = _find_sorted(rank(t), rank(q), f"patches (i, j, k) not in tile {self.meta.tile}",
+            rows[is_id] = _find_sorted(p["patch"], PatchGrid.pack(q), f"patches (i, j, k) not in tile {self.meta.tile}",
                                        shown=q)
         return rows
 
@@ -508,24 +546,48 @@ class PatchStore:
         return pdata, fdata
 
 
-def update_patch_columns(tile_dir: str | Path, updates: dict[str, np.ndarray]) -> None:
-    """Replace flag/label/score columns of ``patches.parquet`` (rewritten atomically, metadata kept).
+def side_table_path(tile_dir: str | Path, name: str) -> Path:
+    if name not in SIDE_TABLES:
+        raise ValueError(f"unknown side table {name!r}; known: {list(SIDE_TABLES)}")
+    return Path(tile_dir) / f"{name}.parquet"
 
-    updates: column -> (u,) array, u = rows of the patches table; columns among UPDATABLE_PATCH_COLUMNS.
+
+def write_side_table(tile_dir: str | Path, name: str, cols: dict[str, np.ndarray], meta: TileMeta,
+                     **extra_meta) -> Path:
+    """Write a side table (labels / outliers / grades) of a tile, atomically.
+
+    cols: column -> (u,) arrays of SIDE_TABLES[name]; ``patch`` must equal the patches table's column
+    (checked against ``patches.parquet`` when it exists). extra_meta: JSON-able facts stored in the
+    metadata (e.g. ``model_hash`` of the grades).
     """
-    path = Path(tile_dir) / PATCHES_FILE
-    pf, meta = _open(path, "patches")
-    bad = sorted(set(updates) - set(UPDATABLE_PATCH_COLUMNS))
-    if bad:
-        raise ValueError(f"{path}: cannot update {bad}; updatable: {list(UPDATABLE_PATCH_COLUMNS)}")
+    tile_dir = Path(tile_dir)
+    path = side_table_path(tile_dir, name)
+    dtypes = SIDE_TABLES[name]
+    unknown = sorted(set(cols) - set(dtypes))
+    missing = sorted(set(dtypes) - set(cols))
+    if unknown or missing:
+        raise ValueError(f"{path}: {name} needs columns {list(dtypes)} (unknown {unknown}, missing {missing})")
+    out = {c: _cast(np.asarray(cols[c]), dt, f"{path}: {name}.{c}") for c, dt in dtypes.items()}
+    if len({len(v) for v in out.values()}) > 1:
+        raise ValueError(f"{path}: {name} columns differ in length")
+    _write_table(path, out, name, meta.to_json(name, len(out["patch"])) | extra_meta, DEFAULT_ROW_GROUP_SIZE, "auto")
+    return path
+
+
+def read_side_table(tile_dir: str | Path, name: str, patch_keys: np.ndarray | None = None) -> tuple[dict, dict] | None:
+    """A tile's side table as (columns, metadata), or None when it was never written.
+
+    patch_keys: the patches table's ``patch`` column; a side table whose keys differ is stale (written
+    for an older partition) and raises InputError rather than being joined to the wrong patches.
+    """
+    path = side_table_path(tile_dir, name)
+    if not path.exists():
+        return None
+    pf, meta = _open(path, name)
     try:
-        table = pf.read()
+        cols = _to_numpy(pf.read(), SIDE_TABLES[name], SIDE_TABLES[name])
     except (OSError, pa.ArrowException) as exc:
         raise InputError(path, f"cannot read ({exc})") from None
-    cols = _to_numpy(table, PATCH_DTYPES, PATCH_DTYPES)
-    for name, values in updates.items():
-        v = _cast(np.asarray(values), PATCH_DTYPES[name], f"{path}: patches.{name}")
-        if len(v) != len(cols["patch"]):
-            raise ValueError(f"{path}: {name} has {len(v)} values for {len(cols['patch'])} patches")
-        cols[name] = v
-    _write_table(path, cols, "patches", meta, DEFAULT_ROW_GROUP_SIZE, "auto")
+    if patch_keys is not None and not np.array_equal(cols["patch"], patch_keys):
+        raise InputError(path, f"{name} do not match the tile's patches (stale): re-run `ms3d run`")
+    return cols, meta

@@ -2,15 +2,22 @@
 
 ::
 
-    campus.json                     CRS, origin, registration, config snapshot, code version
+    campus.json                     CRS, origin, registration, inputs, config snapshot, code version
+    registration.json               the recorded MLS -> mesh similarity (reused by registration.mode pinned)
     manifest.parquet                one row per (stage, unit), consolidated by the flow
     manifest.d/{stage}/{unit}.json  the same rows, one file each, written atomically by the tasks
-    staging/{tile}/…                ingest output: points/faces routed to their tile, per input chunk
+    scan/{source}.npz               per mesh file: surface samples registration aligns to
+    staging/{tile}/{unit}-{k}.parquet  ingest output: rows of one input unit routed to one tile
     tiles/{ix}_{iy}/points.parquet  MLS points of the tile, sorted by patch
     tiles/{ix}_{iy}/faces.parquet   mesh faces of the tile, sorted by patch
-    tiles/{ix}_{iy}/patches.parquet one row per patch
+    tiles/{ix}_{iy}/patches.parquet one row per patch (its presence marks a complete store)
+    tiles/{ix}_{iy}/{labels,outliers,grades}.parquet  side tables, one row per patch
+    tiles/{ix}_{iy}/stale.json      the store is the last good one; its inputs now fail (see the error)
     report/                         figures for the run report (histograms, ...)
     prefect/                        the embedded Prefect server's database (run history)
+
+Tile keys are world-anchored (``tasks.config.CampusConfig.grid``): tile (ix, iy) covers
+``[ix*t, (ix+1)*t) x [iy*t, (iy+1)*t)`` world metres.
 """
 
 from __future__ import annotations
@@ -26,7 +33,8 @@ from .errors import InputError
 from .frame import CampusFrame
 from .ids import TileId
 
-CAMPUS_SCHEMA_VERSION = 1
+CAMPUS_SCHEMA_VERSION = 2
+STALE_FILE = "stale.json"
 
 
 @dataclass(frozen=True)
@@ -67,10 +75,23 @@ class WorkDir:
         return sorted(TileId.from_key(p.name) for p in d.iterdir() if p.is_dir()) if d.exists() else []
 
     def done_tiles(self) -> list[TileId]:
+        """Tiles with a complete store (live or stale)."""
         d = self.root / "tiles"
         if not d.exists():
             return []
         return sorted(TileId.from_key(p.name) for p in d.iterdir() if (p / "patches.parquet").exists())
+
+    def live_tiles(self) -> list[TileId]:
+        """Tiles with a complete store that is current (not marked stale): what later stages read."""
+        return [t for t in self.done_tiles() if not (self.tile_dir(t) / STALE_FILE).exists()]
+
+    def stale_tiles(self) -> list[TileId]:
+        return [t for t in self.done_tiles() if (self.tile_dir(t) / STALE_FILE).exists()]
+
+    def tile_keys_on_disk(self) -> list[str]:
+        """Every tile folder, complete or not (to drop stores the current plan no longer names)."""
+        d = self.root / "tiles"
+        return sorted(p.name for p in d.iterdir() if p.is_dir()) if d.exists() else []
 
 
 def write_campus(wd: WorkDir, frame: CampusFrame, registration: dict, config_snapshot: dict,
@@ -98,7 +119,8 @@ def read_campus(wd: WorkDir) -> dict:
     except json.JSONDecodeError as e:
         raise InputError(path, f"corrupt campus.json ({e})") from None
     if doc.get("schema_version") != CAMPUS_SCHEMA_VERSION:
-        raise InputError(path, f"schema_version {doc.get('schema_version')} is not {CAMPUS_SCHEMA_VERSION}")
+        raise InputError(path, f"campus.json schema_version {doc.get('schema_version')}, this ms3d reads "
+                               f"{CAMPUS_SCHEMA_VERSION}: re-run `ms3d run` to rebuild the work dir")
     return doc
 
 

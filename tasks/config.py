@@ -9,7 +9,10 @@ from pathlib import Path
 from typing import Literal
 
 import yaml
-from pydantic import BaseModel, ConfigDict, Field, field_validator
+from pydantic import BaseModel, ConfigDict, Field, ValidationError, field_validator, model_validator
+
+from storage.errors import InputError
+from storage.grid import PatchGrid
 
 
 class _Model(BaseModel):
@@ -22,11 +25,15 @@ class InputsConfig(_Model):
     crs: str | None = Field(None, description="projected CRS of the campus, e.g. 'EPSG:32650'; read from the LAS VLRs when absent")
     mesh_offset: tuple[float, float, float] = Field((0.0, 0.0, 0.0), description="added to mesh coordinates (ContextCapture SRSOrigin) to get world metres")
     units_scale: float = Field(1.0, description="multiplies input coordinates into metres (e.g. 0.3048 for US feet)")
-    labels: str | None = Field(None, description="patch labels: a synth defects.json or a CSV of bad patch ids (i,j,k[,label])")
+    labels: str | None = Field(None, description="patch labels: a synth defects.json or a CSV of bad patch ids (i,j,k[,label]); ids are world-anchored, so a CSV stays valid when the campus grows")
+    origin: tuple[float, float, float] | None = Field(None, description="campus origin (world metres) of the float32 offsets; default: the inputs' minimum x/y corner snapped to 1 km, z = 0")
 
 
 class RegistrationConfig(_Model):
-    enabled: bool = Field(True, description="False for inputs that are already co-registered (a check still warns)")
+    mode: Literal["auto", "pinned", "off"] = Field(
+        "auto", description="auto: register when the inputs change; pinned: reuse the recorded transform (or "
+        "`matrix`), so a changed input redoes only its tiles; off: inputs are co-registered (a check still warns)")
+    matrix: list[list[float]] | None = Field(None, description="a 4x4 similarity MLS -> mesh (campus-local) to use in pinned mode")
     voxel_m: float = Field(0.3, description="voxel size for the coarse stage (downsampling before FPFH)")
     fine_voxel_m: float = Field(0.05, description="voxel size for Scale-ICP")
     max_points: int = Field(400_000, description="cap on MLS points sampled for registration")
@@ -35,7 +42,21 @@ class RegistrationConfig(_Model):
     icp_iterations: int = Field(1000, description="Scale-ICP iterations (paper: 1000)")
     icp_threshold_m: float = Field(0.001, description="final Scale-ICP correspondence distance / convergence (paper: 1 mm)")
     with_scale: bool = Field(True, description="estimate a similarity (rotation, translation, scale)")
+    target_spacing_m: float = Field(0.15, gt=0, description="spacing of the area-weighted samples of the mesh surface that registration aligns to")
     seed: int = 0
+
+    @model_validator(mode="before")
+    @classmethod
+    def _enabled_alias(cls, data):
+        if isinstance(data, dict) and "enabled" in data:  # the v1 switch: enabled false == mode off
+            data = dict(data)
+            enabled = data.pop("enabled")
+            data.setdefault("mode", "auto" if enabled else "off")
+        return data
+
+    @property
+    def enabled(self) -> bool:
+        return self.mode != "off"
 
 
 class TilingConfig(_Model):
@@ -49,8 +70,10 @@ class PartitionConfig(_Model):
     )
     outlier_sigma_low: float = Field(2.0, ge=0, description="patches with log-count below mean - k*sigma are flagged (paper: histogram + normal fit)")
     outlier_sigma_high: float = Field(3.0, ge=0, description="patches with log-count above mean + k*sigma are flagged")
-    min_faces: int = Field(1, description="a pair needs at least this many faces to be graded")
-    min_points: int = Field(1, description="a pair needs at least this many points to be graded")
+    min_faces: int = Field(1, ge=0, description="a pair needs at least this many faces to be graded")
+    min_points: int = Field(1, ge=0, description="a pair needs at least this many points to be graded")
+    grid_anchor_m: tuple[float, float, float] = Field(
+        (0.0, 0.0, 0.0), description="world point of the patch grid's cell (0, 0, 0); keep it fixed: ids derive from it")
 
     @field_validator("patch_size_m")
     @classmethod
@@ -77,12 +100,41 @@ class CampusConfig(_Model):
     tiling: TilingConfig = Field(default_factory=TilingConfig)
     partition: PartitionConfig = Field(default_factory=PartitionConfig)
     cluster: ClusterConfig = Field(default_factory=ClusterConfig)
-    runner: Literal["dask", "local"] = Field("dask", description="'local' runs tasks in the flow process (debugging)")
+    runner: Literal["dask", "local", "inline"] = Field(
+        "dask", description="'local': Prefect tasks in the flow process; 'inline': no Prefect at all, one process (debugging, tests)")
+
+    def grid(self) -> PatchGrid:
+        """The campus patch grid (patch sizes, tile size, anchor)."""
+        return PatchGrid(self.partition.patch_size_m, self.tiling.tile_size_m, self.partition.grid_anchor_m)
 
     @classmethod
     def from_yaml(cls, path: str | Path, overrides: dict | None = None) -> CampusConfig:
+        """Load a YAML config; relative paths are relative to the file. Every problem (missing or
+        unreadable file, broken YAML, unknown or invalid field) is an InputError naming the file."""
         path = Path(path)
-        data = yaml.safe_load(path.read_text()) or {}
+        try:
+            text = path.read_text()
+        except FileNotFoundError:
+            raise InputError(path, "config file not found") from None
+        except IsADirectoryError:
+            raise InputError(path, "is a folder, not a YAML config file") from None
+        except (OSError, UnicodeDecodeError) as e:
+            raise InputError(path, f"cannot read the config ({e})") from None
+        try:
+            data = yaml.safe_load(text) or {}
+        except yaml.YAMLError as e:
+            mark = getattr(e, "problem_mark", None)
+            where = f" at line {mark.line + 1}, column {mark.column + 1}" if mark else ""
+            raise InputError(path, f"not valid YAML{where}: {getattr(e, 'problem', None) or e}") from None
+        if not isinstance(data, dict):
+            raise InputError(path, "the config must be a YAML mapping (name:, inputs:, ...)")
+        try:
+            return cls._from_dict(data, path, overrides)
+        except ValidationError as e:
+            raise InputError(path, format_validation_error(e)) from None
+
+    @classmethod
+    def _from_dict(cls, data: dict, path: Path, overrides: dict | None) -> CampusConfig:
         base = path.parent
         inputs = data.get("inputs", {})
         for key in ("mesh", "points"):  # relative input paths are relative to the config file
@@ -100,16 +152,55 @@ class CampusConfig(_Model):
         return yaml.safe_dump(self.model_dump(mode="json"), sort_keys=False)
 
     def stage_params(self, stage: str) -> dict:
-        """The parameters that decide a stage's output (hashed into the manifest)."""
+        """The parameters that decide a stage's output (hashed into the manifest). Paths of inputs are
+        not parameters: inputs enter by identity and content fingerprint."""
+        reg = self.registration.model_dump(mode="json")
         return {
-            "register": self.registration.model_dump(mode="json") | {"inputs": self.inputs.model_dump(mode="json")},
-            "ingest": self.tiling.model_dump(mode="json") | {"patch": list(self.partition.patch_size_m)},
-            "partition": self.partition.model_dump(mode="json"),
+            "scan": {"mesh_offset": list(self.inputs.mesh_offset), "units_scale": self.inputs.units_scale,
+                     "target_spacing_m": self.registration.target_spacing_m},
+            "register": {k: v for k, v in reg.items() if k != "target_spacing_m"} | {"crs": self.inputs.crs},
+            "ingest": {"grid": self.grid().to_json(), "chunk_points": self.tiling.chunk_points,
+                       "mesh_offset": list(self.inputs.mesh_offset), "units_scale": self.inputs.units_scale},
+            "partition": {"grid": self.grid().to_json()},
+            "labels": {"grid": self.grid().to_json()},
+            "outliers": {k: v for k, v in self.partition.model_dump(mode="json").items()
+                         if k.startswith("outlier") or k.startswith("min_")},
         }.get(stage, {})
+
+
+def format_validation_error(e: ValidationError) -> str:
+    """One line per problem of a pydantic error, with the field path and a hint for unknown keys."""
+    parts = []
+    for err in e.errors():
+        loc = ".".join(str(x) for x in err["loc"])
+        if err["type"] == "extra_forbidden":
+            parent = CampusConfig
+            for key in err["loc"][:-1]:
+                ann = parent.model_fields.get(str(key)) if isinstance(key, str) else None
+                parent = ann.annotation if ann is not None and isinstance(ann.annotation, type) else None
+                if parent is None or not issubclass(parent, BaseModel):
+                    break
+            known = sorted(parent.model_fields) if parent is not None and isinstance(parent, type) else []
+            close = _closest(str(err["loc"][-1]), known)
+            hint = f" (did you mean '{close}'?)" if close else (f" (known: {', '.join(known)})" if known else "")
+            parts.append(f"unknown field '{loc}'{hint}")
+        else:
+            parts.append(f"{loc or 'config'}: {err['msg']} (got {err.get('input')!r})")
+    return "invalid config: " + "; ".join(parts)
+
+
+def _closest(word: str, options: list[str]) -> str | None:
+    import difflib
+
+    got = difflib.get_close_matches(word, options, n=1, cutoff=0.6)
+    return got[0] if got else None
 
 
 def _set_dotted(d: dict, dotted: str, value) -> None:
     keys = dotted.split(".")
     for k in keys[:-1]:
-        d = d.setdefault(k, {})
+        nxt = d.setdefault(k, {})
+        if not isinstance(nxt, dict):
+            raise InputError(None, f"--set {dotted}: '{k}' is not a section of the config")
+        d = nxt
     d[keys[-1]] = value

@@ -1,21 +1,17 @@
 """Partition points and mesh faces into the global 3D patch grid (Liu et al. 2023, §3.2.1, Alg. 1 and 2).
 
-The grid is global and anchored at the campus origin: patch ``(i, j, k) = floor(xyz / patch_size_m)``,
-computed in float64 from campus-local metres, so the same patch has the same id in every tile and run.
-The paper anchors its grid at the data's minimum corner; a global anchor gives the same cells up to a
-shift and lets tiles be processed independently.
+The grid is :class:`storage.grid.PatchGrid`: anchored in projected world coordinates, so the same place
+has the same patch id in every tile, run and campus extent. The paper anchors its grid at the data's
+minimum corner; a world anchor gives the same cells up to a shift and lets tiles be processed
+independently.
 
-- Points and mesh vertices go to the patch that contains them (Algorithm 2).
-- Faces go to the patch that contains their centroid (Algorithm 1).
+- Points go to the patch that contains them (Algorithm 2).
+- Faces go to the patch that contains their centroid (Algorithm 1, step 2).
+- Each face corner records the patch that contains its vertex (Algorithm 1, step 3): ``vp0..vp2``.
 - A patch belongs to the ground tile that contains its centre, so no patch is split between tiles.
 
-A patch is named on disk by a packed int64 key: three biased 21-bit fields, ``i`` highest, so ascending
-keys sort patches by ``(i, j, k)``. Valid for ``|i|, |j|, |k| < 2**20`` (about 2400 km at 2.3 m).
-
-Worked example (default 2.3 x 1.0 x 0.7 m patches)::
-
-    >>> patch_index(np.array([[5.0, 2.5, 1.0], [-0.1, -0.1, -0.1]]), (2.3, 1.0, 0.7)).tolist()
-    [[2, 2, 1], [-1, -1, -1]]
+Cells are computed in float64 from the stored float32 campus-local values plus the float64 campus
+origin, so every stage that starts from the stored values gets the same cells.
 """
 
 from __future__ import annotations
@@ -24,143 +20,32 @@ from dataclasses import dataclass
 
 import numpy as np
 
-FIELD_BITS = 21
-BIAS = 1 << (FIELD_BITS - 1)  # 2**20: biased fields are non-negative
-FIELD_MASK = (1 << FIELD_BITS) - 1
+from storage.grid import PatchGrid
 
 FACE_VERTEX_COLUMNS = ("x0", "y0", "z0", "x1", "y1", "z1", "x2", "y2", "z2")
 
 
-def _size(patch_size) -> np.ndarray:
-    size = np.asarray(patch_size, dtype=np.float64).reshape(3)
-    if not (size > 0).all():
-        raise ValueError(f"patch sizes must be positive, got {size.tolist()}")
-    return size
+def point_cells(xyz: np.ndarray, grid: PatchGrid, origin) -> np.ndarray:
+    """Algorithm 2: cell of each point. xyz: (n, 3) campus-local metres -> (n, 3) int64."""
+    return grid.cells_local(np.asarray(xyz, dtype=np.float32), origin)
 
 
-def _check_range(ijk_f: np.ndarray) -> None:
-    """ijk_f: float64 cell indices; rejects NaN/inf and cells outside the packable range."""
-    if ijk_f.size == 0:
-        return
-    lo, hi = ijk_f.min(), ijk_f.max()  # NaN propagates, so the comparisons below catch it
-    if not (lo >= -BIAS and hi < BIAS):
-        raise ValueError(
-            f"patch indices span [{lo}, {hi}]: coordinates are NaN/inf or farther than 2**20 patches "
-            "from the campus origin (not campus-local metres?)"
-        )
-
-
-def _cells(x: np.ndarray, y: np.ndarray, z: np.ndarray, size: np.ndarray) -> np.ndarray:
-    """Per-axis floor(coord / size) in float64 -> (n, 3) int32 (column-major, so each axis is contiguous).
-
-    x, y, z: (n,) any float dtype.
-    """
-    out = np.empty((len(x), 3), dtype=np.int32, order="F")
-    q = np.empty(len(x), dtype=np.float64)
-    for axis, c in enumerate((x, y, z)):  # per axis: three passes, no (n, 3) float64 temporary
-        np.divide(c, size[axis], out=q)
-        np.floor(q, out=q)
-        _check_range(q)
-        out[:, axis] = q
-    return out
-
-
-def patch_index(xyz: np.ndarray, patch_size) -> np.ndarray:
-    """Patch cell of each point.
-
-    Args:
-        xyz: (n, 3) float32/float64, metres, campus-local.
-        patch_size: (3,) patch edge lengths in metres (default config: 2.3, 1.0, 0.7).
-    Returns:
-        (n, 3) int32 ``floor(xyz / patch_size)`` computed in float64.
-    Raises:
-        ValueError: NaN/inf coordinates or cells beyond +-2**20.
-    """
-    xyz = np.asarray(xyz)
-    if xyz.ndim != 2 or xyz.shape[1] != 3:
-        raise ValueError(f"xyz must be (n, 3), got {xyz.shape}")
-    return _cells(xyz[:, 0], xyz[:, 1], xyz[:, 2], _size(patch_size))
-
-
-def vertex_patches(vertices: np.ndarray, patch_size) -> np.ndarray:
-    """Patch of each mesh vertex (the patch containing it, as for points). vertices: (v, 3) -> (v, 3) int32."""
-    return patch_index(vertices, patch_size)
-
-
-def _face_cells(x0, y0, z0, x1, y1, z1, x2, y2, z2, size: np.ndarray) -> np.ndarray:
-    """Cell of each face centroid; centroid summed in float64 so every caller gets identical cells."""
-    cx = (np.asarray(x0, np.float64) + x1 + x2) / 3.0
-    cy = (np.asarray(y0, np.float64) + y1 + y2) / 3.0
-    cz = (np.asarray(z0, np.float64) + z1 + z2) / 3.0
-    return _cells(cx, cy, cz, size)
-
-
-def face_patches(triangles: np.ndarray, patch_size) -> np.ndarray:
-    """Patch of each face = patch containing its centroid (Algorithm 1).
-
-    Args:
-        triangles: (m, 3, 3) float32/float64, metres, campus-local; ``triangles[f, v]`` is vertex v of face f.
-    Returns:
-        (m, 3) int32 patch indices.
-    """
-    t = np.asarray(triangles)
+def face_cells(triangles: np.ndarray, grid: PatchGrid, origin) -> np.ndarray:
+    """Algorithm 1: cell of each face centroid. triangles: (m, 3, 3) campus-local metres -> (m, 3) int64."""
+    t = np.asarray(triangles, dtype=np.float32)
     if t.ndim != 3 or t.shape[1:] != (3, 3):
         raise ValueError(f"triangles must be (m, 3, 3), got {t.shape}")
-    return _face_cells(*(t[:, v, a] for v in range(3) for a in range(3)), _size(patch_size))
+    return grid.face_cells([t[:, v, a] for v in range(3) for a in range(3)], origin)
 
 
-def pack_patch_key(ijk: np.ndarray) -> np.ndarray:
-    """(n, 3) int patch indices -> (n,) int64 keys; bijective for |i|, |j|, |k| < 2**20.
-
-    Ascending keys order patches by (i, j, k) lexicographically.
-    """
-    ijk = np.asarray(ijk)
-    if ijk.ndim != 2 or ijk.shape[1] != 3:
-        raise ValueError(f"ijk must be (n, 3), got {ijk.shape}")
-    b = ijk.astype(np.int64) + BIAS
-    if b.size and (b.min() < 0 or b.max() > FIELD_MASK):
-        raise ValueError("patch indices must satisfy -2**20 <= i, j, k < 2**20")
-    return (b[:, 0] << (2 * FIELD_BITS)) | (b[:, 1] << FIELD_BITS) | b[:, 2]
+def tile_of_points(xyz: np.ndarray, grid: PatchGrid, origin) -> np.ndarray:
+    """Tile of the patch holding each point (how ingest routes points). (n, 3) -> (n, 2) int64."""
+    return grid.tile_of_cells(point_cells(xyz, grid, origin))
 
 
-def unpack_patch_key(keys: np.ndarray) -> np.ndarray:
-    """(n,) int64 keys -> (n, 3) int32 patch indices (inverse of :func:`pack_patch_key`)."""
-    keys = np.asarray(keys, dtype=np.int64).reshape(-1)
-    out = np.empty((len(keys), 3), dtype=np.int32)
-    out[:, 0] = ((keys >> (2 * FIELD_BITS)) & FIELD_MASK) - BIAS
-    out[:, 1] = ((keys >> FIELD_BITS) & FIELD_MASK) - BIAS
-    out[:, 2] = (keys & FIELD_MASK) - BIAS
-    return out
-
-
-def patch_centre(ijk: np.ndarray, patch_size) -> np.ndarray:
-    """(n, 3) int patch indices -> (n, 3) float64 patch centres, metres, campus-local."""
-    return (np.asarray(ijk, dtype=np.float64) + 0.5) * _size(patch_size)
-
-
-def tile_of_patch(ijk: np.ndarray, patch_size, tile_size_m: float) -> np.ndarray:
-    """Ground tile (ix, iy) of each patch: the tile containing the patch centre.
-
-    Args:
-        ijk: (n, 3) int patch indices.
-        tile_size_m: ground tile edge, metres (default config 100).
-    Returns:
-        (n, 2) int32 tile indices, tile (ix, iy) covering [ix*t, (ix+1)*t) x [iy*t, (iy+1)*t).
-    """
-    if not tile_size_m > 0:
-        raise ValueError(f"tile_size_m must be positive, got {tile_size_m}")
-    centre = patch_centre(ijk, patch_size)[:, :2]
-    return np.floor(centre / float(tile_size_m)).astype(np.int32)
-
-
-def tile_of_points(xyz: np.ndarray, patch_size, tile_size_m: float) -> np.ndarray:
-    """Tile of the patch containing each point (how ingest routes points). xyz: (n, 3) -> (n, 2) int32."""
-    return tile_of_patch(patch_index(xyz, patch_size), patch_size, tile_size_m)
-
-
-def tile_of_faces(triangles: np.ndarray, patch_size, tile_size_m: float) -> np.ndarray:
-    """Tile of the patch containing each face centroid. triangles: (m, 3, 3) -> (m, 2) int32."""
-    return tile_of_patch(face_patches(triangles, patch_size), patch_size, tile_size_m)
+def tile_of_faces(triangles: np.ndarray, grid: PatchGrid, origin) -> np.ndarray:
+    """Tile of the patch holding each face centroid. (m, 3, 3) -> (m, 2) int64."""
+    return grid.tile_of_cells(face_cells(triangles, grid, origin))
 
 
 @dataclass(frozen=True)
@@ -191,8 +76,8 @@ class Partition:
 
     @property
     def ijk(self) -> np.ndarray:
-        """(u, 3) int32 patch indices of ``keys``."""
-        return unpack_patch_key(self.keys)
+        """(u, 3) int64 patch cells of ``keys``."""
+        return PatchGrid.unpack(self.keys)
 
     def sorted_keys(self) -> np.ndarray:
         """(n,) int64 patch key of each sorted row."""
@@ -245,30 +130,24 @@ def partition_cells(ijk: np.ndarray) -> Partition:
         rank >>= row_bits
         sorted_rank = rank
     else:
-        packed = pack_patch_key(ijk)
+        packed = PatchGrid.pack(ijk)
         order = np.argsort(packed, kind="stable").astype(np.int64, copy=False)
         sorted_rank = packed[order]
     change = np.flatnonzero(sorted_rank[1:] != sorted_rank[:-1]) + 1
     starts = np.concatenate(([0], change)).astype(np.int64)
     stops = np.concatenate((change, [n])).astype(np.int64)
-    keys = pack_patch_key(ijk[order[starts]])
+    keys = PatchGrid.pack(ijk[order[starts]])
     return Partition(order=order, keys=keys, starts=starts, stops=stops)
 
 
-def partition_points(xyz: np.ndarray, patch_size) -> Partition:
-    """Algorithm 2: each point to the patch that contains it.
-
-    xyz: (n, 3) float32/float64, metres, campus-local.
-    """
-    return partition_cells(patch_index(xyz, patch_size))
+def partition_points(xyz: np.ndarray, grid: PatchGrid, origin) -> Partition:
+    """Algorithm 2: each point to the patch that contains it. xyz: (n, 3) campus-local metres."""
+    return partition_cells(point_cells(xyz, grid, origin))
 
 
-def partition_faces(triangles: np.ndarray, patch_size) -> Partition:
-    """Algorithm 1: each face to the patch that contains its centroid.
-
-    triangles: (m, 3, 3) float32/float64, metres, campus-local.
-    """
-    return partition_cells(face_patches(triangles, patch_size))
+def partition_faces(triangles: np.ndarray, grid: PatchGrid, origin) -> Partition:
+    """Algorithm 1: each face to the patch that contains its centroid. triangles: (m, 3, 3) campus-local."""
+    return partition_cells(face_cells(triangles, grid, origin))
 
 
 def merge_pair_index(point_part: Partition, face_part: Partition):
@@ -298,6 +177,14 @@ def _ranges_for(part: Partition, keys: np.ndarray) -> np.ndarray:
     out[:, 1] = insert_row
     out[found, 1] = part.stops[pos[found]]
     return out
+
+
+def _cells_of(cols: dict, compute) -> np.ndarray:
+    """Cells of the rows: from the ``patch`` keys ingest computed in float64 world coordinates when the
+    columns carry them (so a place keeps its patch whatever the campus origin), else from the columns."""
+    if "patch" in cols:
+        return PatchGrid.unpack(np.asarray(cols["patch"], np.int64))
+    return compute(cols)
 
 
 def _float32_coords(cols: dict, names, table: str) -> dict:
@@ -331,36 +218,41 @@ def _segment_bbox(lo: list, hi: list, part: Partition) -> tuple[np.ndarray, np.n
     return mins, maxs
 
 
-def build_tile_tables(points_cols: dict | None, faces_cols: dict | None, patch_size):
-    """Partition one tile's points and faces; return the columns of points, faces and patches tables.
+def build_tile_tables(points_cols: dict | None, faces_cols: dict | None, grid: PatchGrid, origin):
+    """Partition one tile's points and faces; return the columns of the points, faces and patches tables.
 
     Args:
         points_cols: {"x", "y", "z": (n,) float32 campus-local metres, any other (n,) columns} or None.
         faces_cols: {"x0".."z2": (m,) float32 campus-local metres, any other (m,) columns} or None.
-            Coordinates of another dtype are cast to float32 before keying (that is what gets stored).
-        patch_size: (3,) metres.
+            A ``patch`` column (int64 keys, computed by ingest from float64 world coordinates) is used
+            as given; without one, keys are computed from the coordinates cast to float32. Likewise
+            ``vp0..vp2`` of faces.
+        grid: the campus patch grid; origin: (3,) float64 campus origin, world metres.
     Returns:
         (points, faces, patches): points/faces are the input columns gathered into patch order plus
-        ``patch`` (int64 packed key per row) ({} when the input was None); patches has one row per
-        patch with points or faces: patch int64, i/j/k int32, n_points/n_faces int32, point_start,
-        point_stop, face_start, face_stop int64, xmin..zmax float32 (bbox of the points and face
-        vertices; NaN if both empty), outlier_points/outlier_faces/outlier bool (False: set by the
-        outlier stage), label int8 (-1 unknown), score float32 (NaN until graded).
+        ``patch`` (int64 key per row), and for faces ``vp0, vp1, vp2`` (int64 key of the patch holding
+        each corner vertex, Algorithm 1 step 3) ({} when the input was None); patches has one row per
+        patch with points or faces: patch int64, i/j/k int64 world cells, n_points/n_faces int32,
+        point_start, point_stop, face_start, face_stop int64, xmin..zmax float32 (bbox of the points
+        and face vertices, campus-local).
     """
-    size = _size(patch_size)
     p_part = f_part = _empty_partition()
     if points_cols is not None:
         points_cols = _float32_coords(points_cols, ("x", "y", "z"), "points")
-        p_part = partition_cells(_cells(points_cols["x"], points_cols["y"], points_cols["z"], size))
+        p_part = partition_cells(_cells_of(points_cols, lambda c: grid.cells(c["x"], c["y"], c["z"], origin)))
     if faces_cols is not None:
         faces_cols = _float32_coords(faces_cols, FACE_VERTEX_COLUMNS, "faces")
-        f_part = partition_cells(_face_cells(*(faces_cols[c] for c in FACE_VERTEX_COLUMNS), size))
+        f_part = partition_cells(_cells_of(faces_cols, lambda c: grid.face_cells([c[k] for k in FACE_VERTEX_COLUMNS],
+                                                                                 origin)))
     points = _sorted_columns(points_cols, p_part)
     faces = _sorted_columns(faces_cols, f_part)
+    if faces and "vp0" not in faces:
+        for v in range(3):
+            faces[f"vp{v}"] = grid.pack(grid.cells(faces[f"x{v}"], faces[f"y{v}"], faces[f"z{v}"], origin))
 
     keys, pr, fr = merge_pair_index(p_part, f_part)
     u = len(keys)
-    ijk = unpack_patch_key(keys)
+    ijk = grid.unpack(keys)
     bmin = np.full((u, 3), np.nan, dtype=np.float32)
     bmax = np.full((u, 3), np.nan, dtype=np.float32)
     if p_part.n_rows:
@@ -389,10 +281,5 @@ def build_tile_tables(points_cols: dict | None, faces_cols: dict | None, patch_s
         "face_stop": fr[:, 1].copy(),
         "xmin": bmin[:, 0].copy(), "ymin": bmin[:, 1].copy(), "zmin": bmin[:, 2].copy(),
         "xmax": bmax[:, 0].copy(), "ymax": bmax[:, 1].copy(), "zmax": bmax[:, 2].copy(),
-        "outlier_points": np.zeros(u, dtype=bool),
-        "outlier_faces": np.zeros(u, dtype=bool),
-        "outlier": np.zeros(u, dtype=bool),
-        "label": np.full(u, -1, dtype=np.int8),
-        "score": np.full(u, np.nan, dtype=np.float32),
     }
     return points, faces, patches

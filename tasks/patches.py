@@ -1,12 +1,23 @@
-"""The partition stage per tile (staging -> Parquet patch store, labels) and the global patch
-outlier stage (§3.2.2).
+"""The per-tile stages after ingest: partition (staging -> Parquet patch store), labels, and the
+campus-wide patch outlier stage (§3.2.2).
 
-The pure partition lives in ``tasks.partition`` and the outlier fit in ``tasks.outliers``; this
-module reads and writes the work dir.
+The pure partition lives in ``tasks.partition`` and the outlier fit in ``tasks.outliers``; this module
+reads and writes the work dir.
+
+- **partition** (unit: a tile): fingerprinted by the names and fingerprints of the staging files that
+  feed it, so it is redone exactly when that set changes. A tile with no data left loses its store; a
+  tile blocked by a bad input keeps its last good store marked stale (``stale.json``), which no later
+  stage and no campus-wide statistic reads until the tile succeeds again.
+- **labels** (unit: a tile): ``labels.parquet`` from a synth ``defects.json`` or a CSV of world-anchored
+  patch ids, fingerprinted by the labels file's content (editing it in place relabels).
+- **outliers** (unit: the campus): the normal fit of log counts over every live tile; a tile's
+  ``outliers.parquet`` is rewritten only when its flags change.
 """
 
 from __future__ import annotations
 
+import contextlib
+import json
 import logging
 import os
 import socket
@@ -15,14 +26,29 @@ from pathlib import Path
 
 import numpy as np
 
-from storage.atomic import file_fingerprint
+from storage.atomic import file_sha256, write_json_atomic
 from storage.columns import read_columns
 from storage.errors import EmptyTileError, InputError
+from storage.frame import CampusFrame
 from storage.ids import TileId
-from storage.manifest import ManifestRecord, combine_fingerprints, is_done, params_hash, write_record
-from storage.workdir import WorkDir, read_campus
+from storage.manifest import ManifestRecord, combine_fingerprints, write_record
+from storage.patch_store import (
+    FACES_FILE,
+    PATCHES_FILE,
+    POINTS_FILE,
+    SIDE_TABLES,
+    PatchStore,
+    TileMeta,
+    read_side_table,
+    side_table_path,
+    write_side_table,
+    write_tile_tables,
+)
+from storage.workdir import STALE_FILE, WorkDir
 from tasks.config import CampusConfig
+from tasks.ingest import staged_files, staging_fingerprint
 from tasks.partition import build_tile_tables
+from tasks.units import Done, run_unit
 
 log = logging.getLogger("ms3d.patches")
 
@@ -39,7 +65,7 @@ def load_staged_tile(parts: list[Path]) -> tuple[dict | None, dict | None, list[
     pts_parts, face_parts, textures = [], [], []
     for p in parts:
         cols, meta = read_columns(p)
-        if p.name.startswith("points-"):
+        if p.name.startswith("p"):
             pts_parts.append(cols)
         else:
             base = len(textures)
@@ -49,86 +75,120 @@ def load_staged_tile(parts: list[Path]) -> tuple[dict | None, dict | None, list[
     return _concat(pts_parts), _concat(face_parts), textures
 
 
-def bad_patch_keys(labels_path: str, origin: np.ndarray, patch_size) -> np.ndarray:
-    """Packed keys of bad patches from a synth defects.json or a CSV of patch ids. (k,) int64 sorted."""
+def remove_store(tile_dir: Path) -> None:
+    """Remove a tile's store: the 'done' marker first, so a crash half-way leaves no readable tile."""
+    for name in (PATCHES_FILE, POINTS_FILE, FACES_FILE, STALE_FILE,
+                 *(f"{t}.parquet" for t in SIDE_TABLES)):
+        (tile_dir / name).unlink(missing_ok=True)
+    with contextlib.suppress(OSError):
+        tile_dir.rmdir()
+
+
+def mark_stale(tile_dir: Path, error: str) -> None:
+    """Keep a tile's last good store but exclude it from every later stage until it succeeds again."""
+    if (tile_dir / PATCHES_FILE).exists():
+        with contextlib.suppress(OSError):
+            write_json_atomic(tile_dir / STALE_FILE, {"error": error, "since": time.time()})
+
+
+# ----------------------------------------------------------------------------------- partition
+
+
+def run_partition_tile(tile: TileId, cfg: CampusConfig, wd: WorkDir, frame: CampusFrame,
+                       blocked: str | None = None) -> dict:
+    """Partition one tile's staged points and faces into its patch store.
+
+    ``blocked``: the error of an input this tile depends on; the tile then fails with it (its last good
+    store is kept, marked stale). Returns the unit summary (status done / empty / failed).
+    """
+    tile_dir = wd.tile_dir(tile)
+    parts = staged_files(wd, tile.key)
+    fp = combine_fingerprints(staging_fingerprint(parts) + [blocked or ""])
+    params = cfg.stage_params("partition") | {"frame": frame.to_json()}
+
+    def work() -> Done:
+        t0 = time.perf_counter()
+        if blocked:
+            raise InputError(None, f"tile {tile.key}: {blocked}")
+        points, faces, textures = load_staged_tile(parts)
+        if points is None and faces is None:
+            remove_store(tile_dir)  # a tile that lost its data
+            raise EmptyTileError(None, f"tile {tile.key} holds no points and no faces")
+        pts_s, faces_s, patches = build_tile_tables(points, faces, cfg.grid(), frame.origin)
+        meta = TileMeta(tile=tile.key, patch_size_m=tuple(cfg.partition.patch_size_m), crs=frame.crs,
+                        textures=tuple(textures))
+        for name in SIDE_TABLES:  # side tables describe the old patches: never join them to new ones
+            side_table_path(tile_dir, name).unlink(missing_ok=True)
+        write_tile_tables(tile_dir, pts_s or None, faces_s or None, patches, meta)
+        (tile_dir / STALE_FILE).unlink(missing_ok=True)
+        summary = {"tile": tile.key, "n_points": len(pts_s.get("x", [])) if pts_s else 0,
+                   "n_faces": len(faces_s.get("x0", [])) if faces_s else 0, "n_patches": len(patches["patch"]),
+                   "n_inputs": len(parts), "worker": f"{socket.gethostname()}:{os.getpid()}",
+                   "partition_seconds": time.perf_counter() - t0}
+        return Done(outputs=[str((tile_dir / PATCHES_FILE).relative_to(wd.root))], summary=summary)
+
+    return run_unit(wd, "partition", tile.key, fp, params, work,
+                    on_fail=lambda: mark_stale(tile_dir, blocked or "partition failed"))
+
+
+# ----------------------------------------------------------------------------------- labels
+
+
+def bad_patch_keys(labels_path: str, cfg: CampusConfig) -> np.ndarray:
+    """(b,) int64 sorted keys of the patches a synth defects.json or a label CSV marks bad."""
     from storage.labels import bad_keys_from_csv, bad_keys_from_defects
 
     p = Path(labels_path)
     if p.suffix.lower() == ".csv":
-        return np.unique(bad_keys_from_csv(p))
-    return np.unique(bad_keys_from_defects(p, np.asarray(origin, np.float64), patch_size))
+        return bad_keys_from_csv(p)
+    return bad_keys_from_defects(p, cfg.grid())
 
 
-def partition_params(cfg: CampusConfig, campus: dict) -> dict:
-    return cfg.stage_params("partition") | {"labels": cfg.inputs.labels, "frame": campus["frame"]}
-
-
-def run_partition_tile(tile: TileId, cfg: CampusConfig, wd: WorkDir, blocked: str | None = None) -> dict:
-    """Partition one tile's staged points and faces into its patch store.
-
-    ``blocked``: the error of an input this tile depends on; the tile then fails with it.
-    Raises InputError (tile failed) or returns a summary; an empty tile is recorded as ``empty``.
-    """
-    from storage.patch_store import TileMeta, write_tile_tables
-
-    campus = read_campus(wd)
-    staging = wd.staging_dir(tile)
-    parts = sorted(staging.glob("*.parquet")) if staging.exists() else []
-    fp = combine_fingerprints([f"{p.name}:{file_fingerprint(p)}" for p in parts] + [blocked or ""])
-    ph = params_hash(partition_params(cfg, campus))
-    done = is_done(wd, "partition", tile.key, fp, ph)
-    if done is not None:
-        return done.summary | {"skipped": True}
-    t0 = time.perf_counter()
-    if blocked:
-        err = InputError(None, f"tile {tile.key}: {blocked}")
-        write_record(wd, ManifestRecord("partition", tile.key, "failed", fp, ph, error=str(err)))
-        raise err
+def run_labels_tile(tile: TileId, cfg: CampusConfig, wd: WorkDir) -> dict | None:
+    """Write the tile's ``labels.parquet`` (1 bad, 0 good) when a labels file is configured; without one,
+    remove a stale labels table. Returns the unit summary, or None when there is nothing to do."""
+    tile_dir = wd.tile_dir(tile)
+    if not cfg.inputs.labels:
+        side_table_path(tile_dir, "labels").unlink(missing_ok=True)
+        return None
+    if not (tile_dir / PATCHES_FILE).exists() or (tile_dir / STALE_FILE).exists():
+        return None
+    labels = Path(cfg.inputs.labels)
     try:
-        points, faces, textures = load_staged_tile(parts)
-        if points is None and faces is None:
-            raise EmptyTileError(staging, f"tile {tile.key} holds no points and no faces")
-        pts_s, faces_s, patches = build_tile_tables(points, faces, cfg.partition.patch_size_m)
-        if cfg.inputs.labels:
-            bad = bad_patch_keys(cfg.inputs.labels, campus["frame"]["origin"], cfg.partition.patch_size_m)
-            patches["label"] = np.isin(patches["patch"], bad).astype(np.int8)
-        meta = TileMeta(tile=tile.key, patch_size_m=tuple(cfg.partition.patch_size_m),
-                        crs=campus["frame"].get("crs"), textures=tuple(textures))
-        write_tile_tables(wd.tile_dir(tile), pts_s or None, faces_s or None, patches, meta)
-    except EmptyTileError as e:
-        (wd.tile_dir(tile) / "patches.parquet").unlink(missing_ok=True)  # a tile that lost its data
-        write_record(wd, ManifestRecord("partition", tile.key, "empty", fp, ph, error=str(e),
-                                        seconds=time.perf_counter() - t0))
-        return {"tile": tile.key, "status": "empty"}
-    except InputError as e:
-        write_record(wd, ManifestRecord("partition", tile.key, "failed", fp, ph, error=str(e),
-                                        seconds=time.perf_counter() - t0))
-        raise
-    n_pts = len(pts_s.get("x", [])) if pts_s else 0
-    n_faces = len(faces_s.get("x0", [])) if faces_s else 0
-    summary = {"tile": tile.key, "status": "done", "n_points": n_pts, "n_faces": n_faces,
-               "n_patches": len(patches["patch"]),
-               "n_bad": int((patches["label"] == 1).sum()), "n_labelled": int((patches["label"] >= 0).sum()),
-               "worker": f"{socket.gethostname()}:{os.getpid()}"}
-    outputs = [str((wd.tile_dir(tile) / f).relative_to(wd.root)) for f in ("patches.parquet",)]
-    write_record(wd, ManifestRecord("partition", tile.key, "done", fp, ph, seconds=time.perf_counter() - t0,
-                                    outputs=outputs, summary=summary))
-    return summary
+        labels_fp = file_sha256(labels)
+    except OSError as e:
+        return {"unit": tile.key, "status": "failed", "error": f"{labels}: cannot read the labels file ({e.strerror})"}
+    fp = combine_fingerprints([labels_fp, str(labels), f"{(tile_dir / PATCHES_FILE).stat().st_mtime_ns}"])
+
+    def work() -> Done:
+        store = PatchStore(tile_dir)
+        keys = store.patches()["patch"]
+        bad = bad_patch_keys(str(labels), cfg)
+        lab = np.isin(keys, bad).astype(np.int8)
+        write_side_table(tile_dir, "labels", {"patch": keys, "label": lab}, store.meta, labels_file=str(labels))
+        return Done(outputs=[str(side_table_path(tile_dir, "labels").relative_to(wd.root))],
+                    summary={"n_bad": int(lab.sum()), "n_labelled": int(len(lab))})
+
+    return run_unit(wd, "labels", tile.key, fp, cfg.stage_params("labels"), work)
+
+
+# ----------------------------------------------------------------------------------- outliers
 
 
 def run_outliers(cfg: CampusConfig, wd: WorkDir) -> dict:
-    """Fit the campus-wide distributions of faces and points per patch (normal fit on log counts),
-    flag the patches outside the band in every tile's patches table, save both histograms as PNG."""
-    from storage.patch_store import PatchStore, update_patch_columns
+    """Fit the campus-wide distributions of faces and points per patch (normal fit on log counts) over
+    every live (done, not stale) tile, write each tile's ``outliers.parquet`` where its flags changed,
+    and save both histograms as PNG."""
     from tasks.outliers import fit_count_outliers, save_histogram_png
 
     t0 = time.perf_counter()
-    tiles = wd.done_tiles()
-    tables = [(t, PatchStore(wd.tile_dir(t)).patches()) for t in tiles]
-    if not tables:
-        return {"n_patches": 0}
-    n_pts = np.concatenate([tb["n_points"] for _, tb in tables])
-    n_faces = np.concatenate([tb["n_faces"] for _, tb in tables])
+    tiles = wd.live_tiles()
+    stores = [(t, PatchStore(wd.tile_dir(t))) for t in tiles]
+    if not stores:
+        return {"n_patches": 0, "tiles_rewritten": 0}
+    tables = [(t, s, s.patches()) for t, s in stores]
+    n_pts = np.concatenate([tb["n_points"] for _, _, tb in tables])
+    n_faces = np.concatenate([tb["n_faces"] for _, _, tb in tables])
     lo, hi = cfg.partition.outlier_sigma_low, cfg.partition.outlier_sigma_high
     fits = {}
     for name, counts in (("points", n_pts), ("faces", n_faces)):
@@ -139,16 +199,26 @@ def run_outliers(cfg: CampusConfig, wd: WorkDir) -> dict:
         fits[name] = (fit, flags)
         save_histogram_png(counts[nz], fit, wd.report_dir / f"patch_{name}_histogram.png",
                            title=f"{name} per patch (n={int(nz.sum())}, flagged {int(fit.mask.sum())})")
-    at = 0
-    for t, tb in tables:
+    at, rewritten = 0, 0
+    for t, store, tb in tables:
         n = len(tb["n_points"])
         fp_, ff = fits["points"][1][at:at + n], fits["faces"][1][at:at + n]
         missing = (tb["n_points"] < cfg.partition.min_points) | (tb["n_faces"] < cfg.partition.min_faces)
-        update_patch_columns(wd.tile_dir(t), {"outlier_points": fp_, "outlier_faces": ff, "outlier": fp_ | ff | missing})
+        cols = {"patch": tb["patch"], "outlier_points": fp_, "outlier_faces": ff, "outlier": fp_ | ff | missing}
         at += n
-    out = {"n_patches": len(n_pts), "seconds": time.perf_counter() - t0}
+        try:
+            old = read_side_table(wd.tile_dir(t), "outliers", tb["patch"])
+        except InputError:
+            old = None
+        if old is not None and all(np.array_equal(old[0][c], v) for c, v in cols.items()):
+            continue
+        write_side_table(wd.tile_dir(t), "outliers", cols, store.meta)
+        rewritten += 1
+    out = {"n_patches": len(n_pts), "tiles": len(tables), "tiles_rewritten": rewritten,
+           "seconds": time.perf_counter() - t0}
     for name, (fit, flags) in fits.items():
         out[name] = {"mean_log10": float(fit.mean), "std_log10": float(fit.std), "low": float(fit.low),
                      "high": float(fit.high), "flagged": int(flags.sum())}
-    write_record(wd, ManifestRecord("outliers", "campus", "done", seconds=out["seconds"], summary=out))
+    write_record(wd, ManifestRecord("outliers", "campus", "done", seconds=out["seconds"],
+                                    summary=json.loads(json.dumps(out))))
     return out

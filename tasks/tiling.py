@@ -1,8 +1,8 @@
-"""Ground tiles: which tiles an extent covers, and routing rows to tiles (vectorised).
+"""Routing rows to ground tiles (vectorised), and boxes under a transform.
 
-A tile (ix, iy) covers ``[ix*s, (ix+1)*s) x [iy*s, (iy+1)*s)`` in campus-local metres. Rows are routed
-by the tile of their *patch centre* (``tasks.partition.tile_of_points`` / ``tile_of_faces``), so a
-patch is never split between tiles.
+A tile (ix, iy) covers ``[ix*s, (ix+1)*s) x [iy*s, (iy+1)*s)`` in world metres (``storage.grid``). Rows
+are routed by the tile of their *patch centre* (``PatchGrid.tile_of_cells``), so a patch is never split
+between tiles.
 """
 
 from __future__ import annotations
@@ -10,17 +10,6 @@ from __future__ import annotations
 import numpy as np
 
 from storage.ids import TileId
-
-
-def tiles_for_bounds(lo: np.ndarray, hi: np.ndarray, tile_size_m: float, margin_m: float = 0.0) -> list[TileId]:
-    """All tiles meeting the x/y box [lo, hi] (campus-local metres, grown by ``margin_m``).
-
-    >>> [t.key for t in tiles_for_bounds(np.array([5., 5, 0]), np.array([150., 20, 0]), 100)]
-    ['0_0', '1_0']
-    """
-    lo = np.floor((np.asarray(lo[:2], float) - margin_m) / tile_size_m).astype(int)
-    hi = np.floor((np.asarray(hi[:2], float) + margin_m) / tile_size_m).astype(int)
-    return [TileId(int(i), int(j)) for i in range(lo[0], hi[0] + 1) for j in range(lo[1], hi[1] + 1)]
 
 
 def group_by_tile(tile_ij: np.ndarray) -> list[tuple[TileId, np.ndarray]]:

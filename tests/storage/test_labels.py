@@ -4,8 +4,8 @@ import numpy as np
 import pytest
 
 from storage.errors import InputError
+from storage.grid import PatchGrid
 from storage.labels import (
-    _patch_keys,
     bad_keys_from_csv,
     bad_keys_from_defects,
     bad_keys_from_faces,
@@ -14,24 +14,28 @@ from storage.labels import (
     load_defect_samples,
     read_labels_csv,
 )
-from tasks.partition import pack_patch_key, patch_index
+from tasks.partition import point_cells
 
 SIZE = (2.3, 1.0, 0.7)
+GRID = PatchGrid(SIZE, 100.0)
 
 
 def _keys(ijk):
-    return pack_patch_key(np.asarray(ijk))
+    return PatchGrid.pack(np.asarray(ijk))
 
 
-def test_key_arithmetic_matches_tasks_partition():
+def test_defect_keys_are_the_partition_keys_whatever_the_origin():
     rng = np.random.default_rng(0)
-    xyz = rng.normal(0, 500, (5000, 3))
-    assert np.array_equal(_patch_keys(xyz, SIZE), pack_patch_key(patch_index(xyz, SIZE)))
+    world = rng.normal(0, 500, (5000, 3)) + [500_000.0, 4_200_000.0, 0.0]
+    for origin in ([500_000.0, 4_200_000.0, 0.0], [499_000.0, 4_199_000.0, 0.0]):
+        local = (world - origin).astype(np.float32)
+        from_store = PatchGrid.pack(point_cells(local, GRID, origin))
+        direct = PatchGrid.pack(GRID.cells_world(local.astype(np.float64) + origin))
+        assert np.array_equal(from_store, direct)
 
 
 def test_labels_from_defects(tmp_path):
-    frame_origin = [500_010.0, 4_200_000.0, 10.0]
-    campus_origin = np.array([500_000.0, 4_200_000.0, 0.0])
+    frame_origin = [10.0, 0.0, 10.0]
     doc = {
         "frame_origin": frame_origin,
         "defects": [
@@ -44,8 +48,8 @@ def test_labels_from_defects(tmp_path):
     path.write_text(json.dumps(doc))
     world, ids = load_defect_samples(path)
     assert world.dtype == np.float64 and world.shape == (3, 3)
-    assert np.allclose(world[0], [500_005.0, 4_200_002.5, 1.0]) and ids.tolist() == [0, 0, 1]
-    bad = bad_keys_from_defects(path, campus_origin, SIZE)
+    assert np.allclose(world[0], [5.0, 2.5, 1.0]) and ids.tolist() == [0, 0, 1]
+    bad = bad_keys_from_defects(path, GRID)
     assert np.array_equal(bad, np.sort(_keys([[2, 2, 1], [-1, -1, -1]])))
     present = _keys([[2, 2, 1], [0, 0, 0], [-1, -1, -1], [2, 2, 2]])
     assert labels_for_patches(present, bad).tolist() == [1, 0, 1, 0]

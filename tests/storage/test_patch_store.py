@@ -5,6 +5,7 @@ import pyarrow.parquet as pq
 import pytest
 
 from storage.errors import InputError
+from storage.grid import PatchGrid
 from storage.ids import PatchId
 from storage.patch_store import (
     FACE_DTYPES,
@@ -12,12 +13,16 @@ from storage.patch_store import (
     POINT_DTYPES,
     PatchStore,
     TileMeta,
-    update_patch_columns,
+    read_side_table,
+    write_side_table,
     write_tile_tables,
 )
-from tasks.partition import build_tile_tables, pack_patch_key
+from tasks.partition import build_tile_tables
 
 SIZE = (2.3, 1.0, 0.7)
+GRID = PatchGrid(SIZE, 100.0)
+ORIGIN = (500_000.0, 4_000_000.0, 0.0)
+pack_patch_key = PatchGrid.pack
 META = TileMeta(tile="3_-2", patch_size_m=SIZE, crs="EPSG:32650", textures=("tex/a.jpg", "tex/b.jpg"))
 
 
@@ -32,7 +37,7 @@ def _tile(n=10_000, m=1_500, seed=0):
         "green": rng.integers(0, 65535, n).astype(np.uint16),
         "blue": rng.integers(0, 65535, n).astype(np.uint16),
         "classification": rng.integers(0, 20, n).astype(np.uint8),
-        "source": rng.integers(0, 3, n).astype(np.uint16),
+        "source": rng.integers(0, 3, n).astype(np.uint32) * 1_000_000_000,
     }
     tri = (rng.random((m, 1, 3)) * [23, 10, 7] + [300, -200, 0] + rng.normal(0, 0.2, (m, 3, 3))).astype(np.float32)
     faces = {f"{a}{v}": tri[:, v, i] for v in range(3) for i, a in enumerate("xyz")}
@@ -42,8 +47,13 @@ def _tile(n=10_000, m=1_500, seed=0):
     faces["texture"] = np.where(np.isnan(uv[:, 0]), -1, rng.integers(0, 2, m)).astype(np.int16)
     faces.update({c: rng.integers(0, 255, m).astype(np.uint8) for c in ("red", "green", "blue")})
     faces["src_face"] = np.arange(m, dtype=np.int64) * 3
-    faces["source"] = np.ones(m, dtype=np.uint16)
-    return build_tile_tables(points, faces, SIZE)
+    faces["source"] = np.full(m, 2_000_000_001, dtype=np.uint32)
+    vid = (np.int64(2_000_000_001) << 32) | rng.integers(0, 5 * m, (m, 3))
+    faces.update({f"vid{v}": vid[:, v] for v in range(3)})
+    nrm = rng.normal(size=(m, 3))
+    nrm /= np.linalg.norm(nrm, axis=1, keepdims=True)
+    faces.update({c: nrm[:, i].astype(np.float32) for i, c in enumerate(("nx", "ny", "nz"))})
+    return build_tile_tables(points, faces, GRID, ORIGIN)
 
 
 def _same(a: np.ndarray, b: np.ndarray) -> bool:
@@ -65,7 +75,7 @@ def test_round_trip_is_bitwise(tmp_path):
     assert all(_same(points[c], P[c]) for c in P)
     assert all(_same(faces[c], F[c]) for c in F)
     md = json.loads(pq.ParquetFile(tmp_path / "t" / "faces.parquet").schema_arrow.metadata[b"ms3d"])
-    assert md == {"schema_version": 1, "table": "faces", "units": "metre",
+    assert md == {"schema_version": 2, "table": "faces", "units": "metre",
                   "frame": "campus-local float32 offsets from campus.json origin", "patch_size_m": [2.3, 1.0, 0.7],
                   "tile": "3_-2", "crs": "EPSG:32650", "n_rows": 1500, "textures": ["tex/a.jpg", "tex/b.jpg"]}
     assert sorted(p.name for p in (tmp_path / "t").iterdir()) == ["faces.parquet", "patches.parquet", "points.parquet"]
@@ -112,7 +122,7 @@ def test_read_patches_batch_and_columns(tmp_path):
 
 def test_empty_sides_and_defaults(tmp_path):
     xyz = np.array([[0.5, 0.5, 0.5], [3.0, 0.5, 0.5], [3.1, 0.6, 0.5]], np.float32)
-    P, _, T = build_tile_tables({"x": xyz[:, 0], "y": xyz[:, 1], "z": xyz[:, 2]}, None, SIZE)
+    P, _, T = build_tile_tables({"x": xyz[:, 0], "y": xyz[:, 1], "z": xyz[:, 2]}, None, GRID, ORIGIN)
     write_tile_tables(tmp_path, P, None, T, TileMeta("0_0", SIZE))
     store = PatchStore(tmp_path)
     assert store.n_faces == 0 and store.meta.textures == () and store.meta.crs is None
@@ -177,20 +187,41 @@ def test_mismatched_files_detected(tmp_path):
         PatchStore(tmp_path / "a")
 
 
-def test_update_patch_columns(tmp_path):
+def test_side_tables_are_aligned_and_never_joined_stale(tmp_path):
     P, F, T = _tile(n=1000, m=100)
     write_tile_tables(tmp_path, P, F, T, META)
     u = len(T["patch"])
     label = (np.arange(u) % 2).astype(np.int8)
     score = np.linspace(0, 1, u).astype(np.float32)
-    update_patch_columns(tmp_path, {"label": label, "score": score, "outlier": label.astype(bool)})
+    write_side_table(tmp_path, "labels", {"patch": T["patch"], "label": label}, META)
+    write_side_table(tmp_path, "grades", {"patch": T["patch"], "score": score, "grade": label}, META, model_hash="abc")
     store = PatchStore(tmp_path)
-    p = store.patches()
-    assert _same(p["label"], label) and _same(p["score"], score) and _same(p["outlier"], label.astype(bool))
-    assert _same(p["point_start"], T["point_start"]) and store.meta == META
+    assert _same(store.side("labels")["label"], label) and _same(store.side("grades")["score"], score)
+    assert store.side("outliers") is None  # never written
+    assert read_side_table(tmp_path, "grades")[1]["model_hash"] == "abc"
+    assert _same(store.patches()["point_start"], T["point_start"]) and store.meta == META
     with pytest.raises(ValueError):
-        update_patch_columns(tmp_path, {"point_start": T["point_start"]})
+        write_side_table(tmp_path, "labels", {"patch": T["patch"]}, META)
     with pytest.raises(ValueError):
-        update_patch_columns(tmp_path, {"label": label[:-1]})
-    with pytest.raises(ValueError):
-        update_patch_columns(tmp_path, {"label": np.full(u, 300)})
+        write_side_table(tmp_path, "labels", {"patch": T["patch"], "label": np.full(u, 300)}, META)
+    # a side table written for other patches is stale: refused, not joined
+    write_side_table(tmp_path, "labels", {"patch": T["patch"][:-1], "label": label[:-1]}, META)
+    with pytest.raises(InputError, match="stale"):
+        PatchStore(tmp_path).side("labels")
+
+
+def test_v2_face_columns_and_v1_refused(tmp_path):
+    P, F, T = _tile(n=300, m=60)
+    write_tile_tables(tmp_path, P, F, T, META)
+    store = PatchStore(tmp_path)
+    d = store.read_patch(int(T["patch"][np.argmax(T["n_faces"])]))
+    assert d.vertex_ids().dtype == np.int64 and d.vertex_ids().shape == (d.n_faces, 3)
+    assert np.allclose(np.linalg.norm(d.normals(), axis=1), 1.0, atol=1e-6)
+    assert (d.faces["source"] == 2_000_000_001).all() and d.faces["source"].dtype == np.uint32
+    path = tmp_path / "faces.parquet"
+    table = pq.read_table(path)
+    md = json.loads(table.schema.metadata[b"ms3d"])
+    md["schema_version"] = 1
+    pq.write_table(table.replace_schema_metadata({b"ms3d": json.dumps(md).encode()}), path)
+    with pytest.raises(InputError, match="v2.*re-run"):
+        PatchStore(tmp_path)

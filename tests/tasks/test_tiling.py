@@ -1,12 +1,15 @@
 import numpy as np
 
-from storage.ids import TileId
-from tasks.tiling import group_by_tile, tiles_for_bounds, transform_bounds
+from storage.grid import PatchGrid
+from tasks.tiling import group_by_tile, transform_bounds
 
 
 def test_tiles_for_bounds_covers_box():
-    tiles = tiles_for_bounds(np.array([-5.0, 5, 0]), np.array([150.0, 20, 0]), 100)
-    assert tiles == [TileId(-1, 0), TileId(0, 0), TileId(1, 0)]
+    grid = PatchGrid((2.3, 1.0, 0.7), 100.0)
+    tiles = grid.tiles_for_bounds(np.array([-5.0, 5, 0]), np.array([150.0, 20, 0]))
+    assert tiles.tolist() == [[-1, 0], [0, 0], [1, 0]]
+    world = grid.tiles_for_bounds(np.array([589_001.0, 2_712_099.5, 0]), np.array([589_002.0, 2_712_100.5, 0]))
+    assert world.tolist() == [[5890, 27120], [5890, 27121]]
 
 
 def test_group_by_tile_partitions_rows():

@@ -1,0 +1,88 @@
+"""The run summary: what this run did and did not do, and the error raised when some units failed."""
+
+from __future__ import annotations
+
+from storage.manifest import all_records
+from storage.workdir import WorkDir
+
+
+class CampusRunFailed(RuntimeError):
+    """Some units failed or some inputs could not be placed; the others are done and the manifest says which."""
+
+    def __init__(self, summary: dict):
+        self.summary = summary
+        failed = summary["failed"]
+        lines = []
+        if failed:
+            lines.append(f"{len(failed)} unit(s) failed:")
+            lines += [f"  {u}: {e}" for u, e in list(failed.items())[:20]]
+            if len(failed) > 20:
+                lines.append(f"  ... and {len(failed) - 20} more (ms3d status {summary['work_dir']})")
+        if summary.get("incomplete"):
+            lines.append(f"the campus is INCOMPLETE: {len(summary['incomplete'])} input(s) of unknown extent "
+                         "could not be read, so no tile holds their data")
+        super().__init__("\n".join(lines))
+
+    def __reduce__(self):
+        return (type(self), (self.summary,))
+
+
+def _stage_counts(results: list[dict]) -> dict:
+    """Counts of units run / skipped / failed by this run, and the names of those run."""
+    out = {"run": 0, "skipped": 0, "failed": 0, "units_run": []}
+    for r in results:
+        if r.get("status") == "failed":
+            out["failed"] += 1
+        elif r.get("skipped"):
+            out["skipped"] += 1
+        else:
+            out["run"] += 1
+            out["units_run"].append(r.get("unit"))
+    out["units_run"].sort()
+    return out
+
+
+def summarise(wd: WorkDir, wall_s: float, failed: dict, outliers: dict, since: float = 0.0, stages=None,
+              incomplete=(), skipped_files=(), registration=None) -> dict:
+    recs = all_records(wd)
+    tiles = [r for r in recs if r.stage == "partition"]
+    stale = {t.key for t in wd.stale_tiles()}
+    task_s = sum(r.seconds for r in recs if r.updated_at >= since)  # work done by this run only
+    reg = registration or {}
+    return {
+        "work_dir": str(wd.root),
+        "wall_seconds": wall_s,
+        "task_seconds": task_s,
+        "stages": {name: _stage_counts(res) for name, res in (stages or {}).items()},
+        "tiles_done": sorted(r.unit for r in tiles if r.status == "done"),
+        "tiles_empty": sorted(r.unit for r in tiles if r.status == "empty"),
+        "tiles_failed": sorted(r.unit for r in tiles if r.status == "failed"),
+        "tiles_stale": sorted(stale),
+        "tile_rows": [{"tile": r.unit, "status": r.status, "points": r.summary.get("n_points", 0),
+                       "faces": r.summary.get("n_faces", 0), "patches": r.summary.get("n_patches", 0),
+                       "seconds": round(r.seconds, 2), "error": r.error[:200]} for r in tiles],
+        "failed": failed,
+        "incomplete": list(incomplete),
+        "skipped_files": [list(s) for s in skipped_files],
+        "registration": {k: reg.get(k) for k in ("method", "scale", "fitness", "reused", "check_median_distance_m")
+                         if k in reg},
+        "outliers": outliers,
+    }
+
+
+def format_summary(s: dict) -> str:
+    lines = [f"work dir: {s['work_dir']}"]
+    reg = s.get("registration") or {}
+    if reg:
+        lines.append("registration: " + reg.get("method", "?") + (" (reused)" if reg.get("reused") else ""))
+    for name, c in (s.get("stages") or {}).items():
+        lines.append(f"{name}: {c['run']} run, {c['skipped']} unchanged (skipped), {c['failed']} failed")
+    lines.append(f"tiles: {len(s['tiles_done'])} done, {len(s['tiles_empty'])} empty, "
+                 f"{len(s['tiles_failed'])} failed" + (f" ({len(s['tiles_stale'])} keep a stale store)"
+                                                       if s.get("tiles_stale") else ""))
+    if s.get("skipped_files"):
+        lines.append(f"skipped {len(s['skipped_files'])} file(s) in input folders: "
+                     + ", ".join(f"{p.rsplit('/', 1)[-1]} ({why})" for p, why in s["skipped_files"][:5])
+                     + (" ..." if len(s["skipped_files"]) > 5 else ""))
+    lines.append(f"wall {s['wall_seconds']:.1f} s, sum of task times {s['task_seconds']:.1f} s")
+    return "\n".join(lines)

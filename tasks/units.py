@@ -1,0 +1,88 @@
+"""The one sequence every stage repeats for a unit of work: fingerprint -> skip -> run -> record.
+
+A unit (an input file, an ingest range, a tile, a region) is skipped when its manifest record says
+done (or empty) with the same input fingerprint and the same parameter hash, and its outputs exist.
+The parameter hash includes the stage's version (:data:`STAGE_VERSIONS`), bumped whenever a stage's
+output changes for the same inputs, so a new ms3d never reuses stale outputs of an old one.
+
+Failures are part of the result, not exceptions: a bad input (``InputError``) or a work dir that
+cannot be written (``OSError``: full disk, read-only) is recorded as ``failed`` with one clear line and
+returned, so one bad unit never stops its batch and the user sees the error once, not as a traceback.
+Anything else is a bug and propagates.
+"""
+
+from __future__ import annotations
+
+import contextlib
+import errno
+import time
+from collections.abc import Callable
+from dataclasses import dataclass, field
+
+from storage.errors import EmptyTileError, InputError
+from storage.manifest import ManifestRecord, is_done, params_hash, write_record
+from storage.workdir import WorkDir
+
+STAGE_VERSIONS = {
+    "scan": 2,       # v2: stable source ids, registration samples of the mesh surface
+    "register": 2,   # v2: surface target, modes auto / pinned / off
+    "ingest": 2,     # v2: world-anchored grid, vertex ids, face normals
+    "partition": 2,  # v2: store schema 2 (vertex ids, vertex patches, normals, side tables)
+    "labels": 1,
+    "outliers": 2,   # v2: flags in outliers.parquet, not in patches.parquet
+}
+
+
+@dataclass
+class Done:
+    """What a unit's work returns: outputs (paths relative to the work dir) and a small JSON summary."""
+
+    outputs: list[str] = field(default_factory=list)
+    summary: dict = field(default_factory=dict)
+    status: str = "done"  # or "empty"
+
+
+def os_error_message(e: OSError) -> str:
+    """One line for a work-dir write failure."""
+    what = {errno.ENOSPC: "no space left on the device", errno.EDQUOT: "disk quota exceeded",
+            errno.EROFS: "the work dir is on a read-only file system",
+            errno.EACCES: "permission denied", errno.EPERM: "permission denied"}.get(e.errno, e.strerror or str(e))
+    where = f" ({e.filename})" if e.filename else ""
+    return f"cannot write{where}: {what}"
+
+
+def unit_params(stage: str, params: dict) -> str:
+    """The parameter hash recorded for a unit of ``stage``."""
+    return params_hash({**params, "_stage_version": STAGE_VERSIONS[stage]})
+
+
+def run_unit(wd: WorkDir, stage: str, unit: str, fingerprint: str, params: dict,
+             work: Callable[[], Done], on_fail: Callable[[], None] | None = None) -> dict:
+    """Skip ``unit`` if done and unchanged, else run ``work`` and record the outcome.
+
+    Returns a summary dict with at least ``unit``, ``status`` ("done", "empty", "failed") and
+    ``skipped``; a failure adds ``error`` (one line). ``on_fail`` runs after a failure (e.g. to mark a
+    stale output); it must not raise.
+    """
+    ph = unit_params(stage, params)
+    rec = is_done(wd, stage, unit, fingerprint, ph)
+    if rec is not None:
+        return {**rec.summary, "unit": unit, "status": rec.status, "skipped": True, "seconds": rec.seconds}
+    t0 = time.perf_counter()
+    try:
+        out = work()
+    except EmptyTileError as e:
+        out = Done(status="empty", summary={"reason": e.problem})
+    except (InputError, OSError) as e:
+        msg = str(e) if isinstance(e, InputError) else os_error_message(e)
+        secs = time.perf_counter() - t0
+        with contextlib.suppress(OSError):  # a full disk may refuse the record too; the result still says it
+            write_record(wd, ManifestRecord(stage, unit, "failed", fingerprint, ph, error=msg, seconds=secs))
+        if on_fail is not None:
+            on_fail()
+        return {"unit": unit, "status": "failed", "error": msg, "skipped": False, "seconds": secs}
+    secs = time.perf_counter() - t0
+    summary = {**out.summary, "unit": unit, "status": out.status}
+    write_record(wd, ManifestRecord(stage, unit, out.status, fingerprint, ph, seconds=secs,
+                                    outputs=out.outputs, summary=summary))
+    return {**summary, "skipped": False, "seconds": secs}
