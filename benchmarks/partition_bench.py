@@ -53,7 +53,7 @@ if str(REPO) not in sys.path:
 WORLD_ORIGIN = (589_000.0, 2_712_000.0, 15.0)  # UTM 50N metres, a multiple of 100 m: tiles = blocks
 CRS = "EPSG:32650"
 BLOCK_M = 100.0  # one synthetic block per default 100 m tile
-RSS_TILE = "1_1"  # a tile both synthetic campuses hold with the same blocks around it
+RSS_TILE = f"{int(WORLD_ORIGIN[0] // 100) + 1}_{int(WORLD_ORIGIN[1] // 100) + 1}"  # the second block of both campuses
 TARGET_POINTS_PER_S = 3e6
 
 
@@ -202,45 +202,26 @@ def synthetic_config(inputs: Path, work: Path):
 # ----------------------------------------------------------------------------------- ms3d stages
 
 
-def register(cfg, wd) -> tuple[dict, str]:
-    """campus.json by the register stage; if that stage cannot run on this checkout, by an identity
-    register built from the same ingest scanners (the partition figures do not depend on it)."""
-    from tasks.ingest import run_register
-
-    try:
-        return run_register(cfg, wd), "run_register (registration disabled)"
-    except Exception as exc:  # noqa: BLE001 - the bench reports, it does not test the register stage
-        from dataclasses import asdict
-
-        from storage.workdir import read_campus, write_campus
-        from tasks.ingest import choose_frame, expand_inputs, resolve_crs, scan_mesh, scan_points
-
-        meshes, points = expand_inputs(cfg)
-        mesh_recs = [scan_mesh(i, p, cfg)[0] for i, p in enumerate(meshes)]
-        point_recs = [scan_points(len(meshes) + i, p, cfg) for i, p in enumerate(points)]
-        frame = choose_frame(mesh_recs, point_recs, resolve_crs(cfg, point_recs))
-        write_campus(wd, frame, {"matrix": np.eye(4).tolist(), "scale": 1.0, "method": "identity (bench)"},
-                     cfg.model_dump(mode="json"),
-                     extra={"inputs": [asdict(r) for r in mesh_recs + point_recs], "name": cfg.name})
-        return read_campus(wd), f"identity register (run_register failed: {type(exc).__name__}: {exc})"
-
-
 def stage_campus(cfg) -> dict:
-    """Fresh work dir -> register -> ingest every unit. Returns counts, timings and the campus doc."""
+    """Fresh work dir -> scan -> register (off) -> ingest every unit. Returns counts, timings, frame."""
+    from flows.campus import InlineExecutor, scan_inputs
     from storage.workdir import WorkDir
-    from tasks.ingest import InputFile, plan_units, run_ingest_unit
+    from tasks.ingest import plan_units, run_ingest_unit
+    from tasks.register_stage import run_register
 
     wd = WorkDir(cfg.work_dir)
     shutil.rmtree(wd.root, ignore_errors=True)
     wd.root.mkdir(parents=True)
-    campus, how = register(cfg, wd)
+    records, frame, *_ = scan_inputs(cfg, wd, InlineExecutor())
+    reg = run_register(records, frame, cfg, wd)
+    matrix = np.asarray(reg["matrix"], np.float64)
     ingest_pts, ingest_mesh = Timing(), Timing()
     n_points = 0
-    for unit in plan_units([InputFile(**r) for r in campus["inputs"] if not r.get("error")], cfg):
+    for unit in plan_units(records, cfg.tiling.chunk_points):
         with timed(ingest_pts if unit.kind == "points" else ingest_mesh):
-            summary = run_ingest_unit(unit, cfg, wd, campus)
+            summary = run_ingest_unit(unit, cfg, wd, frame, matrix if unit.kind == "points" else None)
         n_points += summary["rows"] if unit.kind == "points" else 0
-    return {"wd": wd, "campus": campus, "register": how, "ingest_points": ingest_pts,
+    return {"wd": wd, "frame": frame, "register": reg.get("method", "?"), "ingest_points": ingest_pts,
             "ingest_mesh": ingest_mesh, "n_points": n_points, "tiles": wd.staged_tiles()}
 
 
@@ -248,7 +229,9 @@ def load_staged_tile(wd, tile) -> tuple[dict | None, dict | None, list]:
     """A tile's staging files as the partition stage reads them: (points, faces, textures)."""
     from tasks.patches import load_staged_tile as load
 
-    return load(sorted(wd.staging_dir(tile).glob("*.parquet")))
+    from tasks.ingest import staged_files
+
+    return load(staged_files(wd, tile.key))
 
 
 def measure_partition_write(cfg, staged: dict) -> dict:
@@ -258,13 +241,13 @@ def measure_partition_write(cfg, staged: dict) -> dict:
     from tasks.partition import build_tile_tables
     from tasks.patches import run_partition_tile
 
-    wd, size = staged["wd"], cfg.partition.patch_size_m
+    wd, size, frame = staged["wd"], cfg.partition.patch_size_m, staged["frame"]
     t = {k: Timing() for k in ("points", "faces", "both", "stage")}
     n_pts = n_faces = 0
     scratch = wd.root / "bench-out"
     for tile in staged["tiles"]:
         points, faces, textures = load_staged_tile(wd, tile)
-        meta = TileMeta(tile=tile.key, patch_size_m=tuple(size), crs=staged["campus"]["frame"].get("crs"),
+        meta = TileMeta(tile=tile.key, patch_size_m=tuple(size), crs=frame.crs,
                         textures=tuple(textures))
         n_pts += len(points["x"]) if points else 0
         n_faces += len(faces["x0"]) if faces else 0
@@ -272,14 +255,14 @@ def measure_partition_write(cfg, staged: dict) -> dict:
             if p is None and f is None:
                 continue
             with timed(t[key]):
-                ps, fs, patches = build_tile_tables(p, f, size)
+                ps, fs, patches = build_tile_tables(p, f, cfg.grid(), frame.origin)
                 write_tile_tables(scratch / tile.key, ps or None, fs or None, patches, meta)
             del ps, fs, patches
             shutil.rmtree(scratch / tile.key)
         del points, faces
     for tile in staged["tiles"]:
         with timed(t["stage"]):
-            run_partition_tile(tile, cfg, wd)
+            run_partition_tile(tile, cfg, wd, frame)
     return {"timings": t, "n_points": n_pts, "n_faces": n_faces}
 
 
@@ -333,6 +316,7 @@ def _child(spec: dict) -> dict:
     if spec["kind"] == "tile":
         import importlib
 
+        from storage.frame import CampusFrame
         from storage.ids import TileId
         from storage.workdir import WorkDir
         from tasks.config import CampusConfig
@@ -346,7 +330,8 @@ def _child(spec: dict) -> dict:
         rss0 = _rss_bytes()
         t = Timing()
         with timed(t):
-            summary = run_partition_tile(tile, CampusConfig.model_validate(spec["cfg"]), wd)
+            summary = run_partition_tile(tile, CampusConfig.model_validate(spec["cfg"]), wd,
+                                         CampusFrame.from_json(spec["frame"]))
         return {"rss_imports": rss0, "peak_rss": _peak_rss_bytes(), "wall": t.wall, "cpu": t.cpu,
                 "n_points": summary.get("n_points", 0), "n_faces": summary.get("n_faces", 0)}
     import laspy  # noqa: F401 - imported before the RSS reading, like the tile task's modules
@@ -370,10 +355,10 @@ def run_child(spec: dict) -> dict:
 
 
 def baseline_spec(cfg, staged: dict, out: Path) -> dict:
-    from tasks.ingest import expand_inputs
+    from storage.inputs import discover
 
-    return {"kind": "baseline", "laz": [str(p) for p in expand_inputs(cfg)[1]],
-            "origin": staged["campus"]["frame"]["origin"], "patch_size": list(cfg.partition.patch_size_m),
+    return {"kind": "baseline", "laz": list(discover(cfg.inputs.mesh, cfg.inputs.points).points),
+            "origin": list(staged["frame"].origin), "patch_size": list(cfg.partition.patch_size_m),
             "tile_size_m": cfg.tiling.tile_size_m, "out": str(out)}
 
 
@@ -469,7 +454,8 @@ def rss_section(campuses: list[tuple[str, object, dict]], r: dict) -> None:
         synthetic = label.startswith("synthetic") and any(t.key == RSS_TILE for t in staged["tiles"])
         tile = RSS_TILE if synthetic else max(  # else the largest staged tile
             staged["tiles"], key=lambda t: sum(p.stat().st_size for p in staged["wd"].staging_dir(t).iterdir())).key
-        spec = {"kind": "tile", "wd": str(staged["wd"].root), "tile": tile, "cfg": cfg.model_dump(mode="json")}
+        spec = {"kind": "tile", "wd": str(staged["wd"].root), "tile": tile, "cfg": cfg.model_dump(mode="json"),
+                "frame": staged["frame"].to_json()}
         row = run_child(spec) | {"campus": label, "tiles": len(staged["tiles"]), "tile": tile,
                                  "campus_points": staged["n_points"]}
         base = r["baseline_runs"].get(str(staged["wd"].root)) or run_child(

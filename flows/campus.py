@@ -232,21 +232,16 @@ def reprocess(cfg: CampusConfig, ex, publish=None) -> dict:
     return summary
 
 
-def _reprocess(cfg: CampusConfig, cfg_json: dict, wd: WorkDir, ex) -> dict:
-    import numpy as np
+def scan_inputs(cfg: CampusConfig, wd: WorkDir, ex) -> tuple:
+    """Discover and scan every input file (once per content), then choose the campus frame.
 
-    from storage.frame import CampusFrame
+    Returns (records: list[InputFile], frame: CampusFrame, discovery, {path: source id}, scan summaries).
+    """
     from storage.inputs import InputFile, assign_source_ids, discover
-    from storage.workdir import write_campus
-    from tasks.ingest import plan_units, prune_staging, tiles_hint
-    from tasks.plan import drop_unplanned_records, sweep_temporary_files
     from tasks.scan import campus_frame
 
-    t_wall, t_start = time.perf_counter(), time.time()
+    cfg_json = cfg.model_dump(mode="json")
     n_workers = max(cfg.cluster.n_workers, 1)
-    sweep_temporary_files(wd)
-
-    # scan: every input file once per content
     found = discover(cfg.inputs.mesh, cfg.inputs.points)
     ids = assign_source_ids(list(found.meshes) + list(found.points))
     files = [{"path": p, "kind": "mesh", "source": ids[p]} for p in found.meshes] + \
@@ -258,7 +253,21 @@ def _reprocess(cfg: CampusConfig, cfg_json: dict, wd: WorkDir, ex) -> dict:
     for f, s in zip([f for b in scan_batches for f in b], scans):
         rec = s.get("record") or InputFile(f["source"], f["path"], f["kind"], "", error=s.get("error", "scan failed")).to_json()
         records.append(InputFile(**rec))
-    frame = campus_frame(records, cfg)
+    return records, campus_frame(records, cfg), found, ids, scans
+
+
+def _reprocess(cfg: CampusConfig, cfg_json: dict, wd: WorkDir, ex) -> dict:
+    import numpy as np
+
+    from storage.workdir import write_campus
+    from tasks.ingest import plan_units, prune_staging, tiles_hint
+    from tasks.plan import drop_unplanned_records, sweep_temporary_files
+
+    t_wall, t_start = time.perf_counter(), time.time()
+    n_workers = max(cfg.cluster.n_workers, 1)
+    sweep_temporary_files(wd)
+
+    records, frame, found, ids, scans = scan_inputs(cfg, wd, ex)
     grid = cfg.grid()
 
     # register (once) while the meshes are routed: mesh ingest needs the frame only

@@ -31,7 +31,8 @@ def test_partition_bench_reports_positive_figures(tmp_path, capsys):
     for key in ("ms3d_pw_points_per_s", "ms3d_pw_faces_per_s", "ms3d_stage_points_per_s",
                 "baseline_pw_points_per_s"):
         assert math.isfinite(f[key]) and f[key] > 0, key
-    assert len(r["rss"]) == 2 and [row["tiles"] for row in r["rss"]] == [4, 16]
+    # 2 x 2 and 4 x 4 blocks of 100 m (plus slivers where world-anchored patches straddle a block edge)
+    assert len(r["rss"]) == 2 and r["rss"][0]["tiles"] >= 4 and r["rss"][1]["tiles"] >= 16
     for row in r["rss"]:
         assert row["peak_rss"] >= row["rss_imports"] > 0
         assert row["baseline_peak_rss"] > 0 and row["n_points"] > 0
