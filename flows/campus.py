@@ -243,6 +243,8 @@ def scan_inputs(cfg: CampusConfig, wd: WorkDir, ex) -> tuple:
     cfg_json = cfg.model_dump(mode="json")
     n_workers = max(cfg.cluster.n_workers, 1)
     found = discover(cfg.inputs.mesh, cfg.inputs.points)
+    if cfg.inputs.labels and not Path(cfg.inputs.labels).is_file():
+        raise InputError(cfg.inputs.labels, "labels file not found (inputs.labels in the config)")
     ids = assign_source_ids(list(found.meshes) + list(found.points))
     files = [{"path": p, "kind": "mesh", "source": ids[p]} for p in found.meshes] + \
             [{"path": p, "kind": "points", "source": ids[p]} for p in found.points]

@@ -56,7 +56,12 @@ def _cmd_run(a) -> int:
         summary = run_campus(cfg, progress=sys.stderr.isatty())
     except CampusRunFailed as e:
         print(format_summary(e.summary))
-        print(str(e), file=sys.stderr)
+        print(str(e))  # each failed unit once, with its error
+        n, inc = len(e.summary["failed"]), e.summary.get("incomplete")
+        what = (f"{n} unit(s) failed" if n else "") + (" and " if n and inc else "") + \
+            ("the campus is incomplete" if inc else "")
+        print(f"ms3d: error: {what}; the rest is done. Fix the inputs named above and run again "
+              f"(ms3d status {e.summary['work_dir']})", file=sys.stderr)
         return 1
     print(format_summary(summary))
     return 0

@@ -128,13 +128,29 @@ def check_overlap(records: list[InputFile], margin_m: float = 50.0) -> None:
 # ----------------------------------------------------------------------------------- stage: scan
 
 
+def _raw_vertices(path: Path) -> np.ndarray:
+    """Vertex positions of a mesh file that failed validation: the ``v`` lines of an OBJ (whatever its
+    faces say), else whatever trimesh can load. (n, 3) float64, possibly empty."""
+    if path.suffix.lower() == ".obj":
+        rows = []
+        with open(path, errors="replace") as f:
+            for line in f:  # the error path only: a Python loop is fine here
+                if line.startswith("v "):
+                    parts = line.split()[1:4]
+                    try:
+                        rows.append([float(p) for p in parts])
+                    except ValueError:
+                        continue
+        return np.asarray(rows, np.float64).reshape(-1, 3)
+    import trimesh
+
+    return np.asarray(trimesh.load(path, process=False, force="mesh").vertices, np.float64)
+
+
 def _salvage_mesh_bounds(path: Path, cfg: CampusConfig) -> tuple[list, list]:
     """Bounds of the finite vertices of a mesh that failed validation (to know which tiles it hits)."""
     try:
-        import trimesh
-
-        m = trimesh.load(path, process=False, force="mesh")
-        v = np.asarray(m.vertices, np.float64)
+        v = _raw_vertices(path)
         v = v[np.isfinite(v).all(axis=1)] * cfg.inputs.units_scale + np.asarray(cfg.inputs.mesh_offset)
         if len(v):
             return v.min(axis=0).tolist(), v.max(axis=0).tolist()
@@ -211,7 +227,7 @@ def run_scan_file(path: str, kind: str, source: int, cfg: CampusConfig, wd: Work
         rec = InputFile(source, str(path), kind, fp)
         outputs = _scan_mesh(rec, cfg, wd) if kind == "mesh" else _scan_points(rec, cfg) or []
         if rec.error:
-            log.warning("input problem: %s", rec.error)
+            log.info("input problem: %s", rec.error)  # reported once, in the run summary
         return Done(outputs=outputs, summary={"record": rec.to_json()})
 
     params = cfg.stage_params("scan") | {"kind": kind, "path": str(path)}
@@ -220,6 +236,7 @@ def run_scan_file(path: str, kind: str, source: int, cfg: CampusConfig, wd: Work
 
 def campus_frame(records: list[InputFile], cfg: CampusConfig) -> CampusFrame:
     """Frame of the campus from the scanned records: checks CRS, overlap and the float32 reach."""
+    check_crs_is_projected(cfg.inputs.crs)
     crs = resolve_crs(cfg.inputs.crs, [r for r in records if r.kind == "points"])
     check_crs_is_projected(crs)
     check_overlap(records)
