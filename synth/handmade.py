@@ -17,22 +17,24 @@ ORIGIN = np.array([500_000.0, 4_000_000.0, 0.0])
 REGIONS = {"west": 0.0, "middle": 60.0, "east": 120.0}  # x of each region's first box (metres, local)
 
 
-def region_mesh(x0: float) -> trimesh.Trimesh:
+def region_mesh(x0: float, subdivisions: int = 2) -> trimesh.Trimesh:
     """Two boxes (buildings) and a ground slab in x in [x0, x0 + 30], y in [0, 30]."""
     parts = [trimesh.creation.box((10, 8, 9), trimesh.transformations.translation_matrix((x0 + 6, 6, 4.5))),
              trimesh.creation.box((8, 10, 6), trimesh.transformations.translation_matrix((x0 + 22, 20, 3))),
              trimesh.creation.box((30, 30, 0.2), trimesh.transformations.translation_matrix((x0 + 15, 15, -0.1)))]
     m = trimesh.util.concatenate(parts)
-    return m.subdivide().subdivide()
+    for _ in range(subdivisions):
+        m = m.subdivide()
+    return m
 
 
-def build_campus(root: Path, tile_size_m: float = 20.0, extra_stray: bool = False) -> Path:
+def build_campus(root: Path, tile_size_m: float = 20.0, extra_stray: bool = False, subdivisions: int = 2) -> Path:
     """Write meshes, LAS files and a config into ``root``; returns the config path."""
     (root / "mesh").mkdir(parents=True)
     (root / "mls").mkdir()
     rng = np.random.default_rng(0)
     for name, x0 in REGIONS.items():
-        m = region_mesh(x0)
+        m = region_mesh(x0, subdivisions)
         write_obj(root / "mesh" / f"{name}.obj", np.asarray(m.vertices), np.asarray(m.faces))
         pts, _ = trimesh.sample.sample_surface(m, 20_000, seed=1)
         xyz = pts + rng.normal(0, 0.003, pts.shape) + ORIGIN
