@@ -154,7 +154,6 @@ def _unit(fn):
     """Wrap a mutation that returns nothing."""
     def wrapped(root: Path):
         fn(root)
-        return None
     return wrapped
 
 
@@ -235,12 +234,12 @@ def _du(path: Path) -> int:
 def _tmpfs(path: Path, size: str, read_only: bool = False):
     path.mkdir(parents=True, exist_ok=True)
     opts = f"size={size}" + (",ro" if read_only else "")
-    ok = subprocess.run(["mount", "-t", "tmpfs", "-o", opts, "tmpfs", str(path)], capture_output=True).returncode == 0
+    ok = subprocess.run(["mount", "-t", "tmpfs", "-o", opts, "tmpfs", str(path)], capture_output=True, check=False).returncode == 0
     try:
         yield ok
     finally:
         if ok:
-            subprocess.run(["umount", "-l", str(path)], capture_output=True)
+            subprocess.run(["umount", "-l", str(path)], capture_output=True, check=False)
 
 
 def _simulated_enospc():

@@ -227,9 +227,8 @@ def stage_campus(cfg) -> dict:
 
 def load_staged_tile(wd, tile) -> tuple[dict | None, dict | None, list]:
     """A tile's staging files as the partition stage reads them: (points, faces, textures)."""
-    from tasks.patches import load_staged_tile as load
-
     from tasks.ingest import staged_files
+    from tasks.patches import load_staged_tile as load
 
     return load(staged_files(wd, tile.key))
 

@@ -31,7 +31,7 @@ from tasks.config import CampusConfig
 
 log = logging.getLogger("ms3d.flow")
 
-__all__ = ["CampusRunFailed", "reprocess_campus", "run_campus", "reprocess_from_config", "make_task_runner"]
+__all__ = ["CampusRunFailed", "make_task_runner", "reprocess_campus", "reprocess_from_config", "run_campus"]
 
 # ------------------------------------------------------------------------------------------ tasks
 
@@ -211,7 +211,6 @@ def _state_error(state) -> str:
 @flow(name="reprocess-campus", log_prints=True)
 def reprocess_campus(cfg_json: dict, progress: bool = True) -> dict:
     """Scan -> register -> ingest -> partition (+ labels) -> outliers over the campus of ``cfg_json``."""
-    from tasks.plan import work_dir_lock
 
     cfg = _cfg(cfg_json)
     return reprocess(cfg, PrefectExecutor(progress), publish=_publish_artifact)

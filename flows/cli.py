@@ -181,7 +181,7 @@ def main(argv: list[str] | None = None) -> int:
         _quiet_logs()
     try:
         return a.func(a)
-    except (Exception, KeyboardInterrupt) as e:  # noqa: BLE001 - the CLI turns every error into one line
+    except (Exception, KeyboardInterrupt) as e:
         if a.debug:
             raise
         line, code = error_line(e)

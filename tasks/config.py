@@ -164,7 +164,7 @@ class CampusConfig(_Model):
             "partition": {"grid": self.grid().to_json()},
             "labels": {"grid": self.grid().to_json()},
             "outliers": {k: v for k, v in self.partition.model_dump(mode="json").items()
-                         if k.startswith("outlier") or k.startswith("min_")},
+                         if k.startswith(("outlier", "min_"))},
         }.get(stage, {})
 
 

@@ -167,7 +167,7 @@ def run_labels_tile(tile: TileId, cfg: CampusConfig, wd: WorkDir) -> dict | None
         lab = np.isin(keys, bad).astype(np.int8)
         write_side_table(tile_dir, "labels", {"patch": keys, "label": lab}, store.meta, labels_file=str(labels))
         return Done(outputs=[str(side_table_path(tile_dir, "labels").relative_to(wd.root))],
-                    summary={"n_bad": int(lab.sum()), "n_labelled": int(len(lab))})
+                    summary={"n_bad": int(lab.sum()), "n_labelled": len(lab)})
 
     return run_unit(wd, "labels", tile.key, fp, cfg.stage_params("labels"), work)
 

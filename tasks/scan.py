@@ -193,9 +193,8 @@ def _scan_mesh(rec: InputFile, cfg: CampusConfig, wd: WorkDir) -> list[str]:
     rec.lo, rec.hi = used.min(axis=0).tolist(), used.max(axis=0).tolist()
     xyz, normals = surface_samples(mesh.vertices, mesh.faces, cfg.registration.target_spacing_m, seed=rec.source)
     out = samples_path(wd, rec.source)
-    with atomic_path(out) as tmp:
-        with open(tmp, "wb") as f:
-            np.savez(f, xyz=xyz, normals=normals)
+    with atomic_path(out) as tmp, open(tmp, "wb") as f:
+        np.savez(f, xyz=xyz, normals=normals)
     return [str(out.relative_to(wd.root))]
 
 

@@ -78,7 +78,7 @@ def test_bad_inputs_fail_only_their_tiles(tmp_path, handmade_campus, prefect_api
     assert failed, "bad inputs must fail their tiles"
     assert any("truncated" in e and "west.laz" in e for e in failed.values())
     assert any("NaN" in e and "middle.obj" in e for e in failed.values())
-    x = lambda k: int(k.split("_")[0]) * 20 - 500_000  # noqa: E731 - tile key -> local x of its west edge
+    x = lambda k: int(k.split("_")[0]) * 20 - 500_000
     west = {k for k, e in failed.items() if "west.laz" in e}
     assert all(x(k) < 40 for k in west)  # only tiles of the west region
     east_done = [k for k in st["done"] if 120 <= x(k) < 150]
