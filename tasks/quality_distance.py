@@ -51,16 +51,19 @@ class MeshDistance:
     """An open3d scene over faces of a mesh, in a float64 frame centred on them (float32 inside)."""
 
     def __init__(self, vertices: np.ndarray, faces: np.ndarray):
-        used, inv = np.unique(faces, return_inverse=True)
-        self.faces = inv.reshape(-1, 3)
-        v = vertices[used]
+        mask = np.zeros(len(vertices), bool)
+        mask[faces.ravel()] = True  # the vertices faces use, renumbered in order (np.unique, in O(n))
+        self.faces = (np.cumsum(mask) - 1)[faces].reshape(-1, 3)
+        v = vertices[mask]
         self.centre = 0.5 * (v.min(0) + v.max(0)) if len(v) else np.zeros(3)
         self.vertices = v - self.centre
         self.scene = None
         if len(self.faces):
             self.scene = o3d.t.geometry.RaycastingScene()
-            self.scene.add_triangles(o3d.core.Tensor(self.vertices.astype(np.float32)),
-                                     o3d.core.Tensor(self.faces.astype(np.uint32)))
+            self.scene.add_triangles(
+                o3d.core.Tensor(self.vertices.astype(np.float32)),
+                o3d.core.Tensor(self.faces.astype(np.uint32)),
+            )
 
     def query(self, points: np.ndarray, exact: bool = True):
         """points: (k, 3) float64 input frame -> distances (k,) float64 m, face ids (k,) int64 (-1: none)."""
@@ -99,7 +102,7 @@ def point_to_mesh_distance(points, vertices, faces, *, return_faces=False, exact
     md = MeshDistance(vertices, np.asarray(faces, np.int64))
     d, fid = np.empty(len(points)), np.empty(len(points), np.int64)
     for lo in range(0, len(points), chunk_size):
-        d[lo:lo + chunk_size], fid[lo:lo + chunk_size] = md.query(points[lo:lo + chunk_size], exact)
+        d[lo : lo + chunk_size], fid[lo : lo + chunk_size] = md.query(points[lo : lo + chunk_size], exact)
     return (d, fid) if return_faces else d
 
 

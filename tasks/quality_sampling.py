@@ -129,6 +129,69 @@ def sample_weights(vertices, faces, face_idx, spacing_m: float = 0.02, density_p
     return areas / sample_counts(areas, density)
 
 
+def sample_faces(vertices, faces, counts, rng=0) -> tuple[np.ndarray, np.ndarray]:
+    """``counts[f]`` samples on each face f: the same stratified, deterministic sequence as
+    :func:`sample_surface`, with the number per face chosen by the caller.
+
+    vertices: (n, 3) float64 metres; faces: (m, 3) int64; counts: (m,) int >= 0; rng: seed or Generator.
+    Returns points (k, 3) float64 and face_idx (k,) int64, k = counts.sum(), grouped by face in face order.
+    """
+    vertices, faces = np.asarray(vertices, np.float64), np.asarray(faces, np.int64)
+    counts = np.asarray(counts, np.int64)
+    ids = np.flatnonzero(counts > 0)
+    if len(ids) == 0:
+        return np.zeros((0, 3)), np.zeros(0, np.int64)
+    c = counts[ids]
+    cum = np.cumsum(c)
+    keys = _face_keys(vertices, faces[ids])
+    pts, k = _sample_range(vertices, faces, ids, keys, cum, cum - c, seed_of(rng), 0, int(cum[-1]))
+    return pts, ids[k]
+
+
+def _systematic_round(expected: np.ndarray, offset: float) -> np.ndarray:
+    """Integer counts (m,) int64 whose running sums follow those of ``expected`` (m,) float64: each is the
+    floor or the ceiling of its value, and they add up to the rounded total (systematic sampling)."""
+    edges = np.floor(np.concatenate([[0.0], np.cumsum(expected)]) + offset).astype(np.int64)
+    return np.diff(edges)
+
+
+def budget_sample_counts(areas: np.ndarray, density_per_m2: float, max_samples: int, rng=0) -> np.ndarray:
+    """Samples per face at ``density_per_m2``, at most ``max_samples`` in all. (m,) float64 m² -> (m,) int64.
+
+    Each face gets area x density samples rounded systematically (the floor or the ceiling, so totals
+    are exact even when every face is smaller than the spacing, with no rounding bias), and at least
+    one when it has positive area. Over the budget, while every face of positive area can still have
+    one sample, the same rule at the highest lower density that fits (bisection); otherwise (more
+    faces than the budget) exactly ``max_samples`` samples, area-proportional, and small faces may get
+    none. Deterministic: the rounding offset is drawn from ``rng`` (seed, Generator or None).
+
+    >>> budget_sample_counts(np.array([1.0, 3.0, 0.0, 1e-6]), 4.0, 100).tolist()
+    [4, 12, 0, 1]
+    >>> budget_sample_counts(np.array([1.0, 3.0, 0.0, 1e-6]), 4.0, 9).tolist()
+    [2, 6, 0, 1]
+    >>> budget_sample_counts(np.array([1.0, 3.0, 0.0, 1e-6]), 4.0, 2).tolist()  # 0.5 and 1.5 expected
+    [0, 2, 0, 0]
+    """
+    areas = np.asarray(areas, np.float64)
+    areas = np.where(np.isfinite(areas) & (areas > 0), areas, 0.0)
+    offset = float(_hash_uniforms(seed_of(rng), np.zeros(1, np.int64))[0, 0])
+    positive = areas > 0
+
+    def counts_at(density: float) -> np.ndarray:
+        return np.where(positive, np.maximum(_systematic_round(areas * density, offset), 1), 0)
+
+    counts = counts_at(density_per_m2)
+    if counts.sum() <= max_samples:
+        return counts
+    if np.count_nonzero(positive) <= max_samples:
+        lo, hi = 0.0, float(density_per_m2)
+        for _ in range(30):
+            mid = 0.5 * (lo + hi)
+            lo, hi = (mid, hi) if counts_at(mid).sum() <= max_samples else (lo, mid)
+        return counts_at(lo)
+    return _systematic_round(areas * (max_samples / areas.sum()), offset)
+
+
 # --------------------------------------------------------------------- samples of a region or tile
 
 
@@ -137,7 +200,7 @@ def sample_boxes(region, tile: TileId | None, tile_size_m: float) -> list[tuple[
     out = []
     if region is not None:
         r = np.asarray(region, np.float64)
-        out.append((r[: len(r) // 2], r[len(r) // 2:]))
+        out.append((r[: len(r) // 2], r[len(r) // 2 :]))
     if tile is not None:
         lo = np.array([tile.ix, tile.iy], np.float64) * tile_size_m
         out.append((lo, lo + tile_size_m))
@@ -167,11 +230,13 @@ def samples_inside(points, boxes, tile: TileId | None, tile_size_m: float) -> np
 
 
 __all__ = [
+    "budget_sample_counts",
     "face_areas",
     "faces_in_boxes",
     "iter_surface_samples",
     "sample_boxes",
     "sample_counts",
+    "sample_faces",
     "sample_surface",
     "sample_weights",
     "samples_inside",

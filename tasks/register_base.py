@@ -1,5 +1,5 @@
 """What the registration modules share: the similarity algebra (``target ~= s R source + t``), the
-Open3D cloud wrapper, the per-step clock and the minimum point count.
+Open3D cloud wrapper, the per-step clock, and the checking and thinning of input clouds.
 
 Frames: every array is campus-local metres (float64), x east, y north, z up. A similarity is a (4, 4)
 float64 matrix ``[sR | t; 0 0 0 1]`` mapping *source* (MLS) to *target* (mesh) coordinates.
@@ -12,7 +12,10 @@ import time
 import numpy as np
 import open3d as o3d
 
+from storage.errors import InputError
+
 MIN_POINTS = 100  # fewer finite points than this cannot be registered
+PRE_CAP_FACTOR = 8  # random pre-cap (before voxelling) at this many times the final cap
 
 
 def apply_similarity(matrix: np.ndarray, xyz: np.ndarray) -> np.ndarray:
@@ -93,13 +96,76 @@ def o3d_cloud(xyz: np.ndarray) -> o3d.geometry.PointCloud:
     return o3d.geometry.PointCloud(o3d.utility.Vector3dVector(np.ascontiguousarray(xyz, dtype=np.float64)))
 
 
+# --------------------------------------------------------------------------- input handling
+
+
+def check_xyz_shape(xyz: np.ndarray, name: str) -> np.ndarray:
+    """``xyz`` as an array; InputError naming it unless it is (n, 3)."""
+    a = np.asarray(xyz)
+    if a.ndim != 2 or a.shape[1] != 3:
+        raise InputError(None, f"{name} must be an (n, 3) array of metres, got shape {a.shape}")
+    return a
+
+
+def finite_xyz(
+    xyz: np.ndarray, name: str, cap: int | None = None, rng: np.random.Generator | None = None
+) -> np.ndarray:
+    """(n, 3) any float dtype -> (k, 3) float64 finite rows; raise InputError when < MIN_POINTS remain.
+
+    With ``cap``, at most ``cap`` random rows (drawn with ``rng``) are kept *before* the float64
+    copy, so a huge float32 input is never duplicated whole.
+    """
+    a = check_xyz_shape(xyz, name)
+    if cap is not None and len(a) > cap:
+        a = a[np.sort(rng.choice(len(a), cap, replace=False))]
+    ok = np.isfinite(a).all(axis=1)
+    a = (a if ok.all() else a[ok]).astype(np.float64, copy=False)
+    if len(a) < MIN_POINTS:
+        raise InputError(
+            None,
+            f"{name} has {len(a)} finite points ({int((~ok).sum())} NaN/inf rows dropped); "
+            f"registration needs at least {MIN_POINTS}",
+        )
+    return a
+
+
+def subsample_for_registration(
+    xyz: np.ndarray, max_points: int, voxel_m: float, rng: np.random.Generator
+) -> np.ndarray:
+    """Thin a cloud for registration: one point (the centroid) per voxel, then at most ``max_points``.
+
+    xyz: (n, 3) float64 metres, finite. voxel_m: voxel edge (<= 0 skips voxelling).
+    rng: draws the random pre-cap (at ``PRE_CAP_FACTOR * max_points``, bounding memory for huge
+    inputs) and the final cap. Returns (k, 3) float64, k <= max_points. Deterministic for a given rng.
+    """
+    a = np.asarray(xyz, dtype=np.float64)
+    pre_cap = PRE_CAP_FACTOR * max_points
+    if len(a) > pre_cap:
+        a = a[np.sort(rng.choice(len(a), pre_cap, replace=False))]
+    if voxel_m > 0 and len(a):
+        a = np.asarray(o3d_cloud(a).voxel_down_sample(voxel_m).points)
+    if len(a) > max_points:
+        a = a[np.sort(rng.choice(len(a), max_points, replace=False))]
+    return a
+
+
+def crop_to_box(xyz: np.ndarray, lo: np.ndarray, hi: np.ndarray) -> np.ndarray:
+    """Boolean (n,) mask of points inside the axis-aligned box [lo, hi] ((3,) metres)."""
+    return np.all((xyz >= lo) & (xyz <= hi), axis=1)
+
+
 __all__ = [
     "MIN_POINTS",
+    "PRE_CAP_FACTOR",
     "StepClock",
     "apply_similarity",
+    "check_xyz_shape",
     "compare_transforms",
     "compose_similarity",
+    "crop_to_box",
     "decompose_similarity",
+    "finite_xyz",
     "o3d_cloud",
     "small_rotation",
+    "subsample_for_registration",
 ]

@@ -249,4 +249,3 @@ def coarse_register(
         "seconds": clock.laps,
     }
     return np.asarray(best.transformation).copy(), float(best.fitness), info
-

@@ -24,6 +24,7 @@ FINE_LEVEL_ITERATIONS = 30  # iteration cap of every ICP level but the last (whi
 FINE_MIN_KERNEL_M = 0.05  # floor of the adaptive Tukey kernel in the last ICP level (see fine_register)
 FINE_METHOD = "plane"  # "plane": point-to-plane similarity ICP; "point": Open3D point-to-point with scaling
 SURFACE_NEIGHBOURS = 24  # mesh vertices averaged into one local plane (denoises ~5x)
+SURFACE_NORMAL_AGREEMENT = 0.866  # with normals, a plane takes the neighbours within 30 deg of the nearest
 SURFACE_SPACING_M = 0.2  # spacing of those planes (voxel-thinned vertices)
 
 
@@ -144,17 +145,26 @@ def surface_planes(
     k: int = SURFACE_NEIGHBOURS,
     spacing_m: float = SURFACE_SPACING_M,
 ) -> tuple[np.ndarray, np.ndarray]:
-    """Denoised local planes through a noisy vertex set, about ``spacing_m`` apart.
+    """Denoised local planes through noisy samples of a surface, about ``spacing_m`` apart.
 
-    xyz: (m, 3) float64 metres (mesh vertices, ~10 cm apart with a few cm of noise);
-    normals: optional (m, 3) vertex normals to use instead of the estimated ones.
-    The vertices are voxel-thinned at ``spacing_m`` (<= 0: every vertex); at each thinned point a
-    plane is fitted to its ``k`` nearest original vertices. Returns (centres, normals), both
-    (m', 3) float64: the mean of those neighbours and their direction of least spread (unit, sign
-    arbitrary; with ``normals`` given, the normal of the nearest vertex).
+    xyz: (m, 3) float64 metres (mesh surface samples or vertices, ~10 cm apart, possibly with a few
+    cm of noise); normals: optional (m, 3) unit normals of those points (the face normals of
+    :func:`tasks.register_target.mesh_registration_target`'s samples; sign from the face winding).
+    The points are voxel-thinned at ``spacing_m`` (<= 0: every point); at each thinned point a plane
+    is fitted to its ``k`` nearest original points. Returns (centres, normals), both (m', 3) float64:
+    without ``normals``, the mean of those neighbours and their direction of least spread (unit, sign
+    arbitrary); with them, the mean position and mean normal of the neighbours whose normal lies
+    within 30 degrees (``SURFACE_NORMAL_AGREEMENT``) of the nearest one's, so a plane never mixes the
+    top and the underside of a thin slab (an eave, a balcony) or the two faces at an edge.
     Pairing an MLS point with such a plane instead of a raw vertex divides the vertex noise by
     ~sqrt(k), so the ICP's robust weights can tell a real mesh defect (a facade 15 cm proud) from
     noise.
+
+    Measured (face normals vs estimated): a 20 cm slab sampled at 10 cm, 69 % of the estimated
+    normals tilted > 10 deg and every centre 5 cm off its surface vs none tilted, centres on the
+    surface; registration error (rotation / translation / scale) on the LoD2 street of
+    test_register_surface 0.0003 deg / 0.11 mm / 0.0002 % vs 0.0001 deg / 0.05 mm / 0.0001 %; on the
+    demo campus 0.0040 deg / 12.7 mm / 0.0030 % vs 0.0041 deg / 12.1 mm / 0.0025 %.
     """
     tree = cKDTree(xyz)
     query = np.asarray(o3d_cloud(xyz).voxel_down_sample(spacing_m).points) if spacing_m > 0 else xyz
@@ -169,8 +179,11 @@ def surface_planes(
         centres[lo:hi] = c
         if normals is None:
             out[lo:hi] = np.linalg.eigh(np.einsum("nki,nkj->nij", d, d))[1][:, :, 0]
-        else:
-            n = normals[idx[:, 0]]
+        else:  # the neighbours facing like the nearest one: one side of a slab, one face at an edge
+            nn = normals[idx]
+            w = (np.einsum("nkj,nj->nk", nn, nn[:, 0]) >= SURFACE_NORMAL_AGREEMENT).astype(np.float64)
+            centres[lo:hi] = np.einsum("nk,nkj->nj", w, nb) / w.sum(axis=1, keepdims=True)
+            n = np.einsum("nk,nkj->nj", w, nn)
             out[lo:hi] = n / np.maximum(np.linalg.norm(n, axis=1, keepdims=True), 1e-12)
     return centres, out
 
@@ -236,4 +249,3 @@ def fine_register(
         else:
             m, fit, rmse, _ = point_similarity_icp(pts, target_xyz, m, dist, iters, cfg.with_scale)
     return m, fit, rmse, f"{FINE_METHOD}-scale-icp" if cfg.with_scale else f"{FINE_METHOD}-icp"
-
