@@ -183,13 +183,17 @@ def budget_sample_counts(areas: np.ndarray, density_per_m2: float, max_samples: 
     counts = counts_at(density_per_m2)
     if counts.sum() <= max_samples:
         return counts
-    if np.count_nonzero(positive) <= max_samples:
-        lo, hi = 0.0, float(density_per_m2)
+    n_faces, total = np.count_nonzero(positive), areas.sum()
+    if n_faces <= max_samples:
+        # the total lies between total x density - 1 and that + n_faces, which brackets the density
+        lo, hi = max(0.0, (max_samples - n_faces) / total), min(float(density_per_m2), (max_samples + 1) / total)
         for _ in range(30):
+            if hi - lo <= 1e-4 * hi:
+                break
             mid = 0.5 * (lo + hi)
             lo, hi = (mid, hi) if counts_at(mid).sum() <= max_samples else (lo, mid)
         return counts_at(lo)
-    return _systematic_round(areas * (max_samples / areas.sum()), offset)
+    return _systematic_round(areas * (max_samples / total), offset)
 
 
 # --------------------------------------------------------------------- samples of a region or tile

@@ -20,8 +20,7 @@ from __future__ import annotations
 import numpy as np
 
 from storage.errors import InputError
-from tasks.quality_distance import unit_face_normals
-from tasks.quality_sampling import budget_sample_counts, face_areas, sample_faces
+from tasks.quality_sampling import budget_sample_counts, sample_faces
 
 TARGET_SPACING_M = 0.1  # surface sample spacing: about the vertex spacing of a photogrammetric mesh
 TARGET_MAX_POINTS = 3_000_000  # sample budget for the faces near the MLS cloud
@@ -88,9 +87,12 @@ def mesh_registration_target(
     v, f = np.asarray(vertices, np.float64), np.asarray(faces, np.int64)
     if not spacing_m > 0:
         raise ValueError(f"spacing_m must be positive, got {spacing_m}")
-    counts = budget_sample_counts(face_areas(v, f), 1.0 / spacing_m**2, int(max_samples), rng)
+    a = v[f[:, 0]]
+    cross = np.cross(v[f[:, 1]] - a, v[f[:, 2]] - a)
+    norm = np.linalg.norm(cross, axis=1)
+    counts = budget_sample_counts(0.5 * norm, 1.0 / spacing_m**2, int(max_samples), rng)
     xyz, face_idx = sample_faces(v, f, counts, rng)
-    return xyz, unit_face_normals(v, f[face_idx])
+    return xyz, cross[face_idx] / norm[face_idx, None]  # sampled faces have positive area
 
 
 __all__ = [
