@@ -54,9 +54,9 @@ class CoregistrationCheck:
         if self.n_points == 0:
             return f"none of {self.n_sample:,} sampled MLS points lies over the mesh's x/y extent"
         return (
-            f"MLS points lie a median {self.median_m:.3f} m (p90 {self.p90_m:.3f} m) from the mesh surface "
-            f"(tolerance {self.tol_m} m), measured on {self.n_points:,} points over the mesh "
-            f"({100 * self.overlap_fraction:.0f} % of the sample)"
+            f"MLS points lie a median {self.median_m:.3f} m from the mesh surface on their worst-placed "
+            f"surface orientation (tolerance {self.tol_m} m; 90 % of all within {self.p90_m:.3f} m), measured "
+            f"on {self.n_points:,} points over the mesh ({100 * self.overlap_fraction:.0f} % of the sample)"
         )
 
 
@@ -83,7 +83,7 @@ def check_overlap(
     ... # doctest: +ELLIPSIS
     Traceback (most recent call last):
     ...
-    storage.errors.InputError: scan.laz covers x 500,000..500,100, y 0..10 but city.obj covers x 510,000...
+    storage.errors.InputError: the x/y extents of scan.laz (x 500,000..500,100, y 0..10) and city.obj (x 510,000...
     """
     s_lo, s_hi, m_lo, m_hi = (np.asarray(b, np.float64)[:2] for b in (source_lo, source_hi, mesh_lo, mesh_hi))
     if not all(np.isfinite(b).all() for b in (s_lo, s_hi, m_lo, m_hi)):
@@ -92,8 +92,8 @@ def check_overlap(
         return
     raise InputError(
         None,
-        f"{source_name} covers {_extent(s_lo, s_hi)} but {mesh_name} covers {_extent(m_lo, m_hi)}: their x/y "
-        "extents do not overlap (wrong CRS or UTM zone, units, or mesh offset?)",
+        f"the x/y extents of {source_name} ({_extent(s_lo, s_hi)}) and {mesh_name} ({_extent(m_lo, m_hi)}) "
+        "do not overlap: wrong CRS or UTM zone, units, or mesh offset?",
     )
 
 
