@@ -37,6 +37,7 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from storage.errors import InputError
+from tasks import register_fine
 from tasks.config import RegistrationConfig
 from tasks.register_base import (
     MIN_POINTS,
@@ -54,7 +55,6 @@ from tasks.register_check import CoregistrationCheck, check_coregistered, check_
 from tasks.register_coarse import coarse_register, consistent_matches, match_features
 from tasks.register_fine import (
     FINE_DISTANCES_M,
-    FINE_METHOD,
     fine_register,
     plane_similarity_icp,
     point_similarity_icp,
@@ -206,7 +206,7 @@ def register_clouds(
             f"after the coarse registration only {len(tgt_f)} samples of the mesh surface lie within "
             f"{FINE_CROP_M} m of the MLS cloud (need {MIN_POINTS}): do the inputs overlap?",
         )
-    if FINE_METHOD == "plane":
+    if register_fine.FINE_METHOD == "plane":  # the switch lives with the fine stage
         tgt_f, nrm_f = surface_planes(tgt_f, nrm_f)  # face normals: see surface_planes
     clock.lap("fine-prep")
     matrix, fit, rmse, method = fine_register(src, tgt_f, nrm_f, coarse, cfg, rng)
