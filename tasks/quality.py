@@ -1,8 +1,8 @@
 """Measured accuracy of a mesh against the truth mesh: accuracy, completeness, Chamfer, F-score, holes.
 
-Both surfaces are sampled (area-weighted, stratified, deterministic) and each sample's exact unsigned
-distance to the other mesh is measured with open3d's ``RaycastingScene`` (float32, queried in a frame
-centred on the data) and refined in float64 on the face it returns. Everything is accumulated as
+Both surfaces are sampled (area-weighted, stratified, deterministic: :mod:`tasks.quality_sampling`) and
+each sample's exact unsigned distance to the other mesh is measured (:mod:`tasks.quality_distance`:
+open3d's ``RaycastingScene`` in float32 around the data, refined in float64 on the face it returns). Everything is accumulated as
 area-weighted sums plus a fine distance histogram, so results of chunks and tiles merge exactly
 (sums of areas and counts, never averages of averages):
 
@@ -30,216 +30,33 @@ from collections.abc import Mapping, Sequence
 from dataclasses import dataclass, field, replace
 
 import numpy as np
-import open3d as o3d
 
 from storage.errors import InputError
 from storage.ids import TileId
+from tasks.quality_distance import (
+    MeshDistance,
+    closest_points_on_triangles,
+    point_to_mesh_distance,
+    unit_face_normals,
+)
+from tasks.quality_sampling import (
+    face_areas,
+    faces_in_boxes,
+    iter_surface_samples,
+    sample_boxes,
+    sample_counts,
+    sample_surface,
+    sample_weights,
+    samples_inside,
+    seed_of,
+)
 
 # synth.scene.FaceClass values of facade faces: WALL, GLASS, FRAME, BALCONY, EAVE.
 FACADE_CLASS_IDS = (2, 4, 5, 6, 7)
 
-_R2 = np.array([1 / 1.32471795724474602596, 1 / 1.32471795724474602596**2])  # Roberts' R2 sequence
 _FINE_STEP, _FINE_MAX, _N_FINE = 5e-5, 0.5, 10_000
 _RATIO, _N_COARSE = 1.001, 12_208  # 0.5 m .. 100 km, then one overflow bin
 _N_BINS = _N_FINE + _N_COARSE + 1
-
-
-# ----------------------------------------------------------------------------------------- geometry
-
-def face_areas(vertices: np.ndarray, faces: np.ndarray) -> np.ndarray:
-    """vertices: (n, 3) float64 metres; faces: (m, 3) int64 -> (m,) float64 m²."""
-    a, b, c = (vertices[faces[:, k]] for k in range(3))
-    return 0.5 * np.linalg.norm(np.cross(b - a, c - a), axis=1)
-
-
-def sample_counts(areas: np.ndarray, density_per_m2: float) -> np.ndarray:
-    """Samples per face: round(area * density), at least 1 on every face of positive area.
-
-    areas: (m,) float64 m² -> (m,) int64. Each sample then stands for area / count m², so sums of
-    sample weights equal surface areas exactly, even for faces far smaller than the spacing.
-    """
-    n = np.rint(areas * density_per_m2).astype(np.int64)
-    return np.where(areas > 0, np.maximum(n, 1), 0)
-
-
-def _seed_of(rng) -> int:
-    if isinstance(rng, np.random.Generator):
-        return int(rng.integers(0, 2**62))
-    return 0 if rng is None else int(rng)
-
-
-def _splitmix64(x: np.ndarray) -> np.ndarray:
-    """splitmix64 finaliser, elementwise on uint64 (wrapping arithmetic)."""
-    z = x + np.uint64(0x9E3779B97F4A7C15)
-    z = (z ^ (z >> np.uint64(30))) * np.uint64(0xBF58476D1CE4E5B9)
-    z = (z ^ (z >> np.uint64(27))) * np.uint64(0x94D049BB133111EB)
-    return z ^ (z >> np.uint64(31))
-
-
-def _hash_uniforms(seed: int, keys: np.ndarray) -> np.ndarray:
-    """Two uniforms in [0, 1) per key: (n,) int64 -> (n, 2) float64, a pure function of (seed, key)."""
-    h = _splitmix64(keys.view(np.uint64) ^ np.uint64(seed % 2**64))
-    z = _splitmix64(h[:, None] + np.arange(1, 3, dtype=np.uint64))
-    return (z >> np.uint64(11)).astype(np.float64) * 2.0**-53
-
-
-def _face_keys(vertices, faces) -> np.ndarray:
-    """(m,) int64 key per face from its edge vectors at 1 mm: independent of face order, of the
-    subset or tile a face comes in, and of a translation of the whole mesh."""
-    a = vertices[faces[:, 0]]
-    q = np.rint(np.concatenate([vertices[faces[:, 1]] - a, vertices[faces[:, 2]] - a], 1) * 1e3)
-    h = np.zeros(len(faces), np.uint64)
-    for col in np.ascontiguousarray(q.astype(np.int64).T).view(np.uint64):
-        h = _splitmix64(h ^ col)
-    return h.view(np.int64)
-
-
-def _sample_range(vertices, faces, face_ids, keys, cum, start, seed, lo, hi):
-    """Samples lo..hi-1 of the concatenated per-face sample sequences.
-
-    face_ids: (k,) face indices to sample; keys: (k,) their :func:`_face_keys`; cum, start: (k,)
-    int64 cumulative sample counts of those faces, after and before each. Sample j of a face is a
-    Cranley-Patterson-rotated R2 point (offset hashed from seed and the face key) mapped
-    area-preservingly onto the triangle, so it depends only on (seed, face geometry, j): any subset,
-    chunking or tiling gives bit-identical samples.
-    """
-    idx = np.arange(lo, hi, dtype=np.int64)
-    k = np.searchsorted(cum, idx, side="right")
-    j = (idx - start[k]).astype(np.float64)
-    fid = face_ids[k]
-    r = (_hash_uniforms(seed, keys[k]) + j[:, None] * _R2) % 1.0
-    s = np.sqrt(r[:, 0])
-    b1, b2 = s * (1.0 - r[:, 1]), s * r[:, 1]
-    a, b, c = (vertices[faces[fid, q]] for q in range(3))
-    return a + b1[:, None] * (b - a) + b2[:, None] * (c - a), k
-
-
-def _sampler(vertices, faces, face_ids, density, seed, chunk_size):
-    """Yield (points (c, 3) float64, face_idx (c,) int64, weights (c,) float64 m²) in chunks."""
-    areas = face_areas(vertices, faces[face_ids])
-    counts = sample_counts(areas, density)
-    keep = counts > 0
-    face_ids, areas, counts = face_ids[keep], areas[keep], counts[keep]
-    weight = areas / np.maximum(counts, 1)
-    cum, keys = np.cumsum(counts), _face_keys(vertices, faces[face_ids])
-    start, total = cum - counts, int(cum[-1]) if len(cum) else 0
-    for lo in range(0, total, chunk_size):
-        hi = min(lo + chunk_size, total)
-        pts, k = _sample_range(vertices, faces, face_ids, keys, cum, start, seed, lo, hi)
-        yield pts, face_ids[k], weight[k]
-
-
-def sample_surface(vertices, faces, spacing_m: float = 0.02, rng=0, face_mask=None, density_per_m2=None):
-    """Area-weighted, stratified, deterministic samples of a triangle surface.
-
-    vertices: (n, 3) float64 metres; faces: (m, 3) int64; face_mask: (m,) bool or None (all faces);
-    density_per_m2 overrides ``spacing_m`` (density = 1 / spacing²); rng: seed or Generator.
-    Returns points (k, 3) float64 in the input frame and face_idx (k,) int64. Face f receives
-    ``sample_counts`` samples, each of weight area_f / count_f (see :func:`sample_weights`).
-    """
-    vertices, faces = np.asarray(vertices, np.float64), np.asarray(faces, np.int64)
-    density = density_per_m2 if density_per_m2 is not None else 1.0 / spacing_m**2
-    ids = np.arange(len(faces)) if face_mask is None else np.flatnonzero(face_mask)
-    chunks = list(_sampler(vertices, faces, ids, density, _seed_of(rng), 1 << 62))
-    if not chunks:
-        return np.zeros((0, 3)), np.zeros(0, np.int64)
-    return chunks[0][0], chunks[0][1]
-
-
-def sample_weights(vertices, faces, face_idx, spacing_m: float = 0.02, density_per_m2=None) -> np.ndarray:
-    """(k,) float64 m² that each sample of :func:`sample_surface` stands for (sums to the area)."""
-    density = density_per_m2 if density_per_m2 is not None else 1.0 / spacing_m**2
-    areas = face_areas(vertices, faces[face_idx])
-    return areas / sample_counts(areas, density)
-
-
-def closest_points_on_triangles(p, a, b, c) -> np.ndarray:
-    """Closest point of each triangle (a, b, c) to p, all (n, 3) float64 -> (n, 3) float64.
-
-    Vectorised form of the Voronoi-region test in Ericson, Real-Time Collision Detection, 5.1.5.
-    """
-    dot = lambda x, y: np.einsum("ij,ij->i", x, y)
-    ab, ac, ap, bp, cp = b - a, c - a, p - a, p - b, p - c
-    d1, d2, d3, d4, d5, d6 = dot(ab, ap), dot(ac, ap), dot(ab, bp), dot(ac, bp), dot(ab, cp), dot(ac, cp)
-    va, vb, vc = d3 * d6 - d5 * d4, d5 * d2 - d1 * d6, d1 * d4 - d3 * d2
-    with np.errstate(divide="ignore", invalid="ignore"):
-        den = va + vb + vc
-        v, w = vb / den, vc / den  # interior
-        regions = [  # first match wins, as in the scalar original
-            ((d1 <= 0) & (d2 <= 0), 0.0, 0.0),
-            ((d3 >= 0) & (d4 <= d3), 1.0, 0.0),
-            ((vc <= 0) & (d1 >= 0) & (d3 <= 0), d1 / (d1 - d3), 0.0),
-            ((d6 >= 0) & (d5 <= d6), 0.0, 1.0),
-            ((vb <= 0) & (d2 >= 0) & (d6 <= 0), 0.0, d2 / (d2 - d6)),
-        ]
-        t = (d4 - d3) / ((d4 - d3) + (d5 - d6))
-        regions.append(((va <= 0) & (d4 - d3 >= 0) & (d5 - d6 >= 0), 1.0 - t, t))
-        for cond, rv, rw in reversed(regions):
-            v, w = np.where(cond, rv, v), np.where(cond, rw, w)
-    return a + v[:, None] * ab + w[:, None] * ac
-
-
-def _unit_normals(vertices, faces) -> np.ndarray:
-    """(m, 3) float64 unit normals of faces (m, 3) int64 (zero for degenerate faces)."""
-    a = vertices[faces[:, 0]]
-    n = np.cross(vertices[faces[:, 1]] - a, vertices[faces[:, 2]] - a)
-    return n / np.maximum(np.linalg.norm(n, axis=1, keepdims=True), 1e-300)
-
-
-class _MeshDistance:
-    """An open3d scene over faces of a mesh, in a float64 frame centred on them (float32 inside)."""
-
-    def __init__(self, vertices: np.ndarray, faces: np.ndarray):
-        used, inv = np.unique(faces, return_inverse=True)
-        self.faces = inv.reshape(-1, 3)
-        v = vertices[used]
-        self.centre = 0.5 * (v.min(0) + v.max(0)) if len(v) else np.zeros(3)
-        self.vertices = v - self.centre
-        self.scene = None
-        if len(self.faces):
-            self.scene = o3d.t.geometry.RaycastingScene()
-            self.scene.add_triangles(o3d.core.Tensor(self.vertices.astype(np.float32)),
-                                     o3d.core.Tensor(self.faces.astype(np.uint32)))
-
-    def query(self, points: np.ndarray, exact: bool = True):
-        """points: (k, 3) float64 input frame -> distances (k,) float64 m, face ids (k,) int64 (-1: none)."""
-        if self.scene is None:
-            return np.full(len(points), np.inf), np.full(len(points), -1, np.int64)
-        p = points - self.centre
-        out = self.scene.compute_closest_points(o3d.core.Tensor(p.astype(np.float32)))
-        prim = out["primitive_ids"].numpy().astype(np.int64)
-        ok = prim < len(self.faces)  # INVALID_ID (2**32 - 1) when nothing was found
-        d = np.linalg.norm(p - out["points"].numpy().astype(np.float64), axis=1)
-        d[~ok] = np.inf
-        if exact and ok.any():
-            tri = self.vertices[self.faces[prim[ok]]]
-            q = closest_points_on_triangles(p[ok], tri[:, 0], tri[:, 1], tri[:, 2])
-            d64 = np.linalg.norm(p[ok] - q, axis=1)
-            d[ok] = np.where(np.isfinite(d64), d64, d[ok])  # degenerate faces keep the float32 value
-        return d, np.where(ok, prim, -1)
-
-    def covered_along(self, points: np.ndarray, normals: np.ndarray, half_m: float) -> np.ndarray:
-        """(k,) bool: the mesh crosses the segment points +- half_m * normals ((k, 3) unit vectors)."""
-        if self.scene is None or len(points) == 0:
-            return np.zeros(len(points), bool)
-        rays = np.concatenate([points - self.centre - half_m * normals, normals], 1).astype(np.float32)
-        return self.scene.cast_rays(o3d.core.Tensor(rays))["t_hit"].numpy() <= 2 * half_m
-
-
-def point_to_mesh_distance(points, vertices, faces, *, return_faces=False, exact=True, chunk_size=1_000_000):
-    """Exact unsigned distance from each point to a triangle set.
-
-    points: (k, 3) float64 metres; vertices: (n, 3) float64 metres, same frame; faces: (m, 3) int64.
-    Returns (k,) float64 metres (inf when the mesh is empty), and with ``return_faces`` also the
-    (k,) int64 index of the closest face (-1 when none). Large world coordinates are safe: open3d
-    works in float32 around the mesh's centre and ``exact`` re-measures on the found face in float64.
-    """
-    points, vertices = np.asarray(points, np.float64), np.asarray(vertices, np.float64)
-    md = _MeshDistance(vertices, np.asarray(faces, np.int64))
-    d, fid = np.empty(len(points)), np.empty(len(points), np.int64)
-    for lo in range(0, len(points), chunk_size):
-        d[lo:lo + chunk_size], fid[lo:lo + chunk_size] = md.query(points[lo:lo + chunk_size], exact)
-    return (d, fid) if return_faces else d
 
 
 # ----------------------------------------------------------------------------- accumulated statistics
@@ -474,39 +291,6 @@ def _validated(vertices, faces, name: str):
     return v, f
 
 
-def _boxes(region, tile: TileId | None, tile_size_m: float) -> list[tuple[np.ndarray, np.ndarray]]:
-    """Half-open boxes [lo, hi) a sample must lie in: region (xmin, ymin, xmax, ymax) or 3D, and the tile."""
-    out = []
-    if region is not None:
-        r = np.asarray(region, np.float64)
-        out.append((r[: len(r) // 2], r[len(r) // 2:]))
-    if tile is not None:
-        lo = np.array([tile.ix, tile.iy], np.float64) * tile_size_m
-        out.append((lo, lo + tile_size_m))
-    return out
-
-
-def _faces_in_boxes(vertices, faces, boxes) -> np.ndarray:
-    """Indices of faces whose bounding box touches every box (1 µm slack for rounding of samples)."""
-    ids = np.arange(len(faces))
-    for lo, hi in boxes:
-        k = len(lo)
-        corners = [vertices[faces[ids, q], :k] for q in range(3)]
-        touch = (np.minimum.reduce(corners) <= hi + 1e-6) & (np.maximum.reduce(corners) >= lo - 1e-6)
-        ids = ids[touch.all(1)]
-    return ids
-
-
-def _inside(points, boxes, tile: TileId | None, tile_size_m: float) -> np.ndarray:
-    keep = np.ones(len(points), bool)
-    for lo, hi in boxes[: len(boxes) - (tile is not None)]:
-        keep &= ((points[:, : len(lo)] >= lo) & (points[:, : len(lo)] < hi)).all(1)
-    if tile is not None:  # the same floor() that assigns samples to tiles, so tiles partition exactly
-        ij = np.floor(points[:, :2] / tile_size_m)
-        keep &= (ij[:, 0] == tile.ix) & (ij[:, 1] == tile.iy)
-    return keep
-
-
 def _class_names(true_face_class, class_names) -> tuple[str, ...]:
     if isinstance(class_names, Mapping):
         n = max(class_names, default=-1) + 1
@@ -539,13 +323,13 @@ def evaluate_partial(pred_vertices, pred_faces, true_vertices, true_faces, *, ta
         raise InputError(None, f"truth face mask/classes must have one entry per truth face ({len(tf)})")
     names, taus = _class_names(tc, class_names), tuple(float(t) for t in taus)
     density = density_per_m2 if density_per_m2 is not None else 1.0 / spacing_m**2
-    seed, cap = _seed_of(rng), math.inf if max_distance_m is None else float(max_distance_m)
-    boxes = _boxes(region, tile, tile_size_m)
+    seed, cap = seed_of(rng), math.inf if max_distance_m is None else float(max_distance_m)
+    boxes = sample_boxes(region, tile, tile_size_m)
     acc, comp = _Side.empty(1 + len(names), len(taus)), _Side.empty(1 + len(names), len(taus))
     for side, (sv, sf), (ov, of), salt in ((acc, (pv, pf), (tv, tf), 0), (comp, (tv, tf), (pv, pf), 1)):
-        other = _MeshDistance(ov, of)
-        for pts, fid, w in _sampler(sv, sf, _faces_in_boxes(sv, sf, boxes), density, seed ^ salt, chunk_size):
-            keep = _inside(pts, boxes, tile, tile_size_m)
+        other = MeshDistance(ov, of)
+        for pts, fid, w in iter_surface_samples(sv, sf, faces_in_boxes(sv, sf, boxes), density, seed ^ salt, chunk_size):
+            keep = samples_inside(pts, boxes, tile, tile_size_m)
             pts, fid, w = pts[keep], fid[keep], w[keep]
             d, ofid = other.query(pts, exact)
             cls, ok = np.full(len(d), -1), (ofid >= 0) if side is acc else np.ones(len(d), bool)
@@ -556,7 +340,7 @@ def evaluate_partial(pred_vertices, pred_faces, true_vertices, true_faces, *, ta
                 in_mask = holes = np.zeros(len(d), bool)
             else:
                 in_mask = mask[fid]
-                holes = ~other.covered_along(pts, _unit_normals(sv, sf[fid]), hole_threshold_m)
+                holes = ~other.covered_along(pts, unit_face_normals(sv, sf[fid]), hole_threshold_m)
             side.add(np.minimum(d, cap), w, cls, in_mask, holes, taus, hole_threshold_m)
         del other
     spacing = spacing_m if density_per_m2 is None else 1.0 / math.sqrt(density_per_m2)
@@ -627,7 +411,7 @@ def evaluate_by_tile(pred_vertices, pred_faces, true_vertices, true_faces, *, ti
     tv, tf = _validated(true_vertices, true_faces, "truth")
     tc = None if true_face_class is None else np.asarray(true_face_class, np.int64)
     mask = np.ones(len(tf), bool) if true_face_mask is None else np.asarray(true_face_mask, bool)
-    names, seed = _class_names(tc, class_names), _seed_of(rng)
+    names, seed = _class_names(tc, class_names), seed_of(rng)
     cap = buffer_m if max_distance_m is None else min(max_distance_m, buffer_m)
     owners = set(_faces_by_tile(pv, pf, tile_size_m, 1e-6)) | set(_faces_by_tile(tv, tf, tile_size_m, 1e-6))
     pred_near = _faces_by_tile(pv, pf, tile_size_m, buffer_m)
@@ -646,3 +430,22 @@ def evaluate_by_tile(pred_vertices, pred_faces, true_vertices, true_faces, *, ti
     if total is None:
         total = evaluate_partial(pv, pf, tv, tf, class_names=names, max_distance_m=cap, rng=seed, **kwargs)
     return TiledQuality(total.report(), tiles)
+
+
+__all__ = [
+    "FACADE_CLASS_IDS",
+    "DistanceStats",
+    "QualityPartial",
+    "QualityReport",
+    "TiledQuality",
+    "closest_points_on_triangles",
+    "evaluate_by_tile",
+    "evaluate_mesh",
+    "evaluate_partial",
+    "facade_mask",
+    "face_areas",
+    "point_to_mesh_distance",
+    "sample_counts",
+    "sample_surface",
+    "sample_weights",
+]

@@ -1,10 +1,12 @@
 """tasks.register: SAC-IA + Scale-ICP recover a known similarity on a synthetic street.
 
 The scene is built here: box buildings (walls + flat roofs) on both sides of a road along x, and a
-ground plane. The mesh stand-in (target) samples every surface at 10 cm with 2 cm noise; the MLS
-stand-in (source) samples only the road-facing facades, the first 4 m of the side walls (seen
-through the gaps) and the ground near the road, at 8 cm with 5 mm noise, and is then moved by the
-inverse of a known similarity, so that ``target ~= TRUTH(source)``.
+ground plane. The mesh (target) is a dense, noisy photogrammetric stand-in: every surface is a
+jittered 10 cm vertex grid, two triangles per cell, with 2 cm vertex noise. The MLS stand-in
+(source) samples only the road-facing facades, the first 4 m of the side walls (seen through the
+gaps) and the ground near the road, at 8 cm with 5 mm noise, and is then moved by the inverse of a
+known similarity, so that ``target ~= TRUTH(source)``. Coarse (LoD2-like) meshes are tested in
+``test_register_surface.py``.
 """
 
 from __future__ import annotations
@@ -22,6 +24,7 @@ from tasks.register import (
     compare_transforms,
     decompose_similarity,
     fine_register,
+    mesh_registration_target,
     register_clouds,
     subsample_for_registration,
     surface_planes,
@@ -42,10 +45,25 @@ def _rect(origin, u, v, spacing, rng):
     return np.asarray(origin, float) + a[:, None] * u + b[:, None] * v
 
 
+def _grid_mesh(origin, u, v, spacing, rng):
+    """The parallelogram origin + a u + b v as a vertex grid ~``spacing`` apart (interior vertices
+    jittered), two triangles per cell: (vertices (k, 3) float64, faces (f, 3) int64)."""
+    u, v = np.asarray(u, float), np.asarray(v, float)
+    nu, nv = max(int(np.linalg.norm(u) / spacing), 1), max(int(np.linalg.norm(v) / spacing), 1)
+    a, b = np.meshgrid(np.arange(nu + 1) / nu, np.arange(nv + 1) / nv, indexing="ij")
+    a[1:-1, :] += rng.uniform(-0.3, 0.3, a[1:-1, :].shape) / nu
+    b[:, 1:-1] += rng.uniform(-0.3, 0.3, b[:, 1:-1].shape) / nv
+    vertices = np.asarray(origin, float) + a.ravel()[:, None] * u + b.ravel()[:, None] * v
+    i, j = np.meshgrid(np.arange(nu), np.arange(nv), indexing="ij")
+    c = (i * (nv + 1) + j).ravel()
+    faces = np.concatenate([np.stack([c, c + nv + 1, c + nv + 2], 1), np.stack([c, c + nv + 2, c + 1], 1)])
+    return vertices, faces
+
+
 def _street(seed=0):
-    """(source, target): (n, 3), (m, 3) float64 metres, both in the target (mesh) frame."""
+    """(source (n, 3), mesh vertices (m, 3), mesh faces (f, 3)): float64 metres, the target (mesh) frame."""
     rng = np.random.default_rng(seed)
-    tgt = [_rect((-40, -25, 0), (80, 0, 0), (0, 50, 0), 0.10, rng)]
+    parts = [_grid_mesh((-40, -25, 0), (80, 0, 0), (0, 50, 0), 0.10, rng)]
     src = [_rect((-35, -7.5, 0), (70, 0, 0), (0, 15, 0), 0.08, rng)]
     for buildings, sign in ((NORTH, 1.0), (SOUTH, -1.0)):
         for x0, x1, yf, depth, h in buildings:
@@ -57,11 +75,14 @@ def _street(seed=0):
                 ((x1, yf, 0), (0, yb - yf, 0), (0, 0, h)),
                 ((x0, yf, h), (x1 - x0, 0, 0), (0, yb - yf, 0)),  # roof
             ]
-            tgt += [_rect(*f, 0.10, rng) for f in faces]
+            parts += [_grid_mesh(*f, 0.10, rng) for f in faces]
             src.append(_rect(*faces[0], 0.08, rng))
             src += [_rect((x, yf, 0), (0, sign * 4.0, 0), (0, 0, h), 0.08, rng) for x in (x0, x1)]
-    tgt, src = np.concatenate(tgt), np.concatenate(src)
-    return src + rng.normal(0, 0.005, src.shape), tgt + rng.normal(0, 0.02, tgt.shape)
+    offsets = np.cumsum([0] + [len(p[0]) for p in parts[:-1]])
+    vertices = np.concatenate([p[0] for p in parts])
+    faces = np.concatenate([p[1] + o for p, o in zip(parts, offsets)])
+    src = np.concatenate(src)
+    return src + rng.normal(0, 0.005, src.shape), vertices + rng.normal(0, 0.02, vertices.shape), faces
 
 
 def _similarity(yaw_deg, roll_deg, pitch_deg, t, scale):
@@ -73,13 +94,13 @@ TRUTH = _similarity(3.0, 0.5, -0.3, (2.5, -1.7, 0.8), 1.003)
 
 @pytest.fixture(scope="module")
 def street():
-    src, tgt = _street()
-    return apply_similarity(np.linalg.inv(TRUTH), src), src, tgt
+    src, vertices, faces = _street()
+    return apply_similarity(np.linalg.inv(TRUTH), src), src, (vertices, faces)
 
 
 def test_recovers_known_similarity(street):
-    moved, _, tgt = street
-    res = register_clouds(moved, tgt, RegistrationConfig())
+    moved, _, mesh = street
+    res = register_clouds(moved, *mesh, RegistrationConfig())
     err = compare_transforms(res.matrix, TRUTH, at=moved.mean(axis=0))
     print(f"\nregistration {res.method}: {err}, {res.seconds:.1f} s, {res.details['seconds']}")
     assert isinstance(res, RegistrationResult) and res.matrix.shape == (4, 4)
@@ -93,9 +114,9 @@ def test_recovers_known_similarity(street):
 
 
 def test_aligned_pair_returns_identity(street):
-    _, src, tgt = street
-    src, tgt = src[src[:, 0] < 0.0], tgt[tgt[:, 0] < 10.0]  # the west half keeps the test fast
-    res = register_clouds(src, tgt, RegistrationConfig(max_points=100_000))
+    _, src, (vertices, faces) = street
+    src, west = src[src[:, 0] < 0.0], (vertices[faces, 0] < 10.0).all(axis=1)  # the west half: faster
+    res = register_clouds(src, vertices, faces[west], RegistrationConfig(max_points=100_000))
     err = compare_transforms(res.matrix, np.eye(4), at=src.mean(axis=0))
     assert err["rotation_error_deg"] < 0.05
     assert err["translation_error_m"] < 0.02
@@ -103,36 +124,41 @@ def test_aligned_pair_returns_identity(street):
 
 
 def test_check_coregistered_flags_an_offset(street):
-    _, src, tgt = street
-    ok, median = check_coregistered(src, tgt)
-    assert ok and median < 0.05
+    _, src, mesh = street
+    check = check_coregistered(src, *mesh)
+    assert check.ok and check.median_m < 0.03 and check.overlap_fraction == 1.0
     # 1 m along the street, across it, up, and diagonally: each slides most points along some surfaces
     for offset in ((1.0, 0.0, 0.0), (0.0, 1.0, 0.0), (0.0, 0.0, 1.0), np.ones(3) / np.sqrt(3.0)):
-        ok, median = check_coregistered(src + offset, tgt)
-        assert not ok and median > 0.5, (offset, median)
+        check = check_coregistered(src + offset, *mesh)
+        assert not check.ok and check.median_m > 0.5, (offset, check)
 
 
 def test_disabled_registration_warns_and_returns_identity(street):
-    _, src, tgt = street
+    _, src, mesh = street
     with pytest.warns(UserWarning, match="co-registered"):
-        res = register_clouds(src + (0.0, 1.0, 0.0), tgt, RegistrationConfig(enabled=False))
+        res = register_clouds(src + (0.0, 1.0, 0.0), *mesh, RegistrationConfig(enabled=False))
     assert np.array_equal(res.matrix, np.eye(4)) and res.method.startswith("identity")
 
 
 def test_degenerate_inputs_raise_input_error():
     rng = np.random.default_rng(0)
     good = rng.uniform(0, 10, (1000, 3))
+    v, f = _grid_mesh((0, 0, 0), (10, 0, 0), (0, 10, 0), 1.0, rng)
     cfg = RegistrationConfig()
     with pytest.raises(InputError, match="at least 100"):
-        register_clouds(good[:50], good, cfg)
+        register_clouds(good[:50], v, f, cfg)
     with pytest.raises(InputError, match="NaN"):
-        register_clouds(np.full((500, 3), np.nan), good, cfg)
-    with pytest.raises(InputError, match="mesh vertices.*NaN"):
-        register_clouds(good, np.full((500, 3), np.nan), cfg)
+        register_clouds(np.full((500, 3), np.nan), v, f, cfg)
+    with pytest.raises(InputError, match="mesh has no faces with finite vertices"):
+        register_clouds(good, np.full_like(v, np.nan), f, cfg)
     with pytest.raises(InputError, match=r"\(n, 3\)"):
-        register_clouds(good[:, :2], good, cfg)
+        register_clouds(good[:, :2], v, f, cfg)
+    with pytest.raises(InputError, match="mesh faces must be an"):
+        register_clouds(good, v, f[:, :2], cfg)
     with pytest.raises(InputError, match="do not overlap"):
-        register_clouds(good, good + (5000.0, 0.0, 0.0), cfg)
+        register_clouds(good, v + (5000.0, 0.0, 0.0), f, cfg)
+    with pytest.raises(InputError, match="do not overlap"):  # x/y overlap, but 200 m apart in height
+        register_clouds(good, v + (0.0, 0.0, 200.0), f, cfg)
 
 
 def test_similarity_algebra_on_three_points():
@@ -174,8 +200,8 @@ def test_surface_planes_denoise_a_plane():
 
 def test_fine_stage_ignores_a_proud_facade(street):
     """A mesh facade 15 cm proud of the truth (a 'melted' MVS facade) must not drag the fit."""
-    moved, _, tgt = street
-    tgt = tgt.copy()
+    moved, _, mesh = street
+    tgt, _ = mesh_registration_target(*mesh)
     proud = (np.abs(tgt[:, 1] - 9.5) < 0.2) & (tgt[:, 0] > -9) & (tgt[:, 0] < 8)
     tgt[proud, 1] -= 0.15
     cfg = RegistrationConfig()
