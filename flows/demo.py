@@ -18,6 +18,7 @@ def _has_campus(out: Path, preset: str, seed: int) -> bool:
 def run_demo(out: Path, work: Path, seed: int = 7, preset: str = "demo") -> int:
     from flows.campus import CampusRunFailed, run_campus
     from flows.status import campus_status, format_status
+    from flows.summary import format_summary
     from synth.generate import generate
     from tasks.config import CampusConfig
 
@@ -40,6 +41,8 @@ def run_demo(out: Path, work: Path, seed: int = 7, preset: str = "demo") -> int:
         rc = 1
         summary = None
     print(f"      done in {time.perf_counter() - t1:.0f} s")
+    if summary:
+        print("      " + format_summary(summary).replace("\n", "\n      "))
     if summary:
         print(f"      orchestration: sum of task times {summary['task_seconds']:.0f} s against flow wall time "
               f"{summary['wall_seconds']:.0f} s on {cfg.cluster.n_workers} workers "

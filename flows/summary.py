@@ -64,7 +64,7 @@ def summarise(wd: WorkDir, wall_s: float, failed: dict, outliers: dict, since: f
         "failed": failed,
         "incomplete": list(incomplete),
         "skipped_files": [list(s) for s in skipped_files],
-        "registration": {k: reg.get(k) for k in ("method", "scale", "fitness", "reused", "check_median_distance_m")
+        "registration": {k: reg.get(k) for k in ("method", "scale", "fitness", "reused", "check")
                          if k in reg},
         "outliers": outliers,
     }

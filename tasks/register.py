@@ -30,6 +30,7 @@ maps *source* (MLS) coordinates to *target* (mesh) coordinates: ``target ~= s R 
 
 from __future__ import annotations
 
+import logging
 import time
 import warnings
 from dataclasses import dataclass, field
@@ -51,7 +52,7 @@ from tasks.register_base import (
     finite_xyz,
     subsample_for_registration,
 )
-from tasks.register_check import CoregistrationCheck, check_coregistered, check_overlap
+from tasks.register_check import CoregistrationCheck, check_coregistered, check_coregistered_samples, check_overlap
 from tasks.register_coarse import coarse_register, consistent_matches, match_features
 from tasks.register_fine import (
     FINE_DISTANCES_M,
@@ -68,6 +69,8 @@ from tasks.register_target import (
     mesh_registration_target,
     used_bounds,
 )
+
+log = logging.getLogger("ms3d.register")
 
 # Parameters not (yet) in RegistrationConfig; candidates for config fields.
 CROP_MARGIN_M = 10.0  # the target samples the faces within this much of the source's bounding box
@@ -187,6 +190,37 @@ def register_clouds(
     lo, hi = src_lo - CROP_MARGIN_M, src_hi + CROP_MARGIN_M
     near_faces = f[faces_in_box(v, f, lo, hi)]
     tgt, nrm = mesh_registration_target(v, near_faces, target_spacing_m, TARGET_MAX_POINTS, cfg.seed)
+    clock.lap("thin+target")
+    return _register(src, tgt, nrm, cfg, rng, clock, t0)
+
+
+def register_to_samples(source_xyz: np.ndarray, target_xyz: np.ndarray, target_normals: np.ndarray,
+                        cfg: RegistrationConfig) -> RegistrationResult:
+    """:func:`register_clouds` against surface samples made beforehand (the scan stage samples every mesh
+    file once, so registration never re-reads a mesh): target_xyz (k, 3) float64 campus-local metres,
+    target_normals (k, 3) their unit face normals, e.g. from :func:`mesh_registration_target`. The
+    samples are cropped to the source's box grown by ``CROP_MARGIN_M`` and capped at
+    ``TARGET_MAX_POINTS`` (a random subset, deterministic for ``cfg.seed``)."""
+    t0 = time.perf_counter()
+    rng = np.random.default_rng(cfg.seed)
+    clock = StepClock(t0)
+    src = finite_xyz(source_xyz, "MLS point cloud", PRE_CAP_FACTOR * cfg.max_points, rng)
+    src = subsample_for_registration(src, cfg.max_points, cfg.fine_voxel_m, rng)
+    tgt, nrm = np.asarray(target_xyz, np.float64), np.asarray(target_normals, np.float64)
+    src_lo, src_hi = src.min(axis=0), src.max(axis=0)
+    check_overlap(src_lo, src_hi, tgt.min(axis=0), tgt.max(axis=0), "the MLS point cloud (campus-local)", "the mesh")
+    keep = ((tgt >= src_lo - CROP_MARGIN_M) & (tgt <= src_hi + CROP_MARGIN_M)).all(axis=1)
+    tgt, nrm = tgt[keep], nrm[keep]
+    if len(tgt) > TARGET_MAX_POINTS:
+        pick = np.sort(rng.choice(len(tgt), TARGET_MAX_POINTS, replace=False))
+        tgt, nrm = tgt[pick], nrm[pick]
+    clock.lap("thin+target")
+    return _register(src, tgt, nrm, cfg, rng, clock, t0)
+
+
+def _register(src, tgt, nrm, cfg: RegistrationConfig, rng, clock: StepClock, t0: float) -> RegistrationResult:
+    """SAC-IA then Scale-ICP of the thinned source onto the surface samples (tgt, nrm)."""
+    src_lo, src_hi = src.min(axis=0), src.max(axis=0)
     if len(tgt) < MIN_POINTS:
         raise InputError(
             None,
@@ -194,7 +228,6 @@ def register_clouds(
             f"{np.round(src_lo, 1).tolist()} - {np.round(src_hi, 1).tolist()} gives {len(tgt)} samples "
             f"(need {MIN_POINTS}): the inputs do not overlap (wrong CRS, origin or units?)",
         )
-    clock.lap("thin+target")
     coarse, coarse_fit, coarse_info = coarse_register(src, tgt, cfg)
     clock.lap("coarse")
 
@@ -212,11 +245,8 @@ def register_clouds(
     matrix, fit, rmse, method = fine_register(src, tgt_f, nrm_f, coarse, cfg, rng)
     clock.lap("fine")
     if fit < LOW_FITNESS:
-        warnings.warn(
-            f"only {100 * fit:.0f} % of the MLS points lie within {FINE_DISTANCES_M[-1]} m of the mesh after "
-            "registration: check the result (do the inputs overlap? is the mesh badly degraded?)",
-            stacklevel=2,
-        )
+        log.warning("only %.0f %% of the MLS points lie within %s m of the mesh after registration: check the "
+                    "result (do the inputs overlap? is the mesh badly degraded?)", 100 * fit, FINE_DISTANCES_M[-1])
     scale = decompose_similarity(matrix)[0]
     return RegistrationResult(
         matrix,
@@ -231,13 +261,13 @@ def register_clouds(
         {"coarse_matrix": coarse, "coarse": coarse_info, "seconds": clock.laps},
     )
 
-
 __all__ = [
     "MIN_POINTS",
     "CoregistrationCheck",
     "RegistrationResult",
     "apply_similarity",
     "check_coregistered",
+    "check_coregistered_samples",
     "check_overlap",
     "coarse_register",
     "compare_transforms",
@@ -251,6 +281,7 @@ __all__ = [
     "plane_similarity_icp",
     "point_similarity_icp",
     "register_clouds",
+    "register_to_samples",
     "subsample_for_registration",
     "surface_planes",
 ]

@@ -153,6 +153,11 @@ def check_coregistered(
         near = faces_in_box(v, f, lo, hi)
         f = f[near] if len(near) else f
     dist = point_to_mesh_distance(pts, v, f)
+    return _summarise(pts, dist, len(src), tol_m)
+
+
+def _summarise(pts: np.ndarray, dist: np.ndarray, n_sample: int, tol_m: float) -> CoregistrationCheck:
+    """The check's figures from the measured points (m, 3) and their distances (m,) to the surface."""
     groups = _orientation_groups(pts) if len(pts) >= 20 else np.ones((len(pts), 1), bool)
     big = np.flatnonzero(groups.sum(axis=0) >= CHECK_MIN_GROUP_SHARE * len(pts))
     medians = [np.median(dist[groups[:, g]]) for g in big]
@@ -161,11 +166,45 @@ def check_coregistered(
         ok=worst <= tol_m,
         median_m=worst,
         p90_m=float(np.percentile(dist, 90)),
-        overlap_fraction=float(len(pts) / len(src)),
+        overlap_fraction=float(len(pts) / n_sample),
         n_points=len(pts),
-        n_sample=len(src),
+        n_sample=n_sample,
         tol_m=float(tol_m),
     )
 
 
-__all__ = ["CHECK_TOL_M", "CoregistrationCheck", "check_coregistered", "check_overlap"]
+def check_coregistered_samples(
+    source_xyz: np.ndarray,
+    samples_xyz: np.ndarray,
+    samples_normal: np.ndarray,
+    tol_m: float = CHECK_TOL_M,
+    seed: int = 0,
+    reach_m: float = 1.0,
+) -> CoregistrationCheck:
+    """:func:`check_coregistered` against area-weighted surface samples with their face normals (what the
+    scan stage keeps of every mesh), so the check needs no mesh re-read.
+
+    samples_xyz, samples_normal: (k, 3) float64 campus-local metres / unit normals. Each measured point's
+    distance is its distance to the *plane* of its nearest sample (exact on planar faces, whatever the
+    sample spacing); a point with no sample within ``reach_m`` counts at its distance to that sample.
+    """
+    from scipy.spatial import cKDTree
+
+    rng = np.random.default_rng(seed)
+    tgt = np.asarray(samples_xyz, np.float64)
+    nrm = np.asarray(samples_normal, np.float64)
+    src = finite_xyz(source_xyz, "MLS point cloud", PRE_CAP_FACTOR * CHECK_POINTS, rng)
+    mesh_lo, mesh_hi = tgt.min(axis=0), tgt.max(axis=0)
+    check_overlap(src.min(axis=0), src.max(axis=0), mesh_lo, mesh_hi,
+                  "the MLS point cloud (campus-local)", "the mesh")  # fmt: skip
+    src = subsample_for_registration(src, CHECK_POINTS, CHECK_VOXEL_M, rng)
+    over = ((src[:, :2] >= mesh_lo[:2]) & (src[:, :2] <= mesh_hi[:2])).all(axis=1)
+    pts = src[over]
+    if len(pts) == 0:
+        return CoregistrationCheck(False, math.nan, math.nan, 0.0, 0, len(src), float(tol_m))
+    near, idx = cKDTree(tgt).query(pts, workers=-1)
+    plane = np.abs(((pts - tgt[idx]) * nrm[idx]).sum(axis=1))
+    dist = np.where(near <= reach_m, plane, near)
+    return _summarise(pts, dist, len(src), tol_m)
+
+__all__ = ["CHECK_TOL_M", "CoregistrationCheck", "check_coregistered", "check_coregistered_samples", "check_overlap"]

@@ -69,7 +69,7 @@ def mesh_target(records: list[InputFile], wd: WorkDir, frame: CampusFrame) -> tu
             p = samples_path(wd, r.source)
             if p.exists():
                 with np.load(p) as z:
-                    xyz.append(z["xyz"] - frame.origin_array)
+                    xyz.append(z["xyz"].astype(np.float64) + (z["corner"] - frame.origin_array))
                     nrm.append(z["normals"].astype(np.float64))
     if not xyz:
         raise InputError(None, "no readable mesh to register to: " + "; ".join(r.error for r in records if r.error))
@@ -96,18 +96,18 @@ def _recorded(wd: WorkDir) -> dict | None:
 
 
 def _estimate(records: list[InputFile], frame: CampusFrame, cfg: CampusConfig, wd: WorkDir) -> dict:
-    from tasks.register import check_coregistered, register_clouds
+    from tasks.register import check_coregistered_samples, register_to_samples
 
     src = mls_sample(records, cfg, frame)
     tgt, nrm = mesh_target(records, wd, frame)
     if cfg.registration.mode == "off":
-        ok, med = check_coregistered(src, tgt)
-        if not ok:
-            log.warning("registration is off but the MLS points lie %.3f m (median) from the mesh surface: "
-                        "the inputs do not look co-registered (set registration.mode: auto)", med)
+        check = check_coregistered_samples(src, tgt, nrm, seed=cfg.registration.seed)
+        if not check.ok:
+            log.warning("registration is off but %s: the inputs do not look co-registered "
+                        "(set registration.mode: auto)", check)
         return {"matrix": np.eye(4).tolist(), "scale": 1.0, "method": "identity (registration off)",
-                "check_median_distance_m": med, "check_ok": bool(ok)}
-    return register_clouds(src, tgt, cfg.registration, target_normals=nrm).to_json()
+                "check": check.to_json()}
+    return register_to_samples(src, tgt, nrm, cfg.registration).to_json()
 
 
 def run_register(records: list[InputFile], frame: CampusFrame, cfg: CampusConfig, wd: WorkDir) -> dict:

@@ -48,16 +48,17 @@ def face_normals(vertices: np.ndarray, faces: np.ndarray) -> np.ndarray:
     return np.divide(n, length, out=np.zeros_like(n), where=length > 0)
 
 
+MAX_SAMPLES_PER_FILE = 20_000_000  # registration crops and caps the samples near the MLS anyway
+
+
 def surface_samples(vertices: np.ndarray, faces: np.ndarray, spacing_m: float, seed: int = 0):
-    """Area-weighted samples of a triangle surface with their face normals.
+    """Area-weighted samples of a triangle surface with their face normals
+    (:func:`tasks.register.mesh_registration_target`). vertices: (n, 3) float64 metres; faces: (m, 3)
+    int. Returns xyz (k, 3) float64 and normals (k, 3) float32."""
+    from tasks.register import mesh_registration_target
 
-    vertices: (n, 3) float64 metres; faces: (m, 3) int. Returns xyz (k, 3) float64 and normals
-    (k, 3) float32, about area / spacing² samples (at least one per face of positive area).
-    """
-    from tasks.quality import sample_surface
-
-    xyz, face_idx = sample_surface(vertices, faces, spacing_m=spacing_m, rng=seed)
-    return xyz, face_normals(vertices, faces)[face_idx].astype(np.float32)
+    xyz, nrm = mesh_registration_target(vertices, faces, spacing_m, MAX_SAMPLES_PER_FILE, seed)
+    return xyz, nrm.astype(np.float32)
 
 
 def choose_origin(records: list[InputFile], fixed=None) -> tuple[float, float, float]:
@@ -193,8 +194,9 @@ def _scan_mesh(rec: InputFile, cfg: CampusConfig, wd: WorkDir) -> list[str]:
     rec.lo, rec.hi = used.min(axis=0).tolist(), used.max(axis=0).tolist()
     xyz, normals = surface_samples(mesh.vertices, mesh.faces, cfg.registration.target_spacing_m, seed=rec.source)
     out = samples_path(wd, rec.source)
-    with atomic_path(out) as tmp, open(tmp, "wb") as f:
-        np.savez(f, xyz=xyz, normals=normals)
+    corner = np.asarray(rec.lo, np.float64)
+    with atomic_path(out) as tmp, open(tmp, "wb") as f:  # float32 offsets from the file's corner: 0.1 mm in 2 km
+        np.savez(f, corner=corner, xyz=(xyz - corner).astype(np.float32), normals=normals)
     return [str(out.relative_to(wd.root))]
 
 

@@ -24,7 +24,7 @@ from storage.manifest import ManifestRecord, is_done, params_hash, write_record
 from storage.workdir import WorkDir
 
 STAGE_VERSIONS = {
-    "scan": 2,       # v2: stable source ids, registration samples of the mesh surface
+    "scan": 3,       # v3: stable source ids; mesh surface samples as float32 offsets from a corner
     "register": 2,   # v2: surface target, modes auto / pinned / off
     "ingest": 2,     # v2: world-anchored grid, vertex ids, face normals
     "partition": 2,  # v2: store schema 2 (vertex ids, vertex patches, normals, side tables)
