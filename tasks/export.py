@@ -108,11 +108,18 @@ def plan_quadtree(tile_keys: list[str]) -> QuadTree:
 
 def feature_rows(grade: np.ndarray, source: np.ndarray, region: np.ndarray):
     """One feature per distinct (grade, source, region): (feature per face (m,), grade (k,) int8,
-    source (k,) int8, region (k,) int32)."""
+    source (k,) int8, region (k,) int32), features ordered by (region, grade, source).
+
+    >>> f, g, s, r = feature_rows(np.array([0, 1, 0], np.int8), np.array([0, 1, 0], np.int8), np.array([-1, 4, -1]))
+    >>> f.tolist(), g.tolist(), s.tolist(), r.tolist()
+    ([0, 1, 0], [0, 1], [0, 1], [-1, 4])
+    """
     if len(grade) == 0:
         return np.zeros(0, np.int64), np.zeros(0, np.int8), np.zeros(0, np.int8), np.zeros(0, np.int32)
-    rows, inverse = np.unique(np.stack([grade, source, region], axis=1).astype(np.int64), axis=0, return_inverse=True)
-    return inverse.reshape(-1), rows[:, 0].astype(np.int8), rows[:, 1].astype(np.int8), rows[:, 2].astype(np.int32)
+    key = ((np.asarray(region, np.int64) + 1) << 8) | ((np.asarray(grade, np.int64) + 1) << 2) | np.asarray(source, np.int64)
+    rows, inverse = np.unique(key, return_inverse=True)
+    return (inverse.reshape(-1), (((rows >> 2) & 0x3F) - 1).astype(np.int8), (rows & 0x3).astype(np.int8),
+            ((rows >> 8) - 1).astype(np.int32))
 
 
 def box_from_bounds(lo, hi) -> list[float]:
@@ -247,15 +254,81 @@ def _write_glb(out: Path, uri: str, mesh: GltfMesh, compression: str) -> int:
     return len(data)
 
 
+def _backend(cfg: ExportConfig) -> str | None:
+    return None if cfg.decimator == "auto" else cfg.decimator
+
+
 def _tile_size_m(campus: dict) -> float:
     return float(campus.get("config", {}).get("tiling", {}).get("tile_size_m", 100.0))
 
 
-def run_export(work_dir: str | Path, config: ExportConfig | None = None, tiles: list[str] | None = None) -> dict:
+@dataclass(frozen=True)
+class _Job:
+    """What one node's build needs (picklable, for a process pool)."""
+
+    node: QuadNode
+    fingerprint: str
+    out: Path
+    cache: Path
+    georef: GeoRef
+    cfg: ExportConfig
+    tile_dir: Path | None = None  # leaves
+    children: tuple[tuple[str, dict], ...] = ()  # parents: (child key, child record)
+
+
+def _build_leaf(job: _Job) -> dict:
+    """Leaf: full-resolution content glb, and the decimated mesh it passes up (cached)."""
+    tm = read_tile_mesh(job.tile_dir)
+    gltf, lod = leaf_content(tm, EnuProjector(job.georef), job.cfg)
+    uri = f"content/tiles/{tm.tile}.glb"
+    nbytes = _write_glb(job.out, uri, gltf, job.cfg.compression)
+    texture_bytes = sum(len(im.data) for im in gltf.images)
+    del gltf
+    dec = decimate(lod, math.ceil(lod.n_faces / job.cfg.lod_reduction), job.cfg.hausdorff_samples, _backend(job.cfg))
+    save_lod(job.cache / f"{job.node.key}.npz", dec.mesh)
+    lo, hi = lod.bounds()
+    return {"fingerprint": job.fingerprint, "uri": uri, "tile": tm.tile, "lo": lo.tolist(), "hi": hi.tolist(),
+            "box": box_from_bounds(lo, hi), "geometricError": 0.0, "up_hausdorff_m": dec.hausdorff_m,
+            "faces": tm.n_faces, "bytes": nbytes, "texture_bytes": texture_bytes}  # fmt: skip
+
+
+def _build_parent(job: _Job) -> dict:
+    """Parent: its children's passed-up meshes welded (content), and its own decimation passed up.
+    geometricError = max over children of (child decimation's measured deviation + child's error)."""
+    n, kids = job.node, dict(job.children)
+    content = weld(concat_lods([load_lod(job.cache / f"{k}.npz") for k in kids]))
+    uri = f"content/lod{n.h}/{n.x}_{n.y}.glb"
+    nbytes = _write_glb(job.out, uri, lod_gltf(content), job.cfg.compression)
+    dec = decimate(content, math.ceil(content.n_faces / job.cfg.lod_reduction), job.cfg.hausdorff_samples, _backend(job.cfg))
+    save_lod(job.cache / f"{n.key}.npz", dec.mesh)
+    lo, hi = content.bounds()
+    lo = np.minimum(lo, np.min([r["lo"] for r in kids.values()], axis=0))
+    hi = np.maximum(hi, np.max([r["hi"] for r in kids.values()], axis=0))
+    error = max(r["up_hausdorff_m"] + r["geometricError"] for r in kids.values())
+    return {"fingerprint": job.fingerprint, "uri": uri, "lo": lo.tolist(), "hi": hi.tolist(),
+            "box": box_from_bounds(lo, hi), "geometricError": float(error), "up_hausdorff_m": dec.hausdorff_m,
+            "faces": content.n_faces, "bytes": nbytes, "texture_bytes": 0}  # fmt: skip
+
+
+def _run_jobs(fn, jobs: list[_Job], workers: int) -> list[dict]:
+    if workers <= 1 or len(jobs) <= 1:
+        return [fn(j) for j in jobs]
+    import multiprocessing
+    from concurrent.futures import ProcessPoolExecutor
+
+    ctx = multiprocessing.get_context("forkserver")
+    with ProcessPoolExecutor(max_workers=min(workers, len(jobs)), mp_context=ctx) as pool:
+        return list(pool.map(fn, jobs))
+
+
+def run_export(work_dir: str | Path, config: ExportConfig | None = None, tiles: list[str] | None = None,
+               workers: int = 1) -> dict:
     """Write ``work_dir/output`` (see the module docstring) from ``tiles/*/merged.npz``.
 
-    tiles: tile keys to export (default: every tile with a merged mesh). Returns a summary: counts of
-    nodes rebuilt / reused, faces, bytes, seconds, the paths written.
+    tiles: tile keys to export (default: every tile with a merged mesh). workers: processes building
+    the nodes of one level side by side (1 inside a Dask worker, whose daemon process may not fork a
+    pool; memory grows to ``workers`` tiles). Returns a summary: nodes built / reused, faces, bytes,
+    seconds, the paths written.
     """
     from storage.workdir import WorkDir, campus_frame, read_campus
 
@@ -277,75 +350,39 @@ def run_export(work_dir: str | Path, config: ExportConfig | None = None, tiles: 
     ij = np.array([[int(v) for v in k.split("_")] for k in tiles], np.float64)
     centre = ((ij.min(axis=0) + ij.max(axis=0) + 1) / 2) * size
     georef = make_georef(frame.crs, frame.origin, (centre[0], centre[1], 0.0), frame.vertical_datum)
-    projector = EnuProjector(georef)
     base = _sha(EXPORT_VERSION, cfg.model_dump(mode="json"), georef.to_json())
 
     state_path = out / "tileset.fingerprints.json"
     old = json.loads(state_path.read_text()).get("nodes", {}) if state_path.exists() else {}
     nodes: dict[str, dict] = {}
-    built, reused, faces_in = [], [], 0
+    built, reused = [], []
 
     def fresh(key: str, fp: str) -> bool:
         rec = old.get(key)
         return bool(rec) and rec["fingerprint"] == fp and (out / rec["uri"]).exists() and (cache / f"{key}.npz").exists()
 
-    for n in tree.levels[0]:
-        tile = tree.leaf_tile[n]
-        tile_dir = wd.root / "tiles" / tile
-        fp = _leaf_fingerprint(tile_dir, base)
-        if fresh(n.key, fp):
-            nodes[n.key] = old[n.key]
-            reused.append(n.key)
-            continue
-        tm = read_tile_mesh(tile_dir)
-        faces_in += tm.n_faces
-        gltf, lod = leaf_content(tm, projector, cfg)
-        uri = f"content/tiles/{tile}.glb"
-        nbytes = _write_glb(out, uri, gltf, cfg.compression)
-        dec = decimate(lod, math.ceil(lod.n_faces / cfg.lod_reduction), cfg.hausdorff_samples)
-        save_lod(cache / f"{n.key}.npz", dec.mesh)
-        lo, hi = lod.bounds()
-        nodes[n.key] = {"fingerprint": fp, "uri": uri, "tile": tile, "lo": lo.tolist(), "hi": hi.tolist(),
-                        "box": box_from_bounds(lo, hi), "geometricError": 0.0, "up_hausdorff_m": dec.hausdorff_m,
-                        "faces": tm.n_faces, "bytes": nbytes}  # fmt: skip
-        built.append(n.key)
-        del tm, gltf, lod, dec
-
-    root_lod = None
-    for level in tree.levels[1:]:
+    for level in tree.levels:
+        jobs = []
         for n in level:
-            kids = tree.children[n]
-            fp = _sha(base, [nodes[c.key]["fingerprint"] for c in kids])
-            if fresh(n.key, fp):
+            if n.h == 0:
+                tile_dir = wd.root / "tiles" / tree.leaf_tile[n]
+                job = _Job(n, _leaf_fingerprint(tile_dir, base), out, cache, georef, cfg, tile_dir=tile_dir)
+            else:
+                kids = tuple((c.key, nodes[c.key]) for c in tree.children[n])
+                job = _Job(n, _sha(base, [r["fingerprint"] for _, r in kids]), out, cache, georef, cfg, children=kids)
+            if fresh(n.key, job.fingerprint):
                 nodes[n.key] = old[n.key]
                 reused.append(n.key)
-                continue
-            content = weld(concat_lods([load_lod(cache / f"{c.key}.npz") for c in kids]))
-            uri = f"content/lod{n.h}/{n.x}_{n.y}.glb"
-            nbytes = _write_glb(out, uri, lod_gltf(content), cfg.compression)
-            dec = decimate(content, math.ceil(content.n_faces / cfg.lod_reduction), cfg.hausdorff_samples)
-            save_lod(cache / f"{n.key}.npz", dec.mesh)
-            lo, hi = content.bounds()
-            lo = np.minimum(lo, np.min([nodes[c.key]["lo"] for c in kids], axis=0))
-            hi = np.maximum(hi, np.max([nodes[c.key]["hi"] for c in kids], axis=0))
-            error = max(nodes[c.key]["up_hausdorff_m"] + nodes[c.key]["geometricError"] for c in kids)
-            nodes[n.key] = {"fingerprint": fp, "uri": uri, "lo": lo.tolist(), "hi": hi.tolist(),
-                            "box": box_from_bounds(lo, hi), "geometricError": float(error),
-                            "up_hausdorff_m": dec.hausdorff_m, "faces": content.n_faces, "bytes": nbytes}  # fmt: skip
-            built.append(n.key)
-            if n == tree.root:
-                root_lod = content
-            del content, dec
+            else:
+                jobs.append(job)
+        for job, rec in zip(jobs, _run_jobs(_build_leaf if level[0].h == 0 else _build_parent, jobs, workers)):
+            nodes[job.node.key] = rec
+            built.append(job.node.key)
 
     root = tree.root
     overview = out / "overview.glb"
     if root.key in built or not overview.exists():
-        if root_lod is None:
-            root_lod = weld(load_lod(cache / f"{root.key}.npz")) if root.h else None
-        if root_lod is None:  # a one-tile campus: the root is the leaf
-            tm = read_tile_mesh(wd.root / "tiles" / tree.leaf_tile[root])
-            root_lod = leaf_content(tm, projector, cfg)[1]
-        ov = decimate(root_lod, cfg.overview_max_faces, cfg.hausdorff_samples).mesh
+        ov = decimate(load_lod(cache / f"{root.key}.npz"), cfg.overview_max_faces, cfg.hausdorff_samples, _backend(cfg)).mesh
         _write_glb(out, "overview.glb", lod_gltf(ov), cfg.compression)
 
     doc = tileset_json(tree, nodes, georef)
@@ -358,15 +395,18 @@ def run_export(work_dir: str | Path, config: ExportConfig | None = None, tiles: 
 
     named = {rec["uri"] for rec in nodes.values()}
     for stale in (out / "content").rglob("*.glb"):
-        if str(stale.relative_to(out)) not in named:
+        if stale.relative_to(out).as_posix() not in named:
             stale.unlink()
     for stale in cache.glob("*.npz"):
         if stale.stem not in nodes:
             stale.unlink()
+    leaves_built = [k for k in built if k.startswith("L0_")]
     return {
-        "tiles": len(tiles), "nodes": len(nodes), "built": built, "reused": reused, "faces_in": faces_in,
+        "tiles": len(tiles), "nodes": len(nodes), "built": built, "reused": reused,
+        "faces_in": int(sum(nodes[k]["faces"] for k in leaves_built)),
         "leaf_faces": int(sum(nodes[n.key]["faces"] for n in tree.levels[0])),
         "bytes": int(sum(rec["bytes"] for rec in nodes.values())), "compression": cfg.compression,
+        "texture_bytes": int(sum(rec.get("texture_bytes", 0) for rec in nodes.values())),
         "root_geometric_error_m": nodes[root.key]["geometricError"], "seconds": time.perf_counter() - t0,
         "tileset": str(tileset), "overview": str(overview), "georef": str(out / "georef.json"),
     }  # fmt: skip

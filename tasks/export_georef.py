@@ -75,7 +75,7 @@ class GeoRef:
 def enu_rotation(lon_deg: float, lat_deg: float) -> np.ndarray:
     """(3, 3) float64 rows = east, north, up unit vectors in ECEF at (lon, lat).
 
-    >>> np.round(enu_rotation(0.0, 0.0), 12).tolist()
+    >>> (np.round(enu_rotation(0.0, 0.0), 12) + 0.0).tolist()
     [[0.0, 1.0, 0.0], [0.0, 0.0, 1.0], [1.0, 0.0, 0.0]]
     """
     lo, la = np.radians(lon_deg), np.radians(lat_deg)

@@ -4,12 +4,12 @@
 vertex colours, one provenance row per feature) into glb bytes:
 
 - one primitive per texture image (``KHR_materials_unlit``: photogrammetric textures already hold the
-  light) and one for vertex-coloured faces (lit, with normals): glTF multiplies colour by texture, so the
-  two never share a primitive;
+  light, so no normals) and one for vertex-coloured faces (lit, with normals): glTF multiplies colour by
+  texture, so the two never share a primitive;
 - feature ids per vertex (``_FEATURE_ID_0``, ``EXT_mesh_features``) index one
   ``EXT_structural_metadata`` property table (grade, source, region); a vertex used by faces of
   different features is duplicated, so every face reads one feature;
-- normals are area-weighted per vertex; COLOR_0 is linear RGBA8 (input colours are sRGB);
+- normals (lit primitives) are area-weighted per vertex; COLOR_0 is linear RGBA8 (input colours are sRGB);
 - ``compression="draco"`` encodes each primitive with ``KHR_draco_mesh_compression`` (DracoPy).
 
 ``read_glb`` / ``glb_positions`` read back what is needed by tests and bounding volumes.
@@ -89,16 +89,26 @@ def split_by_feature(faces: np.ndarray, feature: np.ndarray) -> tuple[np.ndarray
     """Compact the vertices of ``faces`` so that no vertex is shared by faces of different features.
 
     faces: (m, 3) int; feature: (m,) int >= 0. Returns (new faces (m, 3) int64, source vertex per new
-    vertex (k,) int64, feature per new vertex (k,) int64).
+    vertex (k,) int64, feature per new vertex (k,) int64); new vertices ordered by (source, feature).
 
     >>> f, src, fid = split_by_feature(np.array([[0, 1, 2], [2, 1, 3]]), np.array([0, 1]))
     >>> f.tolist(), src.tolist(), fid.tolist()
     ([[0, 1, 3], [4, 2, 5]], [0, 1, 1, 2, 2, 3], [0, 0, 1, 0, 1, 1])
     """
     faces = np.asarray(faces, np.int64)
-    n_feat = int(feature.max()) + 1 if len(feature) else 1
-    key = faces * n_feat + np.asarray(feature, np.int64)[:, None]
-    uniq, inverse = np.unique(key, return_inverse=True)
+    if len(faces) == 0:
+        return faces.reshape(0, 3), np.zeros(0, np.int64), np.zeros(0, np.int64)
+    n_feat = int(feature.max()) + 1
+    key = (faces * n_feat + np.asarray(feature, np.int64)[:, None]).reshape(-1)
+    space = (int(faces.max()) + 1) * n_feat
+    if space <= max(1 << 26, 8 * key.size):  # a dense table: linear time, no sort
+        used = np.zeros(space, bool)
+        used[key] = True
+        uniq = np.flatnonzero(used)
+        new_id = np.cumsum(used) - 1
+        inverse = new_id[key]
+    else:
+        uniq, inverse = np.unique(key, return_inverse=True)
     return inverse.reshape(-1, 3), uniq // n_feat, uniq % n_feat
 
 
@@ -107,10 +117,9 @@ def vertex_normals(positions: np.ndarray, faces: np.ndarray) -> np.ndarray:
     p = positions.astype(np.float64)
     fn = np.cross(p[faces[:, 1]] - p[faces[:, 0]], p[faces[:, 2]] - p[faces[:, 0]])
     acc = np.zeros((len(p), 3))
-    for c in range(3):
-        idx = faces[:, c]
-        for d in range(3):
-            acc[:, d] += np.bincount(idx, weights=fn[:, d], minlength=len(p))
+    corners = faces.reshape(-1)
+    for d in range(3):
+        acc[:, d] = np.bincount(corners, weights=np.repeat(fn[:, d], 3), minlength=len(p))
     norm = np.linalg.norm(acc, axis=1)
     ok = norm > 1e-20
     out = np.tile(np.array([0.0, 1.0, 0.0]), (len(p), 1))
@@ -168,12 +177,12 @@ _DRACO_TYPES = {"POSITION": 0, "NORMAL": 1, "COLOR_0": 2, "TEXCOORD_0": 3, "_FEA
 
 
 @lru_cache(maxsize=8)
-def _draco_unique_ids(has_uv: bool, has_color: bool) -> dict[str, int]:
+def _draco_unique_ids(has_uv: bool, has_color: bool, has_normals: bool) -> dict[str, int]:
     """Which unique id DracoPy gives each attribute, found by encoding a one-triangle probe."""
     import DracoPy
 
     p = np.eye(3, dtype=np.float32)
-    enc = DracoPy.encode(p, np.array([[0, 1, 2]], np.uint32), normals=p.astype(np.float64),
+    enc = DracoPy.encode(p, np.array([[0, 1, 2]], np.uint32), normals=p.astype(np.float64) if has_normals else None,
                          tex_coord=np.zeros((3, 2)) if has_uv else None,
                          colors=np.zeros((3, 4), np.uint8) if has_color else None,
                          generic_attributes={20: np.zeros((3, 1), np.uint16)})
@@ -191,16 +200,17 @@ def _primitive(b: _Builder, pos, faces, normals, uv, colors, fid, material: int,
     if compression == "draco":
         import DracoPy
 
-        ids = _draco_unique_ids(uv is not None, colors is not None)
+        ids = _draco_unique_ids(uv is not None, colors is not None, normals is not None)
         data = DracoPy.encode(
             pos, faces.astype(np.uint32), quantization_bits=16, compression_level=7,
-            normals=normals.astype(np.float64), normal_quantization_bits=10,
+            normals=None if normals is None else normals.astype(np.float64), normal_quantization_bits=10,
             tex_coord=None if uv is None else uv.astype(np.float64), tex_coord_quantization_bits=14,
             colors=colors, generic_attributes={20: fid_u16.reshape(-1, 1)},
         )  # fmt: skip
         attrs = {"POSITION": b.accessor(pos, FLOAT, "VEC3", n, minmax=True, view=False),
-                 "NORMAL": b.accessor(None, FLOAT, "VEC3", n, view=False),
                  "_FEATURE_ID_0": b.accessor(None, USHORT, "SCALAR", n, view=False)}
+        if normals is not None:
+            attrs["NORMAL"] = b.accessor(None, FLOAT, "VEC3", n, view=False)
         if uv is not None:
             attrs["TEXCOORD_0"] = b.accessor(None, FLOAT, "VEC2", n, view=False)
         if colors is not None:
@@ -208,8 +218,9 @@ def _primitive(b: _Builder, pos, faces, normals, uv, colors, fid, material: int,
         indices = b.accessor(None, idx_type, "SCALAR", faces.size, view=False)
         ext = {"KHR_draco_mesh_compression": {"bufferView": b.view(data), "attributes": {k: ids[k] for k in attrs}}}
     else:
-        attrs = {"POSITION": b.accessor(pos, FLOAT, "VEC3", n, target=ARRAY_BUFFER, minmax=True),
-                 "NORMAL": b.accessor(normals, FLOAT, "VEC3", n, target=ARRAY_BUFFER)}
+        attrs = {"POSITION": b.accessor(pos, FLOAT, "VEC3", n, target=ARRAY_BUFFER, minmax=True)}
+        if normals is not None:
+            attrs["NORMAL"] = b.accessor(normals, FLOAT, "VEC3", n, target=ARRAY_BUFFER)
         if uv is not None:
             attrs["TEXCOORD_0"] = b.accessor(uv, FLOAT, "VEC2", n, target=ARRAY_BUFFER)
         if colors is not None:
@@ -253,7 +264,7 @@ def build_glb(mesh: GltfMesh, compression: str = "none") -> bytes:
         sel = np.flatnonzero(mesh.face_texture == g)
         faces, src, fid = split_by_feature(mesh.faces[sel], mesh.feature[sel])
         pos = np.ascontiguousarray(mesh.positions[src], np.float32)
-        normals = vertex_normals(pos, faces)
+        normals = None  # unlit textured primitives need none
         if g >= 0:
             uv = np.ascontiguousarray(mesh.uv[src], np.float32)
             colors = None
@@ -267,6 +278,7 @@ def build_glb(mesh: GltfMesh, compression: str = "none") -> bytes:
             uv = None
             rgb = mesh.vertex_colors[src] if mesh.vertex_colors is not None else np.full((len(src), 3), 180, np.uint8)
             colors = srgb_to_linear_u8(rgb)
+            normals = vertex_normals(pos, faces)
             doc["materials"].append({"name": "vertex_colour", "doubleSided": True,
                                      "pbrMetallicRoughness": {"metallicFactor": 0.0, "roughnessFactor": 1.0}})
         primitives.append(_primitive(b, pos, faces, normals, uv, colors, fid, len(doc["materials"]) - 1, compression))
@@ -300,7 +312,7 @@ def read_glb(data: bytes) -> tuple[dict, bytes]:
     magic, version, total = struct.unpack_from("<III", data, 0)
     if magic != GLB_MAGIC or version != 2:
         raise ValueError("not a glTF 2.0 binary")
-    jlen, jtype = struct.unpack_from("<II", data, 12)
+    jlen, _ = struct.unpack_from("<II", data, 12)
     doc = json.loads(data[20 : 20 + jlen])
     off = 20 + jlen
     binary = b""

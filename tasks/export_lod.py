@@ -3,7 +3,7 @@
 A :class:`LodMesh` is what a quadtree node passes to its parent: float32 ENU positions (z-up), faces,
 sRGB vertex colours (textures sampled at the vertices) and per-face provenance. Each node passes up
 ``decimate(content, content_faces / 4)``; a parent's content is its children's passed-up meshes welded
-together. The deviation of each decimation is measured (sampled two-sided Hausdorff distance, pymeshlab)
+together. The deviation of each decimation is measured (sampled two-sided Hausdorff distance, open3d)
 so a parent's ``geometricError`` is a measured bound of its distance to the full-resolution leaves:
 ``max over children (hausdorff(child content, child passed-up) + child geometricError)``.
 """
@@ -67,14 +67,14 @@ def concat_lods(parts: list[LodMesh]) -> LodMesh:
 
 
 def weld(lod: LodMesh) -> LodMesh:
-    """Merge vertices with bit-identical positions (the first one's colour wins), drop faces that
-    collapse and unused vertices.
+    """Merge vertices with bit-identical positions (one of them gives the colour), drop faces that
+    collapse and unused vertices. Vertices come out sorted by position.
 
     >>> p = np.array([[0, 0, 0], [1, 0, 0], [0, 1, 0], [1, 0, 0]], np.float32)
     >>> w = weld(LodMesh(p, np.array([[0, 1, 2], [3, 2, 0]], np.int32), np.zeros((4, 3), np.uint8),
     ...                  np.zeros(2, np.int8), np.zeros(2, np.int8), np.zeros(2, np.int32)))
     >>> len(w.positions), w.faces.tolist()
-    (3, [[0, 1, 2], [1, 2, 0]])
+    (3, [[0, 2, 1], [2, 1, 0]])
     """
     bits = lod.positions.view(np.uint32)
     order = np.lexsort((bits[:, 2], bits[:, 1], bits[:, 0]))
@@ -111,39 +111,97 @@ class Decimation:
     mean_m: float
 
 
-def decimate(lod: LodMesh, target_faces: int, samples: int = 50_000) -> Decimation:
-    """Quadric edge-collapse decimation (pymeshlab) to about ``target_faces``, keeping open boundaries
-    (tile borders stay where the neighbour tile expects them), vertex colours carried by the surviving
-    vertices, provenance taken from the nearest input face (by centroid). Deviation measured both ways
-    with ``samples`` points per direction (plus the vertices of the simplified mesh).
-    """
-    import pymeshlab
-    from scipy.spatial import cKDTree
+def sample_surface(positions: np.ndarray, faces: np.ndarray, n: int, rng: np.random.Generator) -> np.ndarray:
+    """(n, 3) float32 points uniformly distributed over the triangles' area (area-weighted faces,
+    uniform barycentric coordinates)."""
+    p = positions.astype(np.float64)
+    a, b, c = p[faces[:, 0]], p[faces[:, 1]], p[faces[:, 2]]
+    area = 0.5 * np.linalg.norm(np.cross(b - a, c - a), axis=1)
+    if area.sum() <= 0:
+        return p[faces[:, 0]][:n].astype(np.float32)
+    pick = rng.choice(len(faces), size=n, p=area / area.sum())
+    r1, r2 = rng.random(n), rng.random(n)
+    flip = r1 + r2 > 1
+    r1[flip], r2[flip] = 1 - r1[flip], 1 - r2[flip]
+    pts = a[pick] + r1[:, None] * (b[pick] - a[pick]) + r2[:, None] * (c[pick] - a[pick])
+    return pts.astype(np.float32)
 
-    if lod.n_faces <= target_faces or lod.n_faces < 4:
-        return Decimation(lod, 0.0, 0.0)
+
+def _scene(positions: np.ndarray, faces: np.ndarray):
+    import open3d as o3d
+
+    scene = o3d.t.geometry.RaycastingScene()
+    scene.add_triangles(o3d.core.Tensor(np.ascontiguousarray(positions, np.float32)),
+                        o3d.core.Tensor(np.ascontiguousarray(faces, np.uint32)))
+    return scene
+
+
+def _distances(scene, points: np.ndarray) -> np.ndarray:
+    import open3d as o3d
+
+    return scene.compute_distance(o3d.core.Tensor(np.ascontiguousarray(points, np.float32))).numpy()
+
+
+def _quadric_fqmr(lod: LodMesh, target_faces: int) -> tuple[np.ndarray, np.ndarray]:
+    import pyfqmr
+
+    s = pyfqmr.Simplify()
+    s.setMesh(lod.positions.astype(np.float64), lod.faces)
+    s.simplify_mesh(target_count=int(target_faces), aggressiveness=7, preserve_border=True, verbose=False)
+    v, f, _ = s.getMesh()
+    return v.astype(np.float32), f.astype(np.int32)
+
+
+def _quadric_pymeshlab(lod: LodMesh, target_faces: int) -> tuple[np.ndarray, np.ndarray]:
+    import pymeshlab
+
     ms = pymeshlab.MeshSet()
-    rgba = np.ones((len(lod.positions), 4))
-    rgba[:, :3] = lod.colors / 255.0
-    ms.add_mesh(pymeshlab.Mesh(vertex_matrix=lod.positions.astype(np.float64), face_matrix=lod.faces,
-                               v_color_matrix=rgba))
-    ms.add_mesh(pymeshlab.Mesh(vertex_matrix=lod.positions.astype(np.float64), face_matrix=lod.faces,
-                               v_color_matrix=rgba))
-    ms.set_current_mesh(1)
+    ms.add_mesh(pymeshlab.Mesh(vertex_matrix=lod.positions.astype(np.float64), face_matrix=lod.faces))
     ms.meshing_decimation_quadric_edge_collapse(targetfacenum=int(target_faces), preserveboundary=True,
                                                 boundaryweight=2.0, optimalplacement=True, autoclean=True)
     out = ms.current_mesh()
-    positions = out.vertex_matrix().astype(np.float32)
-    faces = out.face_matrix().astype(np.int32)
-    colors = np.clip(np.round(out.vertex_color_matrix()[:, :3] * 255), 0, 255).astype(np.uint8)
-    a = ms.get_hausdorff_distance(sampledmesh=0, targetmesh=1, samplevert=False, sampleface=True, samplenum=samples)
-    b = ms.get_hausdorff_distance(sampledmesh=1, targetmesh=0, samplevert=True, sampleface=True, samplenum=samples)
+    return out.vertex_matrix().astype(np.float32), out.face_matrix().astype(np.int32)
+
+
+def quadric_backend() -> str:
+    """"fqmr" (pyfqmr, Fast Quadric Mesh Simplification) when installed, else "pymeshlab"."""
+    try:
+        import pyfqmr  # noqa: F401
+    except ImportError:
+        return "pymeshlab"
+    return "fqmr"
+
+
+def decimate(lod: LodMesh, target_faces: int, samples: int = 50_000, backend: str | None = None) -> Decimation:
+    """Quadric edge-collapse decimation to about ``target_faces``, open boundaries kept (tile borders
+    stay where the neighbour expects them).
+
+    backend: "fqmr" (pyfqmr, ~6x faster here) or "pymeshlab" (VCG); default ``quadric_backend()``.
+    A new vertex takes the colour of the nearest input vertex; a new face the provenance of the input face
+    whose centroid is nearest its centroid. The deviation is measured both ways
+    (open3d ray-casting distances) at ``samples`` area-uniform points on each surface plus the
+    simplified mesh's vertices.
+    """
+    if lod.n_faces <= target_faces or lod.n_faces < 4:
+        return Decimation(lod, 0.0, 0.0)
+    backend = backend or quadric_backend()
+    positions, faces = (_quadric_fqmr if backend == "fqmr" else _quadric_pymeshlab)(lod, target_faces)
+    if len(faces) == 0:
+        return Decimation(lod, 0.0, 0.0)
+    from scipy.spatial import cKDTree
+
+    rng = np.random.default_rng(0)
+    _, nearest_vertex = cKDTree(lod.positions).query(positions, workers=1)
+    colors = lod.colors[nearest_vertex]
     centroids_in = lod.positions[lod.faces].astype(np.float64).mean(axis=1)
     centroids_out = positions[faces].astype(np.float64).mean(axis=1)
     _, nearest = cKDTree(centroids_in).query(centroids_out, workers=1)
-    simplified = _compact(LodMesh(positions, faces, colors, lod.grade[nearest], lod.source[nearest],
-                                  lod.region[nearest]))
-    return Decimation(simplified, float(max(a["max"], b["max"])), float(max(a["mean"], b["mean"])))
+    to_original = _distances(_scene(lod.positions, lod.faces),
+                             np.concatenate([positions, sample_surface(positions, faces, samples, rng)]))
+    to_simplified = _distances(_scene(positions, faces), sample_surface(lod.positions, lod.faces, samples, rng))
+    simplified = _compact(LodMesh(positions, faces, colors, lod.grade[nearest], lod.source[nearest], lod.region[nearest]))
+    dist = np.concatenate([to_original, to_simplified])
+    return Decimation(simplified, float(dist.max()), float(dist.mean()))
 
 
 def sample_colors(image: np.ndarray, uv_gltf: np.ndarray) -> np.ndarray:
