@@ -6,7 +6,7 @@ its own):
 
 1. ``run_export`` uncompressed on the demo campus: triangles per second (leaf triangles / wall seconds,
    and per CPU second), bytes per km² of campus footprint, peak RSS;
-2. the same with Draco: bytes per km²;
+2. the same with Draco: bytes per km²; then uncompressed with 2 processes (``workers=2``);
 3. ``run_export`` on a campus ``--replicate`` times larger (the demo's tiles copied side by side, same
    content per tile): peak RSS, which must not grow with the campus (memory is bounded by a tile).
 
@@ -38,21 +38,29 @@ TARGET_TRIANGLES_PER_S = 40_000
 RSS_BUDGET_MB = 2048
 
 
-def _child(work: str, compression: str) -> None:
+def _vm_hwm_mb() -> float:
+    """Peak RSS of this process image (VmHWM; ru_maxrss would carry the parent's peak across exec)."""
+    for line in Path("/proc/self/status").read_text().splitlines():
+        if line.startswith("VmHWM:"):
+            return int(line.split()[1]) / 1024.0
+    return resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024.0
+
+
+def _child(work: str, compression: str, workers: int = 1) -> None:
     """Run one export in this (fresh) process and print its summary with peak RSS and CPU seconds."""
     from tasks.config import ExportConfig
     from tasks.export import run_export
 
     t0, c0 = time.perf_counter(), time.process_time()
-    summary = run_export(work, ExportConfig(compression=compression))
-    summary.update(wall_s=time.perf_counter() - t0, cpu_s=time.process_time() - c0,
-                   peak_rss_mb=resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024.0)
+    summary = run_export(work, ExportConfig(compression=compression), workers=workers)
+    summary.update(wall_s=time.perf_counter() - t0, cpu_s=time.process_time() - c0, peak_rss_mb=_vm_hwm_mb(),
+                   children_peak_rss_mb=resource.getrusage(resource.RUSAGE_CHILDREN).ru_maxrss / 1024.0)
     summary.pop("built"), summary.pop("reused")
     print(json.dumps(summary))
 
 
-def _run_child(work: Path, compression: str) -> dict:
-    run = subprocess.run([sys.executable, __file__, "--child", str(work), compression], capture_output=True,
+def _run_child(work: Path, compression: str, workers: int = 1) -> dict:
+    run = subprocess.run([sys.executable, __file__, "--child", str(work), compression, str(workers)], capture_output=True,
                          text=True, cwd=REPO, check=False)  # fmt: skip
     if run.returncode != 0:
         raise RuntimeError(run.stderr[-3000:])
@@ -108,10 +116,10 @@ def main(argv: list[str] | None = None) -> dict:
     p.add_argument("--work", type=Path, default=REPO / "ms3d-work" / "export-bench")
     p.add_argument("--tile-size", type=float, default=50.0)
     p.add_argument("--replicate", type=int, default=2, help="the larger campus is this many times the input")
-    p.add_argument("--child", nargs=2, metavar=("WORK", "COMPRESSION"), help=argparse.SUPPRESS)
+    p.add_argument("--child", nargs=3, metavar=("WORK", "COMPRESSION", "WORKERS"), help=argparse.SUPPRESS)
     a = p.parse_args(argv)
     if a.child:
-        _child(*a.child)
+        _child(a.child[0], a.child[1], int(a.child[2]))
         return {}
     if not (a.input / "campus.yaml").exists():  # the demo campus, generated once (~3 min)
         subprocess.run([sys.executable, "-m", "flows.cli", "synth", "--preset", "demo", "--seed", "7", "--out",
@@ -126,18 +134,21 @@ def main(argv: list[str] | None = None) -> dict:
           f"{km2:.4f} km² (fake merge {time.perf_counter() - t:.1f} s); load average {load[0]:.1f}")
 
     results = {}
-    for name, compression, src in (("none", "none", base), ("draco", "draco", base)):
+    for name, compression, workers in (("none", "none", 1), ("draco", "draco", 1), ("none-2w", "none", 2)):
         work = a.work / f"run-{name}"
         if work.exists():
             shutil.rmtree(work)
         shutil.copytree(base, work)
-        results[name] = r = _run_child(work, compression)
-        print(f"export {name:5s}: {r['leaf_faces']:,} triangles in {r['wall_s']:.1f} s wall / {r['cpu_s']:.1f} s CPU "
-              f"= {r['leaf_faces'] / r['wall_s']:,.0f} triangles/s wall, {r['leaf_faces'] / r['cpu_s']:,.0f} per CPU s "
-              f"(target >= {TARGET_TRIANGLES_PER_S:,} for merge + export); {r['bytes'] / 1e6:,.1f} MB of content = "
-              f"{r['bytes'] / 1e6 / km2:,.0f} MB/km²; peak RSS {r['peak_rss_mb']:,.0f} MB")
+        results[name] = r = _run_child(work, compression, workers)
+        rss = max(r["peak_rss_mb"], r["children_peak_rss_mb"])
+        print(f"export {name:7s} ({workers} process{'es' if workers > 1 else ''}): {r['leaf_faces']:,} triangles in "
+              f"{r['wall_s']:.1f} s wall / {r['cpu_s']:.1f} s CPU = {r['leaf_faces'] / r['wall_s']:,.0f} triangles/s "
+              f"(target >= {TARGET_TRIANGLES_PER_S:,} for merge + export); {r['bytes'] / 1e6:,.1f} MB = "
+              f"{r['bytes'] / 1e6 / km2:,.0f} MB/km² (textures {r['texture_bytes'] / 1e6 / km2:,.0f}); "
+              f"peak RSS {rss:,.0f} MB per process")
     big = replicate(base, a.work / "big", a.replicate, a.tile_size)
     results["big"] = rb = _run_child(big, "none")
+    load_end = os.getloadavg()[0]
     km2_big = _footprint_km2(big, a.tile_size)
     rss = [results["none"]["peak_rss_mb"], rb["peak_rss_mb"]]
     print(f"peak RSS of export: {rss[0]:,.0f} MB at {km2:.3f} km² ({results['none']['tiles']} tiles), "
@@ -146,9 +157,10 @@ def main(argv: list[str] | None = None) -> dict:
     figures = {
         "triangles_per_s": results["none"]["leaf_faces"] / results["none"]["wall_s"],
         "triangles_per_cpu_s": results["none"]["leaf_faces"] / results["none"]["cpu_s"],
+        "triangles_per_s_2_processes": results["none-2w"]["leaf_faces"] / results["none-2w"]["wall_s"],
         "mb_per_km2": results["none"]["bytes"] / 1e6 / km2,
         "mb_per_km2_draco": results["draco"]["bytes"] / 1e6 / km2,
-        "peak_rss_mb": rss, "area_km2": [km2, km2_big], "load_average": load[0],
+        "peak_rss_mb": rss, "area_km2": [km2, km2_big], "load_average": [load[0], load_end],
     }
     print(json.dumps(figures))
     return {"figures": figures, "runs": results}

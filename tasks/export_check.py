@@ -174,3 +174,53 @@ def validate_glbs(paths: list[str | Path], batch: int = 64) -> list[dict]:
             raise RuntimeError(f"validate.mjs failed ({run.returncode}): {run.stderr.strip()[-2000:]}")
         reports.extend(json.loads(run.stdout))
     return reports
+
+
+def ecef_round_trip_error_m(work_dir: str | Path, tile: str) -> float:
+    """Max distance (metres) between the vertices of a leaf glb taken through the tileset's transforms
+    (glTF y-up -> z-up, root ENU->ECEF) and their ECEF positions computed by pyproj straight from the
+    projected world coordinates of the tile's merged mesh (matched by nearest neighbour)."""
+    from pyproj import CRS, Transformer
+    from scipy.spatial import cKDTree
+
+    from storage.tile_mesh import read_tile_mesh
+    from storage.workdir import WorkDir, campus_frame, read_campus
+
+    wd = WorkDir(work_dir)
+    frame = campus_frame(read_campus(wd))
+    doc = json.loads((wd.root / "output" / "tileset.json").read_text())
+    m = np.asarray(doc["root"]["transform"], np.float64).reshape(4, 4).T
+    via = gltf_to_enu(glb_positions((wd.root / "output" / "content" / "tiles" / f"{tile}.glb").read_bytes()))
+    via = via @ m[:3, :3].T + m[:3, 3]
+    src = CRS(frame.crs)
+    src = src if src.is_compound else src.to_3d()
+    world = read_tile_mesh(wd.root / "tiles" / tile).vertices.astype(np.float64) + frame.origin_array
+    direct = np.stack(Transformer.from_crs(src, "EPSG:4978", always_xy=True).transform(*world.T), axis=1)
+    return float(cKDTree(direct).query(via)[0].max())
+
+
+def main(argv: list[str] | None = None) -> int:
+    """``python -m tasks.export_check WORKDIR``: tileset check, glTF Validator counts, ECEF round trip."""
+    import sys
+
+    work = Path((argv if argv is not None else sys.argv[1:])[0])
+    out = work / "output"
+    problems = check_tileset(out)
+    glbs = sorted(out.rglob("*.glb"))
+    feature_problems = {str(g): p for g in glbs if (p := check_mesh_features(g.read_bytes()))}
+    node, reason = node_tools()
+    reports = validate_glbs(glbs) if node else []
+    tiles = sorted(p.stem for p in (out / "content" / "tiles").glob("*.glb"))
+    errors_m = [ecef_round_trip_error_m(work, t) for t in tiles]
+    print(json.dumps({
+        "tileset_problems": problems, "glbs": len(glbs), "mesh_feature_problems": feature_problems,
+        "validator": ({"errors": sum(r["errors"] for r in reports), "warnings": sum(r["warnings"] for r in reports),
+                       "infos": sum(r["infos"] for r in reports)} if node else f"skipped: {reason}"),
+        "ecef_round_trip_max_mm": 1000 * max(errors_m) if errors_m else None,
+    }, indent=1))  # fmt: skip
+    ok = not problems and not feature_problems and (not reports or not any(r["errors"] for r in reports))
+    return 0 if ok and (not errors_m or max(errors_m) < 1e-3) else 1
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())

@@ -204,3 +204,15 @@ def test_export_errors_name_the_problem(tmp_path, tiny_merged):
     shutil.copytree(tiny_merged, work, ignore=shutil.ignore_patterns("tiles"))
     with pytest.raises(InputError, match="no merged tiles"):
         run_export(work)
+
+
+def test_process_pool_gives_the_same_tileset(tiny_merged, tmp_path):
+    runs = []
+    for workers in (1, 2):
+        work = tmp_path / f"w{workers}"
+        shutil.copytree(tiny_merged, work, ignore=shutil.ignore_patterns("1_*", "2_*"))  # tiles 0_0, 0_1
+        run_export(work, workers=workers)
+        runs.append(work / "output")
+    assert (runs[0] / "tileset.json").read_bytes() == (runs[1] / "tileset.json").read_bytes()
+    for glb in runs[0].rglob("*.glb"):
+        assert glb.read_bytes() == (runs[1] / glb.relative_to(runs[0])).read_bytes(), glb
