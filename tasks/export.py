@@ -43,6 +43,7 @@ from .export_lod import LodMesh, concat_lods, decimate, load_lod, sample_colors,
 
 EXPORT_VERSION = 1
 MIN_HALF_EXTENT_M = 0.01
+BOX_PAD_M = 0.001  # bounding boxes grow by this, so lossy (Draco-quantized) positions stay inside
 
 # ------------------------------------------------------------------------------------- quadtree
 
@@ -123,10 +124,11 @@ def feature_rows(grade: np.ndarray, source: np.ndarray, region: np.ndarray):
 
 
 def box_from_bounds(lo, hi) -> list[float]:
-    """3D Tiles ``box`` (centre, three half-axes) of the axis-aligned box [lo, hi] (ENU metres)."""
+    """3D Tiles ``box`` (centre, three half-axes) of the axis-aligned box [lo, hi] (ENU metres), grown by
+    ``BOX_PAD_M``."""
     lo, hi = np.asarray(lo, np.float64), np.asarray(hi, np.float64)
     c = (lo + hi) / 2
-    h = np.maximum((hi - lo) / 2, MIN_HALF_EXTENT_M)
+    h = np.maximum((hi - lo) / 2 + BOX_PAD_M, MIN_HALF_EXTENT_M)
     return [*map(float, c), float(h[0]), 0.0, 0.0, 0.0, float(h[1]), 0.0, 0.0, 0.0, float(h[2])]
 
 

@@ -10,7 +10,8 @@ vertex colours, one provenance row per feature) into glb bytes:
   ``EXT_structural_metadata`` property table (grade, source, region); a vertex used by faces of
   different features is duplicated, so every face reads one feature;
 - normals (lit primitives) are area-weighted per vertex; COLOR_0 is linear RGBA8 (input colours are sRGB);
-- ``compression="draco"`` encodes each primitive with ``KHR_draco_mesh_compression`` (DracoPy).
+- ``compression="draco"`` encodes each primitive with ``KHR_draco_mesh_compression`` (DracoPy), positions
+  quantized to ``DRACO_POSITION_STEP_M`` (bits chosen from the primitive's extent).
 
 ``read_glb`` / ``glb_positions`` read back what is needed by tests and bounding volumes.
 """
@@ -28,6 +29,7 @@ GLB_MAGIC, CHUNK_JSON, CHUNK_BIN = 0x46546C67, 0x4E4F534A, 0x004E4942
 MAX_GLB_BYTES = 1 << 30  # far below the uint32 length field and what viewers load
 FLOAT, UBYTE, USHORT, UINT = 5126, 5121, 5123, 5125
 ARRAY_BUFFER, ELEMENT_ARRAY_BUFFER = 34962, 34963
+DRACO_POSITION_STEP_M = 0.00025  # Draco position quantization step: <= 0.125 mm error
 
 GRADE_NAMES = {0: "good", 1: "bad", -1: "unknown"}
 SOURCE_NAMES = {0: "mesh", 1: "rebuilt"}
@@ -201,8 +203,10 @@ def _primitive(b: _Builder, pos, faces, normals, uv, colors, fid, material: int,
         import DracoPy
 
         ids = _draco_unique_ids(uv is not None, colors is not None, normals is not None)
+        extent = float(np.ptp(pos, axis=0).max()) if n else 1.0
+        bits = int(np.clip(np.ceil(np.log2(max(extent, 1e-3) / DRACO_POSITION_STEP_M)), 11, 30))
         data = DracoPy.encode(
-            pos, faces.astype(np.uint32), quantization_bits=16, compression_level=7,
+            pos, faces.astype(np.uint32), quantization_bits=bits, compression_level=7,
             normals=None if normals is None else normals.astype(np.float64), normal_quantization_bits=10,
             tex_coord=None if uv is None else uv.astype(np.float64), tex_coord_quantization_bits=14,
             colors=colors, generic_attributes={20: fid_u16.reshape(-1, 1)},
