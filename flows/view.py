@@ -24,7 +24,7 @@ VIEWER_DIR = Path(__file__).resolve().parents[1] / "viewer"
 
 
 class _Handler(SimpleHTTPRequestHandler):
-    extensions_map = {
+    extensions_map = {  # noqa: RUF012 (the base class's own attribute, overridden)
         **SimpleHTTPRequestHandler.extensions_map,
         ".js": "text/javascript", ".mjs": "text/javascript", ".wasm": "application/wasm",
         ".glb": "model/gltf-binary", ".json": "application/json",

@@ -20,6 +20,7 @@ from __future__ import annotations
 
 import json
 import os
+import zipfile
 from dataclasses import dataclass, field
 from pathlib import Path
 
@@ -101,9 +102,8 @@ def write_tile_mesh(tile_dir: str | Path, mesh: TileMesh) -> Path:
     tile_dir = Path(tile_dir).absolute()
     npz, meta = tile_mesh_paths(tile_dir)
     arrays = {k: getattr(mesh, k) for k in _ARRAYS if getattr(mesh, k) is not None}
-    with atomic_path(npz) as tmp:
-        with open(tmp, "wb") as f:
-            np.savez(f, **arrays)
+    with atomic_path(npz) as tmp, open(tmp, "wb") as f:
+        np.savez(f, **arrays)
     textures = []
     for t in mesh.textures:
         p = Path(t).absolute()
@@ -136,7 +136,7 @@ def read_tile_mesh(tile_dir: str | Path) -> TileMesh:
     try:
         with np.load(npz, allow_pickle=False) as z:
             arrays = {k: z[k] for k in _ARRAYS if k in z.files}
-    except Exception as e:
+    except (OSError, ValueError, KeyError, EOFError, zipfile.BadZipFile) as e:
         raise InputError(npz, f"unreadable ({type(e).__name__}: {e})") from None
     try:
         return TileMesh(tile=doc["tile"], textures=textures, **arrays)

@@ -66,6 +66,7 @@ function prepareMesh(mesh) {
   const index = geometry.getIndex();
   const n = index ? index.count / 3 : ids.count / 3;
   for (let f = 0; f < n; f++) state.faces[rows.get(ids.getX(index ? index.getX(3 * f) : 3 * f))] += 1;
+  if (!geometry.getAttribute('normal')) geometry.computeVertexNormals();  // unlit textured primitives carry none
   mesh.userData.ms3d = {
     original: { material: mesh.material, color: geometry.getAttribute('color') || null },
     grade: { material: new THREE.MeshLambertMaterial({ vertexColors: true, side: THREE.DoubleSide }),
@@ -151,7 +152,7 @@ function loop() {
   if (settled > 20 && !state.ready) state.ready = true;
   const f = state.faces;
   document.getElementById('status').textContent =
-    `${state.models} tile contents · faces good ${f.good} · bad ${f.bad} · rebuilt ${f.rebuilt} · unknown ${f.unknown}` +
+    `${state.models} tile contents loaded; their faces: good ${f.good} · bad ${f.bad} · rebuilt ${f.rebuilt} · unknown ${f.unknown}` +
     (busy ? ` · loading ${busy}` : '');
 }
 loop();

@@ -180,6 +180,12 @@ def test_rerun_rewrites_only_the_changed_tile_and_its_ancestors(tiny_export, tmp
     assert changed == {"content/tiles/2_0.glb", "content/lod1/1_0.glb", "content/lod2/0_0.glb", "overview.glb"}
     assert check_tileset(out, read_content=False) == []
 
+    shutil.rmtree(work / "tiles" / "2_0")  # a tile gone: its content and cached LOD go too
+    fourth = run_export(work)
+    assert fourth["built"] == ["L1_1_0", "L2_0_0"] and fourth["tiles"] == 5
+    assert not (out / "content/tiles/2_0.glb").exists() and not (work / "export/lod/L0_2_0.npz").exists()
+    assert check_tileset(out) == []
+
 
 def test_draco_export_validates_and_is_smaller(tiny_merged, tiny_export, tmp_path):
     pytest.importorskip("DracoPy", reason="DracoPy not installed (pip install DracoPy)")
