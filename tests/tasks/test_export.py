@@ -222,3 +222,27 @@ def test_process_pool_gives_the_same_tileset(tiny_merged, tmp_path):
     assert (runs[0] / "tileset.json").read_bytes() == (runs[1] / "tileset.json").read_bytes()
     for glb in runs[0].rglob("*.glb"):
         assert glb.read_bytes() == (runs[1] / glb.relative_to(runs[0])).read_bytes(), glb
+
+
+@pytest.mark.parametrize("backend", ["fqmr", "pymeshlab"])
+def test_decimate_measures_its_deviation_and_keeps_borders(backend):
+    if backend == "fqmr":
+        pytest.importorskip("pyfqmr", reason="pyfqmr not installed (pip install pyfqmr)")
+    from tasks.export_lod import LodMesh, decimate
+
+    n = 61  # a 60 x 60 grid of 1 m cells with a 2 m bump: 7,200 faces
+    x, y = np.meshgrid(np.arange(n, dtype=np.float32), np.arange(n, dtype=np.float32))
+    z = 2.0 * np.exp(-((x - 30) ** 2 + (y - 30) ** 2) / 60.0)
+    pos = np.stack([x.ravel(), y.ravel(), z.ravel()], axis=1).astype(np.float32)
+    i = (np.arange(n - 1)[:, None] * n + np.arange(n - 1)[None, :]).ravel()
+    faces = np.concatenate([np.stack([i, i + 1, i + n], 1), np.stack([i + 1, i + n + 1, i + n], 1)]).astype(np.int32)
+    m = len(faces)
+    lod = LodMesh(pos, faces, np.full((len(pos), 3), 100, np.uint8), np.zeros(m, np.int8), np.zeros(m, np.int8),
+                  np.where(np.arange(m) % 2 == 0, 3, -1).astype(np.int32))
+    dec = decimate(lod, m // 4, samples=5000, backend=backend)
+    assert 0.15 * m < dec.mesh.n_faces <= 0.3 * m
+    assert 0.0 < dec.mean_m < dec.hausdorff_m < 0.5  # a bump of 2 m, decimated 4x: centimetres, not zero
+    border = {(float(a), float(b)) for a, b, _ in pos if a in (0, n - 1) or b in (0, n - 1)}
+    kept = {(float(a), float(b)) for a, b, _ in dec.mesh.positions}
+    assert len(border - kept) < 0.1 * len(border)  # open borders stay where the neighbour tile expects them
+    assert set(np.unique(dec.mesh.region).tolist()) == {-1, 3}
