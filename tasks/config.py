@@ -204,3 +204,15 @@ def _set_dotted(d: dict, dotted: str, value) -> None:
             raise InputError(None, f"--set {dotted}: '{k}' is not a section of the config")
         d = nxt
     d[keys[-1]] = value
+
+
+class ExportConfig(_Model):
+    """3D Tiles export (tasks/export.py)."""
+
+    compression: Literal["none", "draco"] = Field("none", description="glb geometry compression: none, or Draco (KHR_draco_mesh_compression via DracoPy)")
+    max_texture_px: int = Field(4096, ge=64, le=4096, description="texture atlases are cropped to what a tile uses and downscaled to at most this side length")
+    jpeg_quality: int = Field(85, ge=10, le=100, description="quality of re-encoded JPEG textures")
+    lod_reduction: float = Field(4.0, gt=1.0, description="each quadtree level keeps 1/lod_reduction of its children's faces")
+    hausdorff_samples: int = Field(20_000, ge=1000, description="points sampled per direction to measure a decimation's deviation")
+    decimator: Literal["auto", "fqmr", "pymeshlab"] = Field("auto", description="quadric decimation: pyfqmr (Fast Quadric Mesh Simplification, ~6x faster) or pymeshlab; auto = fqmr when installed")
+    overview_max_faces: int = Field(300_000, ge=1000, description="faces of output/overview.glb (whole campus, decimated)")

@@ -33,3 +33,32 @@ def tiny_campus(tmp_path_factory):
     from synth.generate import generate
 
     return generate("tiny", seed=1, out=tmp_path_factory.mktemp("tiny") / "campus")
+
+
+@pytest.fixture(scope="session")
+def tiny_merged(tiny_campus, tmp_path_factory):
+    """A work dir with campus.json and tiles/*/merged.* cut from the tiny synth mesh (25 m tiles, 3 x 2),
+    standing in for the merge stage's output. Read-only for tests (copy it to change it)."""
+    import yaml
+
+    from storage.frame import CampusFrame
+    from storage.mesh_io import read_mesh
+    from synth.tile_meshes import fake_merged_workdir
+
+    cfg = yaml.safe_load((tiny_campus / "campus.yaml").read_text())
+    origin = tuple(cfg["inputs"]["mesh_offset"])
+    mesh = read_mesh(tiny_campus / "mesh", offset=origin)
+    frame = CampusFrame(origin=origin, crs=cfg["inputs"]["crs"], vertical_datum="ellipsoidal (WGS 84), synthetic")
+    return fake_merged_workdir(mesh, frame, tmp_path_factory.mktemp("merged") / "work", tile_size_m=25.0).root
+
+
+@pytest.fixture(scope="session")
+def tiny_export(tiny_merged, tmp_path_factory):
+    """``tiny_merged`` exported (uncompressed) into a copy of the work dir; returns (work dir, summary)."""
+    import shutil
+
+    from tasks.export import run_export
+
+    work = tmp_path_factory.mktemp("export") / "work"
+    shutil.copytree(tiny_merged, work)
+    return work, run_export(work)

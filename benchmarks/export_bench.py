@@ -1,0 +1,171 @@
+"""Export throughput, output size per km² and peak RSS, on the demo campus.
+
+Stands in for the merge stage with ``synth.tile_meshes``: the demo mesh cut into ground tiles
+(``--tile-size``, default 50 m) with faked provenance. Then, each in a fresh process (so its peak RSS is
+its own):
+
+1. ``run_export`` uncompressed on the demo campus: triangles per second (leaf triangles / wall seconds,
+   and per CPU second), bytes per km² of campus footprint, peak RSS;
+2. the same with Draco: bytes per km²; then uncompressed with 2 processes (``workers=2``);
+3. ``run_export`` on a campus ``--replicate`` times larger (the demo's tiles copied side by side, same
+   content per tile): peak RSS, which must not grow with the campus (memory is bounded by a tile).
+
+Target (issue 10): >= 40 k triangles/s for merge + export on this 2-core machine; this script measures
+export (merge comes later); peak RSS < 2 GB. Always exits 0: it reports.
+
+    .venv/bin/python benchmarks/export_bench.py                     # ms3d-work/demo-input (made if missing)
+    .venv/bin/python benchmarks/export_bench.py --input ms3d-work/tiny-input --tile-size 25 --work /tmp/eb
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import resource
+import shutil
+import subprocess
+import sys
+import time
+from dataclasses import replace
+from pathlib import Path
+
+REPO = Path(__file__).resolve().parents[1]
+if str(REPO) not in sys.path:
+    sys.path.insert(0, str(REPO))
+
+TARGET_TRIANGLES_PER_S = 40_000
+RSS_BUDGET_MB = 2048
+
+
+def _vm_hwm_mb() -> float:
+    """Peak RSS of this process image (VmHWM; ru_maxrss would carry the parent's peak across exec)."""
+    for line in Path("/proc/self/status").read_text().splitlines():
+        if line.startswith("VmHWM:"):
+            return int(line.split()[1]) / 1024.0
+    return resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024.0
+
+
+def _child(work: str, compression: str, workers: int = 1) -> None:
+    """Run one export in this (fresh) process and print its summary with peak RSS and CPU seconds."""
+    from tasks.config import ExportConfig
+    from tasks.export import run_export
+
+    t0, c0 = time.perf_counter(), time.process_time()
+    summary = run_export(work, ExportConfig(compression=compression), workers=workers)
+    summary.update(wall_s=time.perf_counter() - t0, cpu_s=time.process_time() - c0, peak_rss_mb=_vm_hwm_mb(),
+                   children_peak_rss_mb=resource.getrusage(resource.RUSAGE_CHILDREN).ru_maxrss / 1024.0)
+    summary.pop("built"), summary.pop("reused")
+    print(json.dumps(summary))
+
+
+def _run_child(work: Path, compression: str, workers: int = 1) -> dict:
+    run = subprocess.run([sys.executable, __file__, "--child", str(work), compression, str(workers)], capture_output=True,
+                         text=True, cwd=REPO, check=False)  # fmt: skip
+    if run.returncode != 0:
+        raise RuntimeError(run.stderr[-3000:])
+    return json.loads(run.stdout.strip().splitlines()[-1])
+
+
+def make_merged(input_dir: Path, work: Path, tile_size_m: float, seed: int = 0) -> tuple[Path, float]:
+    """Fake merge output of a synth campus; returns (work dir, footprint km² = tiles x tile area)."""
+    import yaml
+
+    from storage.frame import CampusFrame
+    from storage.mesh_io import read_mesh
+    from synth.tile_meshes import fake_merged_workdir
+
+    cfg = yaml.safe_load((input_dir / "campus.yaml").read_text())
+    origin = tuple(cfg["inputs"]["mesh_offset"])
+    mesh = read_mesh(input_dir / "mesh", offset=origin)
+    frame = CampusFrame(origin=origin, crs=cfg["inputs"]["crs"], vertical_datum="ellipsoidal (WGS 84), synthetic")
+    fake_merged_workdir(mesh, frame, work, tile_size_m=tile_size_m, seed=seed)
+    return work, _footprint_km2(work, tile_size_m)
+
+
+def _footprint_km2(work: Path, tile_size_m: float) -> float:
+    return len(list((work / "tiles").glob("*/merged.json"))) * tile_size_m**2 / 1e6
+
+
+def replicate(src: Path, dst: Path, times: int, tile_size_m: float) -> Path:
+    """A campus ``times`` as wide: src's tiles copied side by side along x (shifted keys and vertices)."""
+    import numpy as np
+
+    from storage.tile_mesh import read_tile_mesh, write_tile_mesh
+
+    if dst.exists():
+        shutil.rmtree(dst)
+    dst.mkdir(parents=True)
+    shutil.copy(src / "campus.json", dst / "campus.json")
+    keys = sorted(p.parent.name for p in (src / "tiles").glob("*/merged.json"))
+    ix = [int(k.split("_")[0]) for k in keys]
+    span = max(ix) - min(ix) + 1
+    for k in keys:
+        tm = read_tile_mesh(src / "tiles" / k)
+        i, j = (int(v) for v in k.split("_"))
+        for r in range(times):
+            shift = np.array([r * span * tile_size_m, 0, 0], np.float32)
+            key = f"{i + r * span}_{j}"
+            write_tile_mesh(dst / "tiles" / key, replace(tm, tile=key, vertices=tm.vertices + shift))
+    return dst
+
+
+def main(argv: list[str] | None = None) -> dict:
+    p = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    p.add_argument("--input", type=Path, default=REPO / "ms3d-work" / "demo-input")
+    p.add_argument("--work", type=Path, default=REPO / "ms3d-work" / "export-bench")
+    p.add_argument("--tile-size", type=float, default=50.0)
+    p.add_argument("--replicate", type=int, default=2, help="the larger campus is this many times the input")
+    p.add_argument("--child", nargs=3, metavar=("WORK", "COMPRESSION", "WORKERS"), help=argparse.SUPPRESS)
+    a = p.parse_args(argv)
+    if a.child:
+        _child(a.child[0], a.child[1], int(a.child[2]))
+        return {}
+    if not (a.input / "campus.yaml").exists():  # the demo campus, generated once (~3 min)
+        subprocess.run([sys.executable, "-m", "flows.cli", "synth", "--preset", "demo", "--seed", "7", "--out",
+                        str(a.input), "--overwrite"], check=True, cwd=REPO)  # fmt: skip
+    load = os.getloadavg()
+    base = a.work / "merged"
+    if base.exists():
+        shutil.rmtree(base)
+    t = time.perf_counter()
+    base, km2 = make_merged(a.input, base, a.tile_size)
+    print(f"input {a.input.name}: {len(list((base / 'tiles').glob('*/merged.json')))} tiles of {a.tile_size:g} m, "
+          f"{km2:.4f} km² (fake merge {time.perf_counter() - t:.1f} s); load average {load[0]:.1f}")
+
+    results = {}
+    for name, compression, workers in (("none", "none", 1), ("draco", "draco", 1), ("none-2w", "none", 2)):
+        work = a.work / f"run-{name}"
+        if work.exists():
+            shutil.rmtree(work)
+        shutil.copytree(base, work)
+        results[name] = r = _run_child(work, compression, workers)
+        rss_note = (f"peak RSS {r['peak_rss_mb']:,.0f} MB" if workers == 1 else
+                    f"peak RSS of the parent {r['peak_rss_mb']:,.0f} MB (pool workers not measured)")
+        print(f"export {name:7s} ({workers} process{'es' if workers > 1 else ''}): {r['leaf_faces']:,} triangles in "
+              f"{r['wall_s']:.1f} s wall / {r['cpu_s']:.1f} s CPU = {r['leaf_faces'] / r['wall_s']:,.0f} triangles/s "
+              f"(target >= {TARGET_TRIANGLES_PER_S:,} for merge + export); {r['bytes'] / 1e6:,.1f} MB = "
+              f"{r['bytes'] / 1e6 / km2:,.0f} MB/km² (textures {r['texture_bytes'] / 1e6 / km2:,.0f}); "
+              f"{rss_note}")
+    big = replicate(base, a.work / "big", a.replicate, a.tile_size)
+    results["big"] = rb = _run_child(big, "none")
+    load_end = os.getloadavg()[0]
+    km2_big = _footprint_km2(big, a.tile_size)
+    rss = [results["none"]["peak_rss_mb"], rb["peak_rss_mb"]]
+    print(f"peak RSS of export: {rss[0]:,.0f} MB at {km2:.3f} km² ({results['none']['tiles']} tiles), "
+          f"{rss[1]:,.0f} MB at {km2_big:.3f} km² ({rb['tiles']} tiles): x{rss[1] / rss[0]:.2f} for x{km2_big / km2:.1f} "
+          f"the area (budget {RSS_BUDGET_MB} MB); {rb['leaf_faces'] / rb['wall_s']:,.0f} triangles/s")
+    figures = {
+        "triangles_per_s": results["none"]["leaf_faces"] / results["none"]["wall_s"],
+        "triangles_per_cpu_s": results["none"]["leaf_faces"] / results["none"]["cpu_s"],
+        "triangles_per_s_2_processes": results["none-2w"]["leaf_faces"] / results["none-2w"]["wall_s"],
+        "mb_per_km2": results["none"]["bytes"] / 1e6 / km2,
+        "mb_per_km2_draco": results["draco"]["bytes"] / 1e6 / km2,
+        "peak_rss_mb": rss, "area_km2": [km2, km2_big], "load_average": [load[0], load_end],
+    }
+    print(json.dumps(figures))
+    return {"figures": figures, "runs": results}
+
+
+if __name__ == "__main__":
+    main()

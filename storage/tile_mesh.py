@@ -1,0 +1,144 @@
+"""The merged mesh of one ground tile: the contract between the merge stage and export.
+
+On disk, per tile::
+
+    tiles/{ix}_{iy}/merged.npz     the arrays below (numpy .npz, uncompressed, written atomically)
+    tiles/{ix}_{iy}/merged.json    tile key, texture paths, counts, schema version (written last)
+
+Texture images are referenced, not copied: ``textures`` are JPEG/PNG paths, stored relative to the
+tile folder when they lie inside the work dir (so a work dir can be moved) and absolute otherwise;
+``read_tile_mesh`` returns absolute paths. ``merged.json`` is renamed into place after the ``.npz``,
+so a reader that finds it finds a complete pair.
+
+Frames and conventions:
+    vertices are float32 metres campus-local (offsets from ``CampusFrame.origin``, axes of the projected
+    CRS: x east(ing), y north(ing), z up); ``uv`` follows the OBJ convention (origin bottom-left, v up),
+    one pair per vertex (vertices are split at texture seams).
+"""
+
+from __future__ import annotations
+
+import json
+import os
+import zipfile
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import numpy as np
+
+from .atomic import atomic_path, write_json_atomic
+from .errors import InputError
+
+TILE_MESH_SCHEMA_VERSION = 1
+GRADE_GOOD, GRADE_BAD, GRADE_UNKNOWN = 0, 1, -1
+SOURCE_MESH, SOURCE_REBUILT = 0, 1
+NO_REGION = -1
+
+_ARRAYS = ("vertices", "faces", "uv", "face_texture", "vertex_colors", "grade", "source", "region")
+
+
+@dataclass(frozen=True, eq=False)
+class TileMesh:
+    """One ground tile's clean mesh with per-face provenance.
+
+    tile: key "ix_iy". vertices: (n, 3) float32 metres campus-local. faces: (m, 3) int32.
+    uv: (n, 2) float32 per vertex (OBJ convention) or None. face_texture: (m,) int16 index into
+    ``textures``, -1 for an untextured face. textures: JPEG/PNG paths. vertex_colors: (n, 3) uint8 RGB
+    (used by untextured faces) or None. grade: (m,) int8 (0 good, 1 bad, -1 unknown). source: (m,) int8
+    (0 original mesh, 1 rebuilt). region: (m,) int32 region number, -1 for none.
+    """
+
+    tile: str
+    vertices: np.ndarray
+    faces: np.ndarray
+    face_texture: np.ndarray
+    grade: np.ndarray
+    source: np.ndarray
+    region: np.ndarray
+    uv: np.ndarray | None = None
+    textures: list[str] = field(default_factory=list)
+    vertex_colors: np.ndarray | None = None
+
+    def __post_init__(self):
+        n, m = len(self.vertices), len(self.faces)
+        checks = [
+            (self.vertices.shape == (n, 3) and self.vertices.dtype == np.float32, "vertices must be (n, 3) float32"),
+            (self.faces.shape == (m, 3) and self.faces.dtype == np.int32, "faces must be (m, 3) int32"),
+            (self.face_texture.shape == (m,) and self.face_texture.dtype == np.int16, "face_texture must be (m,) int16"),
+            (self.grade.shape == (m,) and self.grade.dtype == np.int8, "grade must be (m,) int8"),
+            (self.source.shape == (m,) and self.source.dtype == np.int8, "source must be (m,) int8"),
+            (self.region.shape == (m,) and self.region.dtype == np.int32, "region must be (m,) int32"),
+            (self.uv is None or (self.uv.shape == (n, 2) and self.uv.dtype == np.float32), "uv must be (n, 2) float32"),
+            (self.vertex_colors is None or (self.vertex_colors.shape == (n, 3) and self.vertex_colors.dtype == np.uint8),
+             "vertex_colors must be (n, 3) uint8"),
+        ]  # fmt: skip
+        for ok, problem in checks:
+            if not ok:
+                raise ValueError(f"TileMesh {self.tile}: {problem}")
+        if m and (self.faces.min() < 0 or self.faces.max() >= n):
+            raise ValueError(f"TileMesh {self.tile}: face indices out of range for {n} vertices")
+        if m and (self.face_texture.max() >= len(self.textures) or self.face_texture.min() < -1):
+            raise ValueError(f"TileMesh {self.tile}: face_texture out of range for {len(self.textures)} textures")
+        if (self.face_texture >= 0).any() and self.uv is None:
+            raise ValueError(f"TileMesh {self.tile}: textured faces need uv")
+
+    @property
+    def n_faces(self) -> int:
+        return len(self.faces)
+
+    @property
+    def n_vertices(self) -> int:
+        return len(self.vertices)
+
+
+def tile_mesh_paths(tile_dir: str | Path) -> tuple[Path, Path]:
+    """(merged.npz, merged.json) of a tile folder."""
+    tile_dir = Path(tile_dir)
+    return tile_dir / "merged.npz", tile_dir / "merged.json"
+
+
+def write_tile_mesh(tile_dir: str | Path, mesh: TileMesh) -> Path:
+    """Write ``mesh`` to ``tile_dir/merged.npz`` + ``merged.json`` atomically; returns the .npz path."""
+    tile_dir = Path(tile_dir).absolute()
+    npz, meta = tile_mesh_paths(tile_dir)
+    arrays = {k: getattr(mesh, k) for k in _ARRAYS if getattr(mesh, k) is not None}
+    with atomic_path(npz) as tmp, open(tmp, "wb") as f:
+        np.savez(f, **arrays)
+    textures = []
+    for t in mesh.textures:
+        p = Path(t).absolute()
+        inside = os.path.commonpath([p, tile_dir.parent.parent]) == str(tile_dir.parent.parent)
+        textures.append(os.path.relpath(p, tile_dir) if inside else str(p))
+    write_json_atomic(meta, {
+        "schema_version": TILE_MESH_SCHEMA_VERSION, "tile": mesh.tile, "textures": textures,
+        "n_vertices": mesh.n_vertices, "n_faces": mesh.n_faces,
+    })  # fmt: skip
+    return npz
+
+
+def read_tile_mesh(tile_dir: str | Path) -> TileMesh:
+    """Read what ``write_tile_mesh`` wrote. Raises InputError naming the file for a missing, corrupt or
+    inconsistent tile mesh, or a missing texture image."""
+    tile_dir = Path(tile_dir).absolute()
+    npz, meta = tile_mesh_paths(tile_dir)
+    if not meta.exists() or not npz.exists():
+        raise InputError(tile_dir, "no merged mesh (merged.npz + merged.json): run the merge stage first")
+    try:
+        doc = json.loads(meta.read_text())
+    except json.JSONDecodeError as e:
+        raise InputError(meta, f"corrupt JSON ({e})") from None
+    if doc.get("schema_version") != TILE_MESH_SCHEMA_VERSION:
+        raise InputError(meta, f"schema_version {doc.get('schema_version')} is not {TILE_MESH_SCHEMA_VERSION}")
+    textures = [str((tile_dir / t).resolve()) for t in doc["textures"]]
+    for t in textures:
+        if not Path(t).is_file():
+            raise InputError(meta, f"texture image {t} not found")
+    try:
+        with np.load(npz, allow_pickle=False) as z:
+            arrays = {k: z[k] for k in _ARRAYS if k in z.files}
+    except (OSError, ValueError, KeyError, EOFError, zipfile.BadZipFile) as e:
+        raise InputError(npz, f"unreadable ({type(e).__name__}: {e})") from None
+    try:
+        return TileMesh(tile=doc["tile"], textures=textures, **arrays)
+    except (TypeError, ValueError) as e:
+        raise InputError(npz, str(e)) from None

@@ -1,0 +1,158 @@
+// ms3d viewer: three.js + 3d-tiles-renderer, no online service. Loads ?tileset=URL (default
+// /output/tileset.json), colours faces by the EXT_structural_metadata provenance (grade, source, region)
+// or shows the textures, and prints the provenance of a clicked face.
+import * as THREE from 'three';
+import { OrbitControls } from 'three/addons/controls/OrbitControls.js';
+import { DRACOLoader } from 'three/addons/loaders/DRACOLoader.js';
+import { TilesRenderer } from '3d-tiles-renderer';
+import { GLTFExtensionsPlugin, ReorientationPlugin } from '3d-tiles-renderer/plugins';
+
+const params = new URLSearchParams(location.search);
+const tilesetUrl = params.get('tileset') || '/output/tileset.json';
+let mode = params.get('mode') || 'grade';
+document.getElementById('mode').value = mode;
+
+const COLOURS = { good: [0x3f, 0xa3, 0x4d], bad: [0xd9, 0x41, 0x2e], rebuilt: [0x2f, 0x6f, 0xde], unknown: [0x9a, 0x9a, 0x9a] };
+const state = { ready: false, models: 0, faces: { good: 0, bad: 0, rebuilt: 0, unknown: 0 }, errors: [], pick: null };
+window.ms3d = state;
+state.debug = () => ({ root: !!tiles.root, rootTileset: !!tiles.rootTileset, stats: { ...tiles.stats }, framed, cam: camera.position.toArray(), group: tiles.group.position.toArray(), children: tiles.group.children.length });
+
+const renderer = new THREE.WebGLRenderer({ antialias: false, preserveDrawingBuffer: true });
+renderer.setPixelRatio(1);
+renderer.setSize(innerWidth, innerHeight);
+renderer.setClearColor(0xdde4ea);
+document.body.appendChild(renderer.domElement);
+
+const scene = new THREE.Scene();
+scene.add(new THREE.HemisphereLight(0xffffff, 0x667788, 2.0));
+const sun = new THREE.DirectionalLight(0xffffff, 1.5);
+sun.position.set(0.4, 1.0, 0.3);
+scene.add(sun);
+const camera = new THREE.PerspectiveCamera(45, innerWidth / innerHeight, 0.5, 20000);
+const controls = new OrbitControls(camera, renderer.domElement);
+
+const draco = new DRACOLoader().setDecoderPath('/node_modules/three/examples/jsm/libs/draco/gltf/');
+const tiles = new TilesRenderer(tilesetUrl);
+tiles.registerPlugin(new GLTFExtensionsPlugin({ metadata: true, dracoLoader: draco }));
+tiles.registerPlugin(new ReorientationPlugin({ recenter: true }));
+tiles.errorTarget = Number(params.get('errorTarget') || 8);  // pixels of screen-space error
+tiles.setCamera(camera);
+tiles.setResolutionFromRenderer(camera, renderer);
+scene.add(tiles.group);
+
+function category(row) {
+  if (!row) return 'unknown';
+  if (row.source === 'rebuilt') return 'rebuilt';
+  return row.grade === 'good' || row.grade === 'bad' ? row.grade : 'unknown';
+}
+
+// per mesh: the provenance category of each vertex (faces never share vertices across features)
+function prepareMesh(mesh) {
+  const { meshFeatures, structuralMetadata } = mesh.userData;
+  const geometry = mesh.geometry;
+  const ids = geometry.getAttribute('_feature_id_0');
+  if (!meshFeatures || !structuralMetadata || !ids) return;
+  const info = meshFeatures.getFeatureInfo()[0];
+  const rows = new Map();
+  const colours = new Float32Array(ids.count * 3);
+  const c = new THREE.Color();
+  for (let i = 0; i < ids.count; i++) {
+    const id = ids.getX(i);
+    if (!rows.has(id)) rows.set(id, category(structuralMetadata.getPropertyTableData(info.propertyTable, id)));
+    const rgb = COLOURS[rows.get(id)];
+    c.setRGB(rgb[0] / 255, rgb[1] / 255, rgb[2] / 255, THREE.SRGBColorSpace);
+    colours.set([c.r, c.g, c.b], i * 3);
+  }
+  const index = geometry.getIndex();
+  const n = index ? index.count / 3 : ids.count / 3;
+  for (let f = 0; f < n; f++) state.faces[rows.get(ids.getX(index ? index.getX(3 * f) : 3 * f))] += 1;
+  if (!geometry.getAttribute('normal')) geometry.computeVertexNormals();  // unlit textured primitives carry none
+  mesh.userData.ms3d = {
+    original: { material: mesh.material, color: geometry.getAttribute('color') || null },
+    grade: { material: new THREE.MeshLambertMaterial({ vertexColors: true, side: THREE.DoubleSide }),
+             color: new THREE.BufferAttribute(colours, 3) },
+  };
+  applyMode(mesh);
+}
+
+function applyMode(mesh) {
+  const m = mesh.userData.ms3d;
+  if (!m) return;
+  const which = mode === 'grade' ? m.grade : m.original;
+  mesh.material = which.material;
+  if (which.color) mesh.geometry.setAttribute('color', which.color);
+  else mesh.geometry.deleteAttribute('color');
+}
+
+tiles.addEventListener('load-model', ({ scene: model }) => {
+  state.models += 1;
+  model.traverse((o) => { if (o.isMesh) prepareMesh(o); });
+});
+tiles.addEventListener('load-error', (e) => state.errors.push(String(e.error || e)));
+
+let framed = false;
+function frameCamera() {
+  const sphere = new THREE.Sphere();
+  if (!tiles.getBoundingSphere(sphere)) return false;
+  tiles.group.updateMatrixWorld(true);
+  sphere.applyMatrix4(tiles.group.matrixWorld);  // the sphere is in the tileset's (ECEF) frame
+  const r = Math.max(sphere.radius, 1);
+  camera.position.copy(sphere.center).add(new THREE.Vector3(0.45 * r, 0.9 * r, 1.3 * r));
+  camera.near = r / 200; camera.far = r * 50; camera.updateProjectionMatrix();
+  controls.target.copy(sphere.center);
+  controls.update();
+  return true;
+}
+
+document.getElementById('mode').addEventListener('change', (e) => {
+  mode = e.target.value;
+  tiles.group.traverse((o) => { if (o.isMesh) applyMode(o); });
+});
+
+const raycaster = new THREE.Raycaster();
+function pickAt(x, y) {
+  const ndc = new THREE.Vector2((x / innerWidth) * 2 - 1, -(y / innerHeight) * 2 + 1);
+  raycaster.setFromCamera(ndc, camera);
+  const hit = raycaster.intersectObject(tiles.group, true)[0];
+  if (!hit) return null;
+  const { meshFeatures, structuralMetadata } = hit.object.userData;
+  if (!meshFeatures || !structuralMetadata) return { face: hit.faceIndex, metadata: false };
+  const [id] = meshFeatures.getFeatures(hit.faceIndex, hit.barycoord);
+  const table = meshFeatures.getFeatureInfo()[0].propertyTable;
+  const row = structuralMetadata.getPropertyTableData(table, id);
+  let tile = hit.object; while (tile && !tile.userData.ms3dUri) tile = tile.parent;
+  return { face: hit.faceIndex, feature: id, grade: row.grade, source: row.source, region: row.region,
+           distance: +hit.distance.toFixed(2) };
+}
+state.pickAt = pickAt;
+renderer.domElement.addEventListener('click', (e) => {
+  const p = pickAt(e.clientX, e.clientY);
+  state.pick = p;
+  document.getElementById('pick').textContent = p
+    ? `grade  ${p.grade}\nsource ${p.source}\nregion ${p.region}\nface   ${p.face} (feature ${p.feature})`
+    : 'nothing there';
+});
+
+addEventListener('resize', () => {
+  camera.aspect = innerWidth / innerHeight; camera.updateProjectionMatrix();
+  renderer.setSize(innerWidth, innerHeight); tiles.setResolutionFromRenderer(camera, renderer);
+});
+
+let settled = 0;
+function loop() {
+  requestAnimationFrame(loop);
+  if (!framed && tiles.root) framed = frameCamera();
+  controls.update();
+  camera.updateMatrixWorld();
+  tiles.update();
+  renderer.render(scene, camera);
+  const s = tiles.stats;
+  const busy = s.downloading + s.parsing + (s.queued || 0);
+  settled = framed && state.models > 0 && busy === 0 ? settled + 1 : 0;
+  if (settled > 20 && !state.ready) state.ready = true;
+  const f = state.faces;
+  document.getElementById('status').textContent =
+    `${state.models} tile contents loaded; their faces: good ${f.good} · bad ${f.bad} · rebuilt ${f.rebuilt} · unknown ${f.unknown}` +
+    (busy ? ` · loading ${busy}` : '');
+}
+loop();
