@@ -133,13 +133,125 @@ def _seen_before_faces(lines: list[str], key: str) -> np.ndarray:
     return np.array(seen, dtype=np.int64)
 
 
-def read_obj(path: Path) -> MeshData:
-    """Faces (polygons fan-triangulated), per-corner UVs, vertex colours and MTL materials of an OBJ,
-    in file order and file coordinates. Missing MTL or texture images raise InputError."""
-    lines = path.read_text(errors="replace").replace("\t", " ").splitlines()
+@dataclass
+class _Statements:
+    """The parsed statements of an OBJ: xyzc (n, 3|4|6) float64 vertex rows, vt (k, 2|3) float64, counts
+    (f,) corners per face, raw_v / raw_vt (sum(counts),) ids as written (raw_vt None without uvs),
+    usemtl names with the number of faces before each, mtllib arguments, and the text lines (kept
+    only when an id is negative, for relative ids)."""
+
+    xyzc: np.ndarray
+    vt: np.ndarray
+    counts: np.ndarray
+    raw_v: np.ndarray
+    raw_vt: np.ndarray | None
+    usemtl_names: list[str]
+    faces_before_usemtl: list[int]
+    mtllibs: list[str]
+    lines: list[str] | None = None
+
+
+_V, _VT, _F, _VN, _OTHER = 1, 2, 3, 4, 0
+
+
+def _line_kinds(buf: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Start offset of every line of ``buf`` ((n,) int64) and its statement kind ((n,) int8)."""
+    nl = np.flatnonzero(buf == 10)
+    starts = np.concatenate(([0], nl + 1))
+    if starts[-1] >= len(buf):
+        starts = starts[:-1]
+    c0 = buf[starts]
+    c1 = buf[np.minimum(starts + 1, len(buf) - 1)]
+    c2 = buf[np.minimum(starts + 2, len(buf) - 1)]
+    kind = np.zeros(len(starts), np.int8)
+    kind[(c0 == ord("v")) & ((c1 == 32) | (c1 == 9))] = _V
+    kind[(c0 == ord("v")) & (c1 == ord("t")) & ((c2 == 32) | (c2 == 9))] = _VT
+    kind[(c0 == ord("v")) & (c1 == ord("n")) & ((c2 == 32) | (c2 == 9))] = _VN
+    kind[(c0 == ord("f")) & ((c1 == 32) | (c1 == 9))] = _F
+    return starts, kind
+
+
+def _csv_block(block: bytes, columns: list[int], dtype) -> np.ndarray | None:
+    """Columns of a block of space-separated statements, parsed by pandas' C reader (~6x numpy's
+    fromstring); None when the block is not a clean table (the caller then parses line by line)."""
+    import io
+
+    import pandas as pd
+
+    try:
+        df = pd.read_csv(io.BytesIO(block), sep=" ", header=None, usecols=columns, engine="c",
+                         skipinitialspace=True, dtype=np.float64)
+    except (ValueError, pd.errors.ParserError):
+        return None
+    out = df.to_numpy(np.float64)
+    if out.shape[1] != len(columns) or (dtype != np.float64 and not np.isfinite(out).all()):
+        return None  # integer columns with gaps (a 'v//vn' layout, ragged rows)
+    return out if dtype == np.float64 else out.astype(dtype)
+
+
+def _fast_statements(data: bytes) -> _Statements | None:
+    """Parse an OBJ written in blocks (all ``v``, all ``vt``, runs of triangle ``f`` statements, as
+    photogrammetry tools write them) without a Python loop per line; None for anything else (polygons,
+    negative ids, ragged rows), which the line-by-line parser handles."""
+    buf = np.frombuffer(data, np.uint8)
+    if len(buf) == 0:
+        return None
+    starts, kind = _line_kinds(buf)
+    ends = np.append(starts[1:], len(buf))
+    cut = np.flatnonzero(np.diff(kind)) + 1
+    run_lo, run_hi = np.concatenate(([0], cut)), np.concatenate((cut, [len(kind)]))
+    parts: dict[int, list[np.ndarray]] = {_V: [], _VT: [], _F: []}
+    usemtl, before, mtllibs, n_faces = [], [], [], 0
+    for lo, hi in zip(run_lo, run_hi):  # one iteration per run of like statements (a handful)
+        k = int(kind[lo])
+        block = data[starts[lo]:ends[hi - 1]]
+        if k == _OTHER:
+            for line in block.decode(errors="replace").replace("\t", " ").splitlines():
+                key, _, rest = line.strip().partition(" ")
+                if key == "usemtl":
+                    usemtl.append(rest.strip())
+                    before.append(n_faces)
+                elif key == "mtllib":
+                    mtllibs.append(rest.strip())
+            continue
+        if k == _VN:
+            continue
+        first = data[starts[lo]:ends[lo]].split()
+        if k == _F:
+            if len(first) != 4 or b"-" in block:
+                return None  # polygons or relative ids
+            per = first[1].count(b"/") + 1
+            if per == 3 and b"//" in first[1]:
+                return None
+            block = block.replace(b"/", b" ")
+            cols = list(range(1, 1 + 3 * per))
+            got = _csv_block(block, cols, np.int64)
+            if got is None or len(got) != hi - lo:
+                return None
+            parts[_F].append(got.reshape(-1, per))
+            n_faces += hi - lo
+        else:
+            width = len(first) - 1
+            got = _csv_block(block, list(range(1, 1 + width)), np.float64)
+            if got is None or len(got) != hi - lo:
+                return None
+            parts[k].append(got)
+    widths = {p.shape[1] for p in parts[_F]}
+    if len(widths) > 1 or any(len({p.shape[1] for p in parts[k]}) > 1 for k in (_V, _VT)):
+        return None
+    xyzc = np.concatenate(parts[_V]) if parts[_V] else np.zeros((0, 3))
+    vt = np.concatenate(parts[_VT]) if parts[_VT] else np.zeros((0, 2))
+    ids = np.concatenate(parts[_F]) if parts[_F] else np.zeros((0, 1), np.int64)
+    return _Statements(xyzc, vt, np.full(n_faces, 3, np.int64), ids[:, 0].copy(),
+                       ids[:, 1].copy() if ids.shape[1] >= 2 else None, usemtl, before, mtllibs)
+
+
+def _slow_statements(path: Path, text: str) -> _Statements:
+    """Line by line (any valid OBJ): one pass to bucket the statements, each bucket parsed in bulk."""
+    lines = text.replace("\t", " ").splitlines()
     rows: dict[str, list[str]] = {"v": [], "vt": [], "f": [], "mtllib": []}
     usemtl_names, faces_before_usemtl = [], []
-    for ln in lines:  # one pass; everything per element is parsed in bulk below
+    for ln in lines:
         key, _, rest = ln.partition(" ")
         bucket = rows.get(key)
         if bucket is not None:
@@ -147,16 +259,35 @@ def read_obj(path: Path) -> MeshData:
         elif key == "usemtl":
             usemtl_names.append(rest.strip())
             faces_before_usemtl.append(len(rows["f"]))
-
     xyzc = _table(path, rows["v"], (3, 6, 4), "vertex")
     vt = _table(path, rows["vt"], (2, 3), "texture coordinate")
     counts, raw_v, raw_vt = _face_corners(path, rows["f"])
+    return _Statements(xyzc, vt, counts, raw_v, raw_vt, usemtl_names, faces_before_usemtl,
+                       [r.strip() for r in rows["mtllib"]], lines)
+
+
+def read_obj(path: Path) -> MeshData:
+    """Faces (polygons fan-triangulated), per-corner UVs, vertex colours and MTL materials of an OBJ,
+    in file order and file coordinates. Missing MTL or texture images raise InputError.
+
+    Photogrammetry OBJs (blocks of v, vt and triangle f statements) are parsed block by block with a C
+    CSV reader: 387 MB (2.9 M faces) in ~6 s against ~40 s line by line; any other OBJ line by line."""
+    data = path.read_bytes()
+    st = _fast_statements(data)
+    if st is None:
+        st = _slow_statements(path, data.decode(errors="replace"))
+    xyzc, vt, counts, raw_v, raw_vt = st.xyzc, st.vt, st.counts, st.raw_v, st.raw_vt
+    usemtl_names, faces_before_usemtl = st.usemtl_names, st.faces_before_usemtl
+    if xyzc.shape[1] not in (3, 4, 6):
+        raise InputError(path, f"malformed vertex statements ({xyzc.shape[1]} numbers each)")
+    if vt.shape[1] > 2:
+        vt = vt[:, :2]
     if (counts < 3).any():
         raise InputError(path, f"{int((counts < 3).sum())} face statements have fewer than 3 vertices")
     negative = (raw_v < 0).any() or (raw_vt is not None and (raw_vt < 0).any())
 
     def seen(key: str) -> np.ndarray | None:
-        return np.repeat(_seen_before_faces(lines, key), counts) if negative else None
+        return np.repeat(_seen_before_faces(st.lines, key), counts) if negative else None
 
     v_idx = _resolve_ids(raw_v, seen("v"))
     # fan-triangulate polygons: corners (s, s+j, s+j+1) for j = 1 .. c-2
@@ -183,7 +314,7 @@ def read_obj(path: Path) -> MeshData:
         ids = np.array([material_ids.setdefault(name, len(material_ids)) for name in usemtl_names] + [-1])
         run = np.searchsorted(faces_before_usemtl, np.arange(len(counts)), side="right") - 1
         tri_mat = ids[run][tri_face]  # run -1 (before any usemtl) picks the trailing -1
-    _apply_materials(path, mesh, [r.strip() for r in rows["mtllib"]], material_ids, tri_mat)
+    _apply_materials(path, mesh, st.mtllibs, material_ids, tri_mat)
     return mesh
 
 

@@ -259,3 +259,40 @@ def test_obj_face_layouts(tmp_path, face_lines):
     np.testing.assert_array_equal(mesh.faces, [[0, 1, 2], [0, 2, 3]])
     if "/" in face_lines and "//" not in face_lines:
         np.testing.assert_array_equal(mesh.uv[1], [[0, 0], [1, 1], [0, 1]])
+
+
+@pytest.mark.parametrize("text", [
+    # block layout as photogrammetry tools write it: the block parser
+    "mtllib none.mtl\nv 0 0 0\nv 1 0 0\nv 1 1 0\nv 0 1 0\nvt 0 0\nvt 1 0\nvt 1 1\nusemtl a\nf 1/1 2/2 3/3\nusemtl b\nf 1/1 3/3 4/2\n",
+    # interleaved statements, quads, 'v//vn', negative ids, tabs and comments: line by line
+    "v 0 0 0\nv 1 0 0\nv 1 1 0\nvn 0 0 1\nf 1//1 2//1 3//1\nv 0 1 0\nf -4 -2 -1\n# done\n",
+    "v\t0 0 0\nv 1 0 0\nv 1 1 0\nv 0 1 0\nf 1 2 3 4\n",
+])
+def test_obj_block_parser_agrees_with_the_line_parser(tmp_path, text):
+    import storage.obj_io as obj_io
+
+    p = tmp_path / "m.obj"
+    p.write_text(text.replace("mtllib none.mtl\n", ""))
+    fast = obj_io._fast_statements(p.read_bytes())
+    slow = obj_io._slow_statements(p, p.read_text())
+    if fast is not None:
+        for name in ("xyzc", "vt", "counts", "raw_v"):
+            assert np.array_equal(getattr(fast, name), getattr(slow, name)), name
+        assert (fast.raw_vt is None) == (slow.raw_vt is None)
+        assert fast.usemtl_names == slow.usemtl_names and fast.faces_before_usemtl == slow.faces_before_usemtl
+    m = obj_io.read_obj(p)
+    assert len(m.faces) >= 2 and np.isfinite(m.vertices).all()
+
+
+def test_obj_block_parser_on_a_written_mesh(tmp_path):
+    import storage.obj_io as obj_io
+
+    rng = np.random.default_rng(0)
+    v = rng.random((500, 3)) * 100
+    f = rng.integers(0, 500, (900, 3))
+    f = f[(f[:, 0] != f[:, 1]) & (f[:, 1] != f[:, 2]) & (f[:, 0] != f[:, 2])]
+    write_obj(tmp_path / "w.obj", v, f)
+    data = (tmp_path / "w.obj").read_bytes()
+    fast = obj_io._fast_statements(data)
+    slow = obj_io._slow_statements(tmp_path / "w.obj", data.decode())
+    assert fast is not None and np.array_equal(fast.xyzc, slow.xyzc) and np.array_equal(fast.raw_v, slow.raw_v)
