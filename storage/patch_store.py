@@ -51,6 +51,7 @@ archival size.
 from __future__ import annotations
 
 import json
+import sys
 import time
 from dataclasses import dataclass
 from pathlib import Path
@@ -191,6 +192,25 @@ def _complete(cols: dict | None, table: str, where: Path) -> dict[str, np.ndarra
     return out
 
 
+def complete_columns(cols: dict | None, table: str, where: Path) -> dict[str, np.ndarray]:
+    """Columns of ``table`` in schema order and store dtypes, defaults filled in (ValueError if bad)."""
+    return _complete(cols, table, Path(where))
+
+
+def write_patches_table(tile_dir: str | Path, patches_cols: dict, meta: TileMeta, n_points: int, n_faces: int) -> int:
+    """Write a tile's ``patches.parquet`` (last: its presence marks a complete store), after checking that
+    its row ranges account for the ``n_points`` / ``n_faces`` rows of the data tables. Returns bytes."""
+    tile_dir = Path(tile_dir)
+    patches = _complete(patches_cols, "patches", tile_dir)
+    for side, n in (("point", n_points), ("face", n_faces)):
+        count = patches[f"n_{side}s"]
+        if not (np.array_equal(patches[f"{side}_stop"] - patches[f"{side}_start"], count) and count.sum() == n):
+            raise ValueError(f"{tile_dir}: {side} ranges do not match the {n} rows written")
+    return _write_table(tile_dir / PATCHES_FILE, patches, "patches",
+                        meta.to_json("patches", len(patches["patch"]), points_rows=n_points, faces_rows=n_faces),
+                        DEFAULT_ROW_GROUP_SIZE, "auto")
+
+
 def _cast(a: np.ndarray, dt: np.dtype, what: str) -> np.ndarray:
     if a.ndim != 1:
         raise ValueError(f"{what}: expected a 1-d array, got shape {a.shape}")
@@ -236,15 +256,62 @@ def _compression(table: str, compression) -> str | dict:
 
 
 def _write_table(path: Path, cols: dict, table: str, meta_json: dict, row_group_size: int, compression) -> int:
-    schema = SCHEMAS[table].with_metadata({META_KEY: json.dumps(meta_json).encode()})
-    t = pa.Table.from_arrays([pa.array(cols[f.name], type=f.type) for f in schema], schema=schema)
-    with atomic_path(path) as tmp:
-        pq.write_table(
-            t, tmp, row_group_size=row_group_size, compression=_compression(table, compression),
-            use_dictionary=[c for c in _DICT_COLUMNS if c in cols] if table in ("points", "faces") else True,
-            sorting_columns=[pq.SortingColumn(schema.get_field_index("patch"))],
-        )
+    with TableWriter(path, table, meta_json, row_group_size, compression) as w:
+        w.write(cols)
     return path.stat().st_size
+
+
+class TableWriter:
+    """Write one store table block by block, atomically, with the row groups a one-shot write would have.
+
+    Blocks of complete columns (already in store dtypes and patch order) are appended with
+    :meth:`write`; rows are passed to Parquet only in whole row groups of ``row_group_size`` (the rest
+    waits for the next block), so a table written in blocks is byte for byte the table written at once,
+    and memory holds one block plus less than a row group. ``meta_json`` must state the final
+    ``n_rows``; :meth:`close` checks it. The file appears at ``path`` only when the context exits cleanly.
+    """
+
+    def __init__(self, path: Path, table: str, meta_json: dict, row_group_size: int = DEFAULT_ROW_GROUP_SIZE,
+                 compression="auto"):
+        self.path, self.table, self.row_group_size = Path(path), table, row_group_size
+        self.schema = SCHEMAS[table].with_metadata({META_KEY: json.dumps(meta_json).encode()})
+        self.n_rows, self.expected = 0, meta_json.get("n_rows")
+        self._carry: pa.Table | None = None
+        self._compression = _compression(table, compression)
+        self._dictionary = [c for c in _DICT_COLUMNS if c in _TABLES[table][1]] if table in ("points", "faces") else True
+
+    def __enter__(self) -> TableWriter:
+        self._ctx = atomic_path(self.path)
+        tmp = self._ctx.__enter__()
+        self._writer = pq.ParquetWriter(tmp, self.schema, compression=self._compression,
+                                        use_dictionary=self._dictionary,
+                                        sorting_columns=[pq.SortingColumn(self.schema.get_field_index("patch"))])
+        return self
+
+    def write(self, cols: dict[str, np.ndarray]) -> None:
+        t = pa.Table.from_arrays([pa.array(cols[f.name], type=f.type) for f in self.schema], schema=self.schema)
+        self.n_rows += t.num_rows
+        if self._carry is not None:
+            t = pa.concat_tables([self._carry, t])
+        whole = (t.num_rows // self.row_group_size) * self.row_group_size
+        if whole:
+            self._writer.write_table(t.slice(0, whole), row_group_size=self.row_group_size)
+        self._carry = t.slice(whole) if whole < t.num_rows else None
+
+    def __exit__(self, exc_type, exc, tb):
+        try:
+            if exc_type is None:
+                if self._carry is not None:
+                    self._writer.write_table(self._carry, row_group_size=self.row_group_size)
+                elif self.n_rows == 0:
+                    self._writer.write_table(self.schema.empty_table())
+                if self.expected is not None and self.n_rows != self.expected:
+                    raise ValueError(f"{self.path}: {self.n_rows} rows written, metadata says {self.expected}")
+            self._writer.close()
+        except BaseException:
+            self._ctx.__exit__(*sys.exc_info())
+            raise
+        return self._ctx.__exit__(exc_type, exc, tb)
 
 
 def write_tile_tables(tile_dir: str | Path, points_cols: dict | None, faces_cols: dict | None,

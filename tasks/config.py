@@ -72,6 +72,7 @@ class PartitionConfig(_Model):
     outlier_sigma_high: float = Field(3.0, ge=0, description="patches with log-count above mean + k*sigma are flagged")
     min_faces: int = Field(1, ge=0, description="a pair needs at least this many faces to be graded")
     min_points: int = Field(1, ge=0, description="a pair needs at least this many points to be graded")
+    memory_budget_mb: int = Field(2048, ge=64, description="peak RSS budget of a tile task (a worker); tiles that would not fit are partitioned by an external merge of sorted runs")
     grid_anchor_m: tuple[float, float, float] = Field(
         (0.0, 0.0, 0.0), description="world point of the patch grid's cell (0, 0, 0); keep it fixed: ids derive from it")
 

@@ -24,7 +24,7 @@ from pathlib import Path
 import numpy as np
 
 from storage.atomic import file_fingerprint
-from storage.columns import write_columns
+from storage.columns import write_run
 from storage.errors import InputError
 from storage.frame import CampusFrame
 from storage.grid import PatchGrid
@@ -34,7 +34,7 @@ from storage.mesh_io import MeshData, read_mesh
 from storage.pointcloud_io import PointChunk, iter_points, iter_points_range
 from storage.workdir import WorkDir
 from tasks.config import CampusConfig
-from tasks.partition import FACE_VERTEX_COLUMNS
+from tasks.partition import FACE_VERTEX_COLUMNS, partition_cells
 from tasks.scan import face_normals
 from tasks.tiling import group_by_tile
 
@@ -237,12 +237,9 @@ def _route_points(unit: IngestUnit, cfg: CampusConfig, frame: CampusFrame, matri
         local64 = to_campus(chunk.xyz, frame, matrix, unit.path)
         cells = grid.cells_local(local64, frame.origin)
         cols = point_columns(chunk, local64.astype(np.float32), unit.source)
+        del local64
         cols["patch"] = grid.pack(cells)
-        for tile, idx in group_by_tile(grid.tile_of_cells(cells)):
-            out = wd.staging_dir(tile) / f"{unit.key}-{k:03d}.parquet"
-            write_columns(out, {c: v[idx] for c, v in cols.items()})
-            outputs.append(str(out.relative_to(wd.root)))
-            tiles[tile.key] = tiles.get(tile.key, 0) + len(idx)
+        _write_runs(wd, f"{unit.key}-{k:03d}", cols, cells, grid, None, outputs, tiles)
         n += len(chunk)
     if n == 0:
         raise InputError(unit.path, f"no points in range [{unit.start}, {unit.stop})")
@@ -264,13 +261,22 @@ def _route_mesh(unit: IngestUnit, cfg: CampusConfig, frame: CampusFrame, wd: Wor
         cols[f"vp{v}"] = vkeys[mesh.faces[:, v]]
     meta = {"textures": mesh.textures, "source": unit.path,
             "n_degenerate_dropped": mesh.n_degenerate_dropped, "n_duplicate_dropped": mesh.n_duplicate_dropped}
-    for tile, idx in group_by_tile(grid.tile_of_cells(cells)):
-        out = wd.staging_dir(tile) / f"{unit.key}-000.parquet"
-        write_columns(out, {c: v[idx] for c, v in cols.items()}, meta)
-        outputs.append(str(out.relative_to(wd.root)))
-        tiles[tile.key] = tiles.get(tile.key, 0) + len(idx)
+    _write_runs(wd, f"{unit.key}-000", cols, cells, grid, meta, outputs, tiles)
     return {"n_degenerate_dropped": mesh.n_degenerate_dropped, "n_duplicate_dropped": mesh.n_duplicate_dropped,
             "n_nonmanifold_edges": mesh.n_nonmanifold_edges}
+
+
+def _write_runs(wd: WorkDir, name: str, cols: dict, cells: np.ndarray, grid: PatchGrid, meta: dict | None,
+                outputs: list[str], tiles: dict) -> None:
+    """Route rows to their tiles as sorted runs (``staging/{tile}/{name}.parquet``, sorted by patch, stable),
+    which the partition stage merges without sorting a whole tile in memory."""
+    order = partition_cells(cells).order  # stable by patch key
+    for tile, idx in group_by_tile(grid.tile_of_cells(cells)[order]):  # stable: each tile stays key-sorted
+        rows = order[idx]
+        out = wd.staging_dir(tile) / f"{name}.parquet"
+        write_run(out, {c: v[rows] for c, v in cols.items()}, meta)
+        outputs.append(str(out.relative_to(wd.root)))
+        tiles[tile.key] = tiles.get(tile.key, 0) + len(rows)
 
 
 def ingest_fingerprint(unit: IngestUnit, frame: CampusFrame, matrix: np.ndarray | None) -> str:

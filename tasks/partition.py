@@ -218,6 +218,79 @@ def _segment_bbox(lo: list, hi: list, part: Partition) -> tuple[np.ndarray, np.n
     return mins, maxs
 
 
+@dataclass(frozen=True)
+class SideSummary:
+    """Per-patch facts of one side (points or faces) of a tile, in ascending key order.
+
+    keys: (u,) int64; counts: (u,) int64 rows per patch; bmin, bmax: (u, 3) float32 bbox of the rows'
+    coordinates (points) or face vertices (faces), campus-local metres.
+    """
+
+    keys: np.ndarray
+    counts: np.ndarray
+    bmin: np.ndarray
+    bmax: np.ndarray
+
+    @staticmethod
+    def empty() -> SideSummary:
+        return SideSummary(np.zeros(0, np.int64), np.zeros(0, np.int64), np.zeros((0, 3), np.float32),
+                           np.zeros((0, 3), np.float32))
+
+    @staticmethod
+    def concat(parts: list[SideSummary]) -> SideSummary:
+        """Summaries of consecutive, disjoint key ranges (e.g. the blocks of a streamed tile)."""
+        if not parts:
+            return SideSummary.empty()
+        return SideSummary(*(np.concatenate([getattr(p, f) for p in parts])
+                             for f in ("keys", "counts", "bmin", "bmax")))
+
+
+def summarise_side(sorted_cols: dict, part: Partition, faces: bool) -> SideSummary:
+    """The :class:`SideSummary` of rows sorted by ``part`` (sorted_cols: the gathered columns)."""
+    if part.n_rows == 0:
+        return SideSummary.empty()
+    if faces:
+        vx = [[sorted_cols[f"{a}{v}"].astype(np.float32, copy=False) for v in range(3)] for a in "xyz"]
+        lo = [np.minimum(np.minimum(c[0], c[1]), c[2]) for c in vx]
+        hi = [np.maximum(np.maximum(c[0], c[1]), c[2]) for c in vx]
+    else:
+        lo = hi = [sorted_cols[c].astype(np.float32, copy=False) for c in ("x", "y", "z")]
+    mn, mx = _segment_bbox(lo, hi, part)
+    return SideSummary(part.keys, part.counts, mn, mx)
+
+
+def patches_table(points: SideSummary, faces: SideSummary) -> dict[str, np.ndarray]:
+    """The patches table of a tile from its two sides: one row per patch with points or faces, ascending
+    keys; row ranges point into the sorted points / faces tables (empty ranges at the insertion row)."""
+    keys = np.concatenate((points.keys, faces.keys)).astype(np.int64, copy=False)
+    keys.sort()
+    keys = keys[np.concatenate(([True], keys[1:] != keys[:-1]))] if len(keys) else keys
+    u = len(keys)
+    ijk = PatchGrid.unpack(keys)
+    out = {"patch": keys, "i": ijk[:, 0].copy(), "j": ijk[:, 1].copy(), "k": ijk[:, 2].copy()}
+    bmin = np.full((u, 3), np.nan, dtype=np.float32)
+    bmax = np.full((u, 3), np.nan, dtype=np.float32)
+    ranges = {}
+    for name, side in (("point", points), ("face", faces)):
+        at = np.searchsorted(keys, side.keys)
+        counts = np.zeros(u, np.int64)
+        counts[at] = side.counts
+        stop = np.cumsum(counts)
+        ranges[name] = (stop - counts, stop, counts)
+        if len(at):
+            bmin[at] = np.fmin(bmin[at], side.bmin)
+            bmax[at] = np.fmax(bmax[at], side.bmax)
+    out["n_points"] = ranges["point"][2].astype(np.int32)
+    out["n_faces"] = ranges["face"][2].astype(np.int32)
+    out["point_start"], out["point_stop"] = ranges["point"][0], ranges["point"][1]
+    out["face_start"], out["face_stop"] = ranges["face"][0], ranges["face"][1]
+    for a, axis in enumerate("xyz"):
+        out[f"{axis}min"] = bmin[:, a].copy()
+    for a, axis in enumerate("xyz"):
+        out[f"{axis}max"] = bmax[:, a].copy()
+    return out
+
+
 def build_tile_tables(points_cols: dict | None, faces_cols: dict | None, grid: PatchGrid, origin):
     """Partition one tile's points and faces; return the columns of the points, faces and patches tables.
 
@@ -231,11 +304,17 @@ def build_tile_tables(points_cols: dict | None, faces_cols: dict | None, grid: P
     Returns:
         (points, faces, patches): points/faces are the input columns gathered into patch order plus
         ``patch`` (int64 key per row), and for faces ``vp0, vp1, vp2`` (int64 key of the patch holding
-        each corner vertex, Algorithm 1 step 3) ({} when the input was None); patches has one row per
-        patch with points or faces: patch int64, i/j/k int64 world cells, n_points/n_faces int32,
-        point_start, point_stop, face_start, face_stop int64, xmin..zmax float32 (bbox of the points
+        each corner vertex, Algorithm 1 step 3) ({} when the input was None); patches (:func:`patches_table`)
+        has one row per patch with points or faces: patch int64, i/j/k int64 world cells, n_points/n_faces
+        int32, point_start, point_stop, face_start, face_stop int64, xmin..zmax float32 (bbox of the points
         and face vertices, campus-local).
     """
+    points, faces, p_side, f_side = partition_sides(points_cols, faces_cols, grid, origin)
+    return points, faces, patches_table(p_side, f_side)
+
+
+def partition_sides(points_cols: dict | None, faces_cols: dict | None, grid: PatchGrid, origin):
+    """Sort both sides by patch: (points, faces, points SideSummary, faces SideSummary)."""
     p_part = f_part = _empty_partition()
     if points_cols is not None:
         points_cols = _float32_coords(points_cols, ("x", "y", "z"), "points")
@@ -249,37 +328,4 @@ def build_tile_tables(points_cols: dict | None, faces_cols: dict | None, grid: P
     if faces and "vp0" not in faces:
         for v in range(3):
             faces[f"vp{v}"] = grid.pack(grid.cells(faces[f"x{v}"], faces[f"y{v}"], faces[f"z{v}"], origin))
-
-    keys, pr, fr = merge_pair_index(p_part, f_part)
-    u = len(keys)
-    ijk = grid.unpack(keys)
-    bmin = np.full((u, 3), np.nan, dtype=np.float32)
-    bmax = np.full((u, 3), np.nan, dtype=np.float32)
-    if p_part.n_rows:
-        xyz = [points[c].astype(np.float32, copy=False) for c in ("x", "y", "z")]
-        mn, mx = _segment_bbox(xyz, xyz, p_part)
-        at = np.searchsorted(keys, p_part.keys)
-        bmin[at], bmax[at] = mn, mx
-    if f_part.n_rows:
-        vx = [[faces[f"{a}{v}"].astype(np.float32, copy=False) for v in range(3)] for a in "xyz"]
-        lo = [np.minimum(np.minimum(c[0], c[1]), c[2]) for c in vx]
-        hi = [np.maximum(np.maximum(c[0], c[1]), c[2]) for c in vx]
-        mn, mx = _segment_bbox(lo, hi, f_part)
-        at = np.searchsorted(keys, f_part.keys)
-        bmin[at] = np.fmin(bmin[at], mn)
-        bmax[at] = np.fmax(bmax[at], mx)
-    patches = {
-        "patch": keys,
-        "i": ijk[:, 0].copy(),
-        "j": ijk[:, 1].copy(),
-        "k": ijk[:, 2].copy(),
-        "n_points": (pr[:, 1] - pr[:, 0]).astype(np.int32),
-        "n_faces": (fr[:, 1] - fr[:, 0]).astype(np.int32),
-        "point_start": pr[:, 0].copy(),
-        "point_stop": pr[:, 1].copy(),
-        "face_start": fr[:, 0].copy(),
-        "face_stop": fr[:, 1].copy(),
-        "xmin": bmin[:, 0].copy(), "ymin": bmin[:, 1].copy(), "zmin": bmin[:, 2].copy(),
-        "xmax": bmax[:, 0].copy(), "ymax": bmax[:, 1].copy(), "zmax": bmax[:, 2].copy(),
-    }
-    return points, faces, patches
+    return points, faces, summarise_side(points, p_part, False), summarise_side(faces, f_part, True)

@@ -25,6 +25,7 @@ import time
 from pathlib import Path
 
 import numpy as np
+import pyarrow.parquet as pq
 
 from storage.atomic import file_sha256, write_json_atomic
 from storage.columns import read_columns
@@ -94,8 +95,52 @@ def mark_stale(tile_dir: Path, error: str) -> None:
 # ----------------------------------------------------------------------------------- partition
 
 
+def write_tile_store(parts: list[Path], tile_dir: Path, meta: TileMeta, cfg: CampusConfig, frame: CampusFrame,
+                     budget_bytes: int, force_stream: bool = False) -> dict:
+    """Partition a tile's staging runs into its store: in memory when the estimate fits the budget left
+    above this process's current RSS, else by the k-way merge of ``tasks.partition_stream`` (same files)."""
+    from tasks.partition_stream import IN_MEMORY_BYTES, STREAM_BYTES, stream_partition_tile
+
+    point_runs = [p for p in parts if p.name.startswith("p")]
+    face_runs = [p for p in parts if p.name.startswith("m")]
+    rows_p, rows_f = (sum(pq.ParquetFile(p).metadata.num_rows for p in runs) for runs in (point_runs, face_runs))
+    free = budget_bytes - current_rss_bytes()
+    need = rows_p * IN_MEMORY_BYTES["points"] + rows_f * IN_MEMORY_BYTES["faces"]
+    if need <= free and not force_stream:
+        points, faces, textures = load_staged_tile(parts)
+        pts_s, faces_s, patches = build_tile_tables(points, faces, cfg.grid(), frame.origin)
+        del points, faces
+        meta = TileMeta(meta.tile, meta.patch_size_m, meta.crs, tuple(textures))
+        write_tile_tables(tile_dir, pts_s or None, faces_s or None, patches, meta)
+        return {"n_points": rows_p, "n_faces": rows_f, "n_patches": len(patches["patch"]), "streamed": False}
+    budget_rows = max(int(free // max(STREAM_BYTES["points"], STREAM_BYTES["faces"])), 10_000)
+    out = stream_partition_tile(point_runs, face_runs, tile_dir, meta, budget_rows)
+    return out | {"streamed": True}
+
+
+def current_rss_bytes() -> int:
+    """This process's resident set size now, bytes (Linux /proc; 0 when unknown)."""
+    try:
+        with open("/proc/self/statm") as f:
+            return int(f.read().split()[1]) * os.sysconf("SC_PAGE_SIZE")
+    except (OSError, ValueError, IndexError):
+        return 0
+
+
+def peak_rss_mb() -> float:
+    """This process's peak resident set size so far (VmHWM), MiB; NaN when unknown."""
+    try:
+        with open("/proc/self/status") as f:
+            for line in f:
+                if line.startswith("VmHWM:"):
+                    return int(line.split()[1]) / 1024
+    except (OSError, ValueError):
+        pass
+    return float("nan")
+
+
 def run_partition_tile(tile: TileId, cfg: CampusConfig, wd: WorkDir, frame: CampusFrame,
-                       blocked: str | None = None) -> dict:
+                       blocked: str | None = None, force_stream: bool = False) -> dict:
     """Partition one tile's staged points and faces into its patch store.
 
     ``blocked``: the error of an input this tile depends on; the tile then fails with it (its last good
@@ -110,21 +155,18 @@ def run_partition_tile(tile: TileId, cfg: CampusConfig, wd: WorkDir, frame: Camp
         t0 = time.perf_counter()
         if blocked:
             raise InputError(None, f"tile {tile.key}: {blocked}")
-        points, faces, textures = load_staged_tile(parts)
-        if points is None and faces is None:
+        if not parts:
             remove_store(tile_dir)  # a tile that lost its data
             raise EmptyTileError(None, f"tile {tile.key} holds no points and no faces")
-        pts_s, faces_s, patches = build_tile_tables(points, faces, cfg.grid(), frame.origin)
-        meta = TileMeta(tile=tile.key, patch_size_m=tuple(cfg.partition.patch_size_m), crs=frame.crs,
-                        textures=tuple(textures))
         for name in SIDE_TABLES:  # side tables describe the old patches: never join them to new ones
             side_table_path(tile_dir, name).unlink(missing_ok=True)
-        write_tile_tables(tile_dir, pts_s or None, faces_s or None, patches, meta)
+        meta = TileMeta(tile=tile.key, patch_size_m=tuple(cfg.partition.patch_size_m), crs=frame.crs)
+        budget = cfg.partition.memory_budget_mb * 2**20
+        counts = write_tile_store(parts, tile_dir, meta, cfg, frame, budget, force_stream=force_stream)
         (tile_dir / STALE_FILE).unlink(missing_ok=True)
-        summary = {"tile": tile.key, "n_points": len(pts_s.get("x", [])) if pts_s else 0,
-                   "n_faces": len(faces_s.get("x0", [])) if faces_s else 0, "n_patches": len(patches["patch"]),
-                   "n_inputs": len(parts), "worker": f"{socket.gethostname()}:{os.getpid()}",
-                   "partition_seconds": time.perf_counter() - t0}
+        summary = {"tile": tile.key, **counts, "n_inputs": len(parts),
+                   "worker": f"{socket.gethostname()}:{os.getpid()}",
+                   "partition_seconds": time.perf_counter() - t0, "peak_rss_mb": peak_rss_mb()}
         return Done(outputs=[str((tile_dir / PATCHES_FILE).relative_to(wd.root))], summary=summary)
 
     return run_unit(wd, "partition", tile.key, fp, params, work,
