@@ -24,7 +24,7 @@ from pathlib import Path
 def _cmd_synth(a) -> int:
     from synth.generate import generate
 
-    out = generate(a.preset, seed=a.seed, out=a.out, overwrite=a.overwrite, scale=a.scale)
+    out = generate(a.preset, seed=a.seed, out=a.out, overwrite=a.overwrite, scale=a.scale, mls_density=a.mls_density)
     print(f"synthetic campus '{a.preset}' (seed {a.seed}) written to {out}")
     return 0
 
@@ -112,6 +112,8 @@ def build_parser() -> argparse.ArgumentParser:
     s.add_argument("--out", required=True)
     s.add_argument("--overwrite", action="store_true", help="replace the contents of a non-empty --out")
     s.add_argument("--scale", type=float, default=1.0, help="campus preset: side length multiplier")
+    s.add_argument("--mls-density", type=float, default=None,
+                   help="MLS scanner rate as a fraction of the real one (1.0 = real density; default: the preset's)")
     s.set_defaults(func=_cmd_synth)
 
     r = sub.add_parser("run", help="reprocess a campus described by a YAML config")

@@ -191,13 +191,16 @@ def _merge_scenes(scenes: list[Scene]) -> Scene:
 
 
 def generate(preset: str = "tiny", seed: int = 0, out: str | Path = "synth-out", overwrite: bool = False,
-             scale: float = 1.0) -> Path:
-    """Generate a synthetic campus into ``out``; returns ``out``. See the module docstring."""
+             scale: float = 1.0, mls_density: float | None = None) -> Path:
+    """Generate a synthetic campus into ``out``; returns ``out``. See the module docstring.
+
+    mls_density: the MLS scanner rate as a fraction of the real one (1.0 = real density); None keeps
+    the preset's (demo 0.1)."""
     from .cameras import render_cameras, write_images
     from .mvs import MvsParams, make_mvs_mesh
     from .trajectory import TrajectoryParams, build_trajectories
 
-    p = get_preset(preset, scale)
+    p = get_preset(preset, scale, mls_density)
     out = Path(out).absolute()
     _prepare_out(out, overwrite)
     t_start = time.perf_counter()
@@ -268,10 +271,11 @@ def generate(preset: str = "tiny", seed: int = 0, out: str | Path = "synth-out",
     })
     _assemble_defects(out / "truth" / "defects.json", defects_part)
     write_json_atomic(out / "truth" / "scene.json", {"preset": p.name, "seed": seed, "scale": scale,
+                                                     "mls_density": p.mls_density_scale,
                                                      "extent_m": list(p.extent_m), "buildings": buildings,
                                                      "stats": {k: v for k, v in stats.items() if k != "scan_seconds"}})
     write_campus_yaml(out, p, mesh_inputs, seed)
-    write_manifest(out, {"preset": p.name, "seed": seed, "scale": scale})
+    write_manifest(out, {"preset": p.name, "seed": seed, "scale": scale, "mls_density": p.mls_density_scale})
     log.info("synth %s seed %d: %s in %.1f s", p.name, seed, stats, time.perf_counter() - t_start)
     return out
 

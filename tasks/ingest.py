@@ -130,26 +130,26 @@ def to_campus(world: np.ndarray, frame: CampusFrame, matrix: np.ndarray | None, 
 
     Patch cells are computed from this float64 result (``origin + local``, i.e. world coordinates), not
     from the float32 values stored, so a place keeps its patch whatever the origin; the cast to float32
-    (:meth:`CampusFrame.to_local` checks the reach) moves a point by at most ~0.1 mm.
+    moves a point by at most ~0.1 mm within the checked reach. NaN/inf and points too far from the origin
+    for float32 raise InputError naming ``source``.
     """
-    local = np.asarray(world, np.float64) - frame.origin_array
-    if not np.isfinite(local).all():
-        raise InputError(source, f"{int((~np.isfinite(local).all(axis=1)).sum())} coordinates are NaN or infinite")
-    if matrix is not None:
-        m = np.asarray(matrix, np.float64)
-        local = local @ m[:3, :3].T + m[:3, 3]
-    _check_reach(local, frame, source)
-    return local
-
-
-def _check_reach(local: np.ndarray, frame: CampusFrame, source: str) -> None:
     from storage.frame import MAX_LOCAL_EXTENT_M
 
+    local = np.subtract(world, frame.origin_array, dtype=np.float64)
+    if matrix is not None:
+        m = np.asarray(matrix, np.float64)
+        local = local @ m[:3, :3].T
+        local += m[:3, 3]
     if len(local):
-        reach = float(np.abs(local[:, :2]).max())
+        lo, hi = local.min(axis=0), local.max(axis=0)  # NaN propagates into both
+        if not (np.isfinite(lo).all() and np.isfinite(hi).all()):
+            bad = int((~np.isfinite(local).all(axis=1)).sum())
+            raise InputError(source, f"{bad} coordinates are NaN or infinite")
+        reach = float(max(np.abs(lo[:2]).max(), np.abs(hi[:2]).max()))
         if reach > MAX_LOCAL_EXTENT_M * 5:
             raise InputError(source, f"coordinates lie {reach:,.0f} m from the campus origin {frame.origin}: wrong "
                                      "CRS, units or a mismatched extent (inputs must overlap the campus)")
+    return local
 
 
 # ----------------------------------------------------------------------------------- planning

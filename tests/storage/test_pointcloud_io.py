@@ -226,3 +226,15 @@ def test_ascii_ply_and_pcd(tmp_path):
     )
     pts = read_points(pcd)
     np.testing.assert_allclose(pts.xyz, [[500000.123, 4000000.456, 50.5], [500001, 4000001, 51]], atol=1e-6)
+
+
+def test_chunked_laz_read_equals_laspy_read(tmp_path):
+    import laspy
+
+    path = write_points(tmp_path / "c.laz", make_chunk(), crs="EPSG:32650")
+    ref = laspy.read(path)
+    got = PointChunk.concat(iter_points_range(path, 0, N, chunk_points=3_333))
+    np.testing.assert_array_equal(got.xyz, np.stack([ref.x, ref.y, ref.z], axis=1))
+    np.testing.assert_array_equal(got.intensity, np.asarray(ref.intensity))
+    np.testing.assert_array_equal(got.gps_time, np.asarray(ref.gps_time))
+    np.testing.assert_array_equal(got.rgb, np.stack([ref.red, ref.green, ref.blue], axis=1))
