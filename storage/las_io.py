@@ -29,17 +29,25 @@ from .point_chunk import CloudInfo, PointChunk, check_cloud_file, check_finite_p
 LAS_INT32_MAX = 2**31 - 1
 
 
-def _open_las(path: Path) -> laspy.LasReader:
+# LAS 1.4 point formats 6-10 are compressed in layers; only the ones ms3d stores are decompressed
+# (skipping flags, scan angle, user data and point source ids saves ~5-20 % of the decode time).
+_D = laspy.DecompressionSelection
+DECOMPRESS = (_D.XY_RETURNS_CHANNEL | _D.Z | _D.CLASSIFICATION | _D.INTENSITY | _D.GPS_TIME | _D.RGB
+              | _D.ALL_EXTRA_BYTES)
+
+
+def _open_las(path: Path, selective: bool = False) -> laspy.LasReader:
     check_cloud_file(path)
     with open(path, "rb") as f:
         signature = f.read(4)
     if signature != b"LASF":
         raise InputError(path, f"not a LAS/LAZ file (signature {signature!r}, expected b'LASF')")
+    kw = {"decompression_selection": DECOMPRESS} if selective else {}
     try:
-        return laspy.open(path)
+        return laspy.open(path, **kw)
     except Exception:  # noqa: BLE001 - EVLRs past the end of a truncated file: retry without them
         try:
-            return laspy.open(path, read_evlrs=False)
+            return laspy.open(path, read_evlrs=False, **kw)
         except Exception as err:
             raise InputError(path, f"unreadable LAS header, the file may be truncated ({err})") from err
 
@@ -169,13 +177,17 @@ def _check_las_complete(path: Path, h: laspy.LasHeader) -> None:
 
 def _chunk_from_las(record, h: laspy.LasHeader) -> PointChunk:
     arr = record.array
-    xyz = np.empty((len(arr), 3), dtype=np.float64)
+    n = len(arr)
+    xyz = np.empty((n, 3), dtype=np.float64)
     for i, name in enumerate("XYZ"):
-        xyz[:, i] = arr[name] * h.scales[i] + h.offsets[i]
+        np.multiply(arr[name], h.scales[i], out=xyz[:, i])  # one pass per axis, no temporaries
+        xyz[:, i] += h.offsets[i]
     dims = set(h.point_format.dimension_names)
     rgb = None
     if "red" in dims:
-        rgb = np.stack([arr["red"], arr["green"], arr["blue"]], axis=1).astype(np.uint16)
+        rgb = np.empty((n, 3), dtype=np.uint16)
+        for i, name in enumerate(("red", "green", "blue")):
+            rgb[:, i] = arr[name]
     extra = {name: np.array(record[name]) for name in h.point_format.extra_dimension_names}
     return PointChunk(
         xyz=xyz,
@@ -189,7 +201,7 @@ def _chunk_from_las(record, h: laspy.LasHeader) -> PointChunk:
 
 def iter_las(path: Path, chunk_points: int, start: int = 0, stop: int | None = None) -> Iterator[PointChunk]:
     """Points ``[start, stop)`` of a LAS/LAZ file in chunks of at most ``chunk_points``."""
-    with _open_las(path) as reader:
+    with _open_las(path, selective=True) as reader:
         h = reader.header
         n = int(h.point_count)
         _check_las_complete(path, h)
