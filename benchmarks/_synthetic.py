@@ -119,10 +119,10 @@ def write_big_tile_runs(staging: Path, n_points: int, run_points: int = 2_000_00
     from storage.grid import PatchGrid
     from tasks.partition import partition_cells
 
-    params = {"n_points": n_points, "run_points": run_points, "seed": seed, "tile": list(tile), "version": 1}
+    params = {"n_points": n_points, "run_points": run_points, "seed": seed, "tile": list(tile), "version": 2}
     stamp = staging / "params.json"
     if stamp.exists() and json.loads(stamp.read_text()) == params:
-        return len(list(staging.glob("p*.parquet")))
+        return len(list(staging.glob("p*.arrow")))
     shutil.rmtree(staging, ignore_errors=True)
     staging.mkdir(parents=True)
     grid = PatchGrid((2.3, 1.0, 0.7), 100.0)
@@ -141,7 +141,7 @@ def write_big_tile_runs(staging: Path, n_points: int, run_points: int = 2_000_00
                 "gps_time": attrs["gps_time"][order], "red": attrs["rgb"][order, 0], "green": attrs["rgb"][order, 1],
                 "blue": attrs["rgb"][order, 2], "classification": attrs["classification"][order],
                 "source": np.full(n, r, np.uint32), "patch": grid.pack(cells[order])}
-        write_run(staging / f"p{r:08x}-00000000-00000-000.parquet", cols)
+        write_run(staging / f"p{r:08x}-00000000-00000-000.arrow", cols)
         runs += 1
     stamp.write_text(json.dumps(params))
     (staging / "origin.json").write_text(json.dumps(origin.tolist()))

@@ -142,7 +142,7 @@ def job_partition_points(tiles: list[str], wd: str, out: str, cfg: dict, frame: 
     n = 0
     with timed() as t:
         for k in tiles:
-            runs = sorted(p for p in (Path(wd) / "staging" / k).glob("p*.parquet"))
+            runs = sorted(p for p in (Path(wd) / "staging" / k).glob("p*.arrow"))
             if runs:
                 meta = TileMeta(k, tuple(cfg_m.partition.patch_size_m), fr.crs)
                 n += write_tile_store(runs, Path(out) / k, meta, cfg_m, fr, 2**40)["n_points"]
@@ -255,16 +255,24 @@ def stage(cfg, work: Path) -> dict:
             "n": sum(u.stop - u.start for u in units)}
 
 
+def _fresh_ingest(wd) -> None:
+    shutil.rmtree(wd.root / "staging", ignore_errors=True)
+    shutil.rmtree(wd.manifest_dir / "ingest", ignore_errors=True)
+
+
 def throughput(cfg, st: dict, r: dict, workers: int) -> None:
     files, units = st["files"], [u.to_json() for u in st["units"]]
     cfg_j, wd, frame = cfg.model_dump(mode="json"), str(st["wd"].root), st["frame"].to_json()
     # 1. decode, one process each
     lr, mr = run_jobs([("job_laspy_read", {"files": files})])[0], \
         run_jobs([("job_ms3d_read", {"files": files, "chunk": cfg.tiling.chunk_points})])[0]
-    # 2. ingest: one process (per core), then `workers` processes (per wall second), laspy.read likewise
-    ing1 = run_jobs([("job_ingest", {"units": units, "cfg": cfg_j, "wd": wd, "frame": frame, "matrix": MATRIX})])[0]
+    # 2. ingest: `workers` processes (per wall second), then one process (per core; its staging is what the
+    #    partition below reads), laspy.read likewise; each ingest starts from an empty staging folder
+    _fresh_ingest(st["wd"])
     ingn = run_jobs([("job_ingest", {"units": u, "cfg": cfg_j, "wd": wd, "frame": frame, "matrix": MATRIX})
                      for u in _split(units, workers)])
+    _fresh_ingest(st["wd"])
+    ing1 = run_jobs([("job_ingest", {"units": units, "cfg": cfg_j, "wd": wd, "frame": frame, "matrix": MATRIX})])[0]
     lrn = run_jobs([("job_laspy_read", {"files": f}) for f in _split(files, workers)])
     # 3. end to end, points: partition of what ingest staged, and the baseline
     tiles = sorted(p.name for p in (st["wd"].root / "staging").iterdir())

@@ -38,45 +38,62 @@ def read_columns(path: str | Path) -> tuple[dict[str, np.ndarray], dict]:
 
 # --------------------------------------------------------------------------------- sorted runs
 
-RUN_ROW_GROUP = 32_768  # rows per row group of a staging run: the unit of partial reads when merging
-_RUN_DICT_COLUMNS = ("source", "texture", "classification")  # few distinct values: dictionary + RLE
+RUN_ROW_GROUP = 32_768  # rows per record batch of a staging run: the unit of partial reads when merging
+RUN_SUFFIX = ".arrow"
 
 
 def write_run(path: str | Path, cols: dict[str, np.ndarray], meta: dict | None = None) -> Path:
-    """Write a *sorted run*: equal-length columns already sorted by their int64 ``patch`` column, as
-    Parquet with row groups of :data:`RUN_ROW_GROUP` rows and min/max statistics on ``patch`` only, so a
-    merge can read just the row groups of a key range (:func:`run_row_groups`). Float columns are
-    stored raw (float32 offsets are incompressible), integers with lz4. Atomic; ``meta`` as in
-    :func:`write_columns`."""
+    """Write a *sorted run*: equal-length columns already sorted by their int64 ``patch`` column, as an
+    uncompressed Arrow IPC file of record batches of :data:`RUN_ROW_GROUP` rows, with each batch's
+    [min key, max key, rows] in the metadata so a merge reads only the batches of a key range
+    (:class:`RunReader`). Runs are temporary: IPC is written and read (memory-mapped, zero-copy) ~10x
+    faster than Parquet for ~10 % more bytes. Atomic; ``meta`` is kept under ``"ms3d"``."""
+    import pyarrow.ipc as ipc
+
     keys = np.asarray(cols["patch"])
     if len(keys) > 1 and (keys[1:] < keys[:-1]).any():
         raise ValueError(f"{path}: a run must be sorted by patch")
+    n = len(keys)
+    starts = np.arange(0, n, RUN_ROW_GROUP)
+    stops = np.minimum(starts + RUN_ROW_GROUP, n)
+    batches = [[int(keys[a]), int(keys[b - 1]), int(b - a)] for a, b in zip(starts, stops)]
     table = pa.table({k: pa.array(np.ascontiguousarray(v)) for k, v in cols.items()})
-    if meta is not None:
-        table = table.replace_schema_metadata({"ms3d": json.dumps(meta)})
-    compression = {k: ("none" if np.asarray(v).dtype.kind == "f" else "lz4") for k, v in cols.items()}
-    with atomic_path(path) as tmp:
-        pq.write_table(table, tmp, row_group_size=RUN_ROW_GROUP, compression=compression,
-                       use_dictionary=[c for c in _RUN_DICT_COLUMNS if c in cols], write_statistics=["patch"])
+    table = table.replace_schema_metadata({"ms3d": json.dumps(meta or {}), "ms3d_batches": json.dumps(batches)})
+    with atomic_path(path) as tmp, pa.OSFile(str(tmp), "wb") as sink, \
+            ipc.new_file(sink, table.schema) as writer:
+        for batch in table.to_batches(max_chunksize=RUN_ROW_GROUP):
+            writer.write_batch(batch)
     return Path(path)
 
 
-def run_row_groups(pf: pq.ParquetFile) -> np.ndarray:
-    """(g, 3) int64 rows of (min patch key, max patch key, rows) of each row group of a sorted run."""
-    md = pf.metadata
-    col = pf.schema_arrow.get_field_index("patch")
-    out = np.zeros((md.num_row_groups, 3), dtype=np.int64)
-    for g in range(md.num_row_groups):
-        rg = md.row_group(g)
-        st = rg.column(col).statistics
-        out[g] = (st.min, st.max, rg.num_rows)
-    return out
+class RunReader:
+    """A sorted run opened for reading (memory-mapped). ``groups``: (g, 3) int64 [min key, max key, rows]
+    of its record batches; ``meta``: the ``ms3d`` metadata; ``n_rows``."""
 
+    def __init__(self, path: str | Path):
+        import pyarrow.ipc as ipc
 
-def read_meta(path: str | Path) -> dict:
-    """The ``ms3d`` metadata of a Parquet file written by :func:`write_columns` / :func:`write_run`."""
-    try:
-        raw = (pq.read_schema(path).metadata or {}).get(b"ms3d")
-    except (OSError, pa.ArrowInvalid) as e:
-        raise InputError(path, f"unreadable Parquet file ({e})") from None
-    return json.loads(raw) if raw else {}
+        self.path = Path(path)
+        try:
+            self._reader = ipc.open_file(pa.memory_map(str(self.path)))
+            md = self._reader.schema.metadata or {}
+            self.meta = json.loads(md.get(b"ms3d", b"{}"))
+            self.groups = np.asarray(json.loads(md.get(b"ms3d_batches", b"[]")), np.int64).reshape(-1, 3)
+        except (OSError, pa.ArrowInvalid, ValueError) as e:
+            raise InputError(self.path, f"unreadable staging run ({e})") from None
+        if len(self.groups) != self._reader.num_record_batches:
+            raise InputError(self.path, "staging run metadata does not match its batches (a foreign file?)")
+
+    @property
+    def n_rows(self) -> int:
+        return int(self.groups[:, 2].sum())
+
+    def read(self, batches=None) -> dict[str, np.ndarray]:
+        """Columns of the given record batches (all when None), concatenated."""
+        try:
+            idx = range(self._reader.num_record_batches) if batches is None else batches
+            parts = [self._reader.get_batch(int(i)) for i in idx]
+            t = pa.Table.from_batches(parts, schema=self._reader.schema)
+        except (OSError, pa.ArrowInvalid) as e:
+            raise InputError(self.path, f"cannot read the staging run ({e})") from None
+        return {name: t.column(name).to_numpy() for name in t.column_names}

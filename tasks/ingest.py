@@ -24,7 +24,7 @@ from pathlib import Path
 import numpy as np
 
 from storage.atomic import file_fingerprint
-from storage.columns import write_run
+from storage.columns import RUN_SUFFIX, write_run
 from storage.errors import InputError
 from storage.frame import CampusFrame
 from storage.grid import PatchGrid
@@ -203,7 +203,7 @@ def prune_staging(wd: WorkDir, keys: set[str]) -> int:
         if not d.is_dir():
             continue
         for f in d.iterdir():
-            if f.name.startswith(".") or f.name.rsplit("-", 1)[0] not in keys:
+            if f.name.startswith(".") or not f.name.endswith(RUN_SUFFIX) or f.name.rsplit("-", 1)[0] not in keys:
                 f.unlink(missing_ok=True)
                 removed += 1
         with contextlib.suppress(OSError):
@@ -212,9 +212,9 @@ def prune_staging(wd: WorkDir, keys: set[str]) -> int:
 
 
 def staged_files(wd: WorkDir, tile_key: str) -> list[Path]:
-    """The complete staging files of a tile (temporary names excluded), sorted by name."""
+    """The complete staging runs of a tile (temporary names excluded), sorted by name."""
     d = wd.root / "staging" / tile_key
-    return sorted(p for p in d.glob("*.parquet") if not p.name.startswith(".")) if d.exists() else []
+    return sorted(p for p in d.glob(f"*{RUN_SUFFIX}") if not p.name.startswith(".")) if d.exists() else []
 
 
 # ----------------------------------------------------------------------------------- stage: ingest
@@ -273,7 +273,7 @@ def _write_runs(wd: WorkDir, name: str, cols: dict, cells: np.ndarray, grid: Pat
     order = partition_cells(cells).order  # stable by patch key
     for tile, idx in group_by_tile(grid.tile_of_cells(cells)[order]):  # stable: each tile stays key-sorted
         rows = order[idx]
-        out = wd.staging_dir(tile) / f"{name}.parquet"
+        out = wd.staging_dir(tile) / f"{name}{RUN_SUFFIX}"
         write_run(out, {c: v[rows] for c, v in cols.items()}, meta)
         outputs.append(str(out.relative_to(wd.root)))
         tiles[tile.key] = tiles.get(tile.key, 0) + len(rows)
@@ -295,7 +295,7 @@ def run_ingest_unit(unit: IngestUnit, cfg: CampusConfig, wd: WorkDir, frame: Cam
     from tasks.units import Done, run_unit
 
     def work() -> Done:
-        for old in (wd.root / "staging").glob(f"*/{unit.key}-*.parquet"):
+        for old in (wd.root / "staging").glob(f"*/{unit.key}-*{RUN_SUFFIX}"):
             old.unlink(missing_ok=True)  # a redone unit starts clean
         outputs: list[str] = []
         tiles: dict[str, int] = {}

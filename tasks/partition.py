@@ -179,12 +179,20 @@ def _ranges_for(part: Partition, keys: np.ndarray) -> np.ndarray:
     return out
 
 
-def _cells_of(cols: dict, compute) -> np.ndarray:
-    """Cells of the rows: from the ``patch`` keys ingest computed in float64 world coordinates when the
-    columns carry them (so a place keeps its patch whatever the campus origin), else from the columns."""
+def _partition_of(cols: dict, compute) -> Partition:
+    """Rows grouped by patch: by the ``patch`` keys ingest computed in float64 world coordinates when the
+    columns carry them (so a place keeps its patch whatever the campus origin; concatenated sorted runs,
+    so a stable argsort of the keys merges them in O(n log runs)), else by cells from the columns."""
     if "patch" in cols:
-        return PatchGrid.unpack(np.asarray(cols["patch"], np.int64))
-    return compute(cols)
+        keys = np.asarray(cols["patch"], np.int64)
+        order = np.argsort(keys, kind="stable").astype(np.int64, copy=False)
+        sk = keys[order]
+        change = np.flatnonzero(sk[1:] != sk[:-1]) + 1
+        starts = np.concatenate(([0], change)).astype(np.int64)
+        stops = np.concatenate((change, [len(sk)])).astype(np.int64)
+        return Partition(order=order, keys=sk[starts] if len(sk) else sk, starts=starts if len(sk) else starts[:0],
+                         stops=stops if len(sk) else stops[:0])
+    return partition_cells(compute(cols))
 
 
 def _float32_coords(cols: dict, names, table: str) -> dict:
@@ -318,11 +326,10 @@ def partition_sides(points_cols: dict | None, faces_cols: dict | None, grid: Pat
     p_part = f_part = _empty_partition()
     if points_cols is not None:
         points_cols = _float32_coords(points_cols, ("x", "y", "z"), "points")
-        p_part = partition_cells(_cells_of(points_cols, lambda c: grid.cells(c["x"], c["y"], c["z"], origin)))
+        p_part = _partition_of(points_cols, lambda c: grid.cells(c["x"], c["y"], c["z"], origin))
     if faces_cols is not None:
         faces_cols = _float32_coords(faces_cols, FACE_VERTEX_COLUMNS, "faces")
-        f_part = partition_cells(_cells_of(faces_cols, lambda c: grid.face_cells([c[k] for k in FACE_VERTEX_COLUMNS],
-                                                                                 origin)))
+        f_part = _partition_of(faces_cols, lambda c: grid.face_cells([c[k] for k in FACE_VERTEX_COLUMNS], origin))
     points = _sorted_columns(points_cols, p_part)
     faces = _sorted_columns(faces_cols, f_part)
     if faces and "vp0" not in faces:

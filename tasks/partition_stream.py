@@ -20,10 +20,8 @@ from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
-import pyarrow.parquet as pq
 
-from storage.columns import read_meta, run_row_groups
-from storage.errors import InputError
+from storage.columns import RunReader
 from storage.patch_store import (
     FACES_FILE,
     PATCHES_FILE,
@@ -33,7 +31,7 @@ from storage.patch_store import (
     complete_columns,
     write_patches_table,
 )
-from tasks.partition import Partition, SideSummary, patches_table, summarise_side
+from tasks.partition import Partition, SideSummary, _partition_of, patches_table, summarise_side
 
 KEY_MAX = np.iinfo(np.int64).max
 # Bytes of memory per row while partitioning (measured: benchmarks/partition_bench.py --big-tile):
@@ -43,30 +41,28 @@ STREAM_BYTES = {"points": 250, "faces": 600}  # one block of the merge
 
 @dataclass
 class Run:
-    """One staging run: its Parquet file, row-group key statistics (g, 3) [min, max, rows], and the
-    offset of its texture indices in the tile's texture list (faces)."""
+    """One staging run (``storage.columns.RunReader``: batch key statistics (g, 3) [min, max, rows]) and
+    the offset of its texture indices in the tile's texture list (faces)."""
 
-    path: Path
-    pf: pq.ParquetFile
-    groups: np.ndarray
+    reader: RunReader
     texture_base: int = 0
 
     @property
+    def groups(self) -> np.ndarray:
+        return self.reader.groups
+
+    @property
     def n_rows(self) -> int:
-        return int(self.groups[:, 2].sum())
+        return self.reader.n_rows
 
 
 def open_runs(paths: list[Path]) -> tuple[list[Run], list[str]]:
     """Open sorted runs (in the given order); returns them and the concatenated texture list."""
     runs, textures = [], []
     for p in paths:
-        try:
-            pf = pq.ParquetFile(p)
-        except OSError as e:
-            raise InputError(p, f"unreadable staging run ({e})") from None
-        meta = read_meta(p)
-        runs.append(Run(p, pf, run_row_groups(pf), len(textures)))
-        textures += meta.get("textures", [])
+        reader = RunReader(p)
+        runs.append(Run(reader, len(textures)))
+        textures += reader.meta.get("textures", [])
     return runs, textures
 
 
@@ -104,32 +100,24 @@ def plan_blocks(groups: list[np.ndarray], budget_rows: int) -> list[tuple[int, i
         lo = hi
 
 
-def read_range(run: Run, lo: int, hi: int, columns: list[str] | None = None) -> dict[str, np.ndarray] | None:
+def read_range(run: Run, lo: int, hi: int) -> dict[str, np.ndarray] | None:
     """The rows of ``run`` with lo <= patch < hi (a contiguous slice of the sorted run), reading only
-    the row groups that overlap the range; None when there are none."""
+    the record batches that overlap the range; None when there are none."""
     g = np.flatnonzero((run.groups[:, 1] >= lo) & (run.groups[:, 0] < hi))
     if len(g) == 0:
         return None
-    try:
-        t = run.pf.read_row_groups(g.tolist(), columns=columns)
-    except OSError as e:
-        raise InputError(run.path, f"cannot read staging row groups ({e})") from None
-    keys = t.column("patch").to_numpy()
+    cols = run.reader.read(g.tolist())
+    keys = cols["patch"]
     a, b = np.searchsorted(keys, lo, side="left"), np.searchsorted(keys, hi, side="left")
     if a == b:
         return None
-    t = t.slice(a, b - a)
-    return {name: t.column(name).to_numpy() for name in t.column_names}
+    return {k: v[a:b] for k, v in cols.items()}
 
 
-def _block_partition(keys: np.ndarray) -> tuple[np.ndarray, Partition]:
+def block_partition(keys: np.ndarray) -> tuple[np.ndarray, Partition]:
     """Stable order of a block's rows by key, and its Partition (for the per-patch summary)."""
-    order = np.argsort(keys, kind="stable").astype(np.int64, copy=False)  # concatenated sorted runs: few merges
-    sk = keys[order]
-    change = np.flatnonzero(sk[1:] != sk[:-1]) + 1
-    starts = np.concatenate(([0], change)).astype(np.int64)
-    stops = np.concatenate((change, [len(sk)])).astype(np.int64)
-    return order, Partition(order=order, keys=sk[starts], starts=starts, stops=stops)
+    part = _partition_of({"patch": keys}, None)
+    return part.order, part
 
 
 def stream_side(runs: list[Run], table: str, out: Path, meta: TileMeta, budget_rows: int) -> SideSummary:
@@ -150,7 +138,7 @@ def stream_side(runs: list[Run], table: str, out: Path, meta: TileMeta, budget_r
                 continue
             block = {k: np.concatenate([p[k] for p in pieces]) for k in pieces[0]}
             del pieces
-            order, part = _block_partition(block["patch"])
+            order, part = block_partition(block["patch"])
             block = {k: v[order] for k, v in block.items()}
             block = complete_columns(block, table, out)
             parts.append(summarise_side(block, part, faces=table == "faces"))

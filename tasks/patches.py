@@ -25,10 +25,9 @@ import time
 from pathlib import Path
 
 import numpy as np
-import pyarrow.parquet as pq
 
 from storage.atomic import file_sha256, write_json_atomic
-from storage.columns import read_columns
+from storage.columns import RunReader
 from storage.errors import EmptyTileError, InputError
 from storage.frame import CampusFrame
 from storage.ids import TileId
@@ -61,11 +60,12 @@ def _concat(parts: list[dict[str, np.ndarray]]) -> dict[str, np.ndarray] | None:
 
 
 def load_staged_tile(parts: list[Path]) -> tuple[dict | None, dict | None, list[str]]:
-    """A tile's staging files (sorted paths) as column dicts: (points, faces, textures), texture
+    """A tile's staging runs (sorted paths) as column dicts: (points, faces, textures), texture
     indices of each mesh file shifted into the tile's concatenated texture list."""
     pts_parts, face_parts, textures = [], [], []
     for p in parts:
-        cols, meta = read_columns(p)
+        reader = RunReader(p)
+        cols, meta = reader.read(), reader.meta
         if p.name.startswith("p"):
             pts_parts.append(cols)
         else:
@@ -103,7 +103,7 @@ def write_tile_store(parts: list[Path], tile_dir: Path, meta: TileMeta, cfg: Cam
 
     point_runs = [p for p in parts if p.name.startswith("p")]
     face_runs = [p for p in parts if p.name.startswith("m")]
-    rows_p, rows_f = (sum(pq.ParquetFile(p).metadata.num_rows for p in runs) for runs in (point_runs, face_runs))
+    rows_p, rows_f = (sum(RunReader(p).n_rows for p in runs) for runs in (point_runs, face_runs))
     free = budget_bytes - current_rss_bytes()
     need = rows_p * IN_MEMORY_BYTES["points"] + rows_f * IN_MEMORY_BYTES["faces"]
     if need <= free and not force_stream:
@@ -125,18 +125,6 @@ def current_rss_bytes() -> int:
             return int(f.read().split()[1]) * os.sysconf("SC_PAGE_SIZE")
     except (OSError, ValueError, IndexError):
         return 0
-
-
-def peak_rss_mb() -> float:
-    """This process's peak resident set size so far (VmHWM), MiB; NaN when unknown."""
-    try:
-        with open("/proc/self/status") as f:
-            for line in f:
-                if line.startswith("VmHWM:"):
-                    return int(line.split()[1]) / 1024
-    except (OSError, ValueError):
-        pass
-    return float("nan")
 
 
 def run_partition_tile(tile: TileId, cfg: CampusConfig, wd: WorkDir, frame: CampusFrame,
@@ -166,7 +154,7 @@ def run_partition_tile(tile: TileId, cfg: CampusConfig, wd: WorkDir, frame: Camp
         (tile_dir / STALE_FILE).unlink(missing_ok=True)
         summary = {"tile": tile.key, **counts, "n_inputs": len(parts),
                    "worker": f"{socket.gethostname()}:{os.getpid()}",
-                   "partition_seconds": time.perf_counter() - t0, "peak_rss_mb": peak_rss_mb()}
+                   "partition_seconds": time.perf_counter() - t0}
         return Done(outputs=[str((tile_dir / PATCHES_FILE).relative_to(wd.root))], summary=summary)
 
     return run_unit(wd, "partition", tile.key, fp, params, work,

@@ -26,7 +26,7 @@ from storage.workdir import WorkDir
 STAGE_VERSIONS = {
     "scan": 3,       # v3: stable source ids; mesh surface samples as float32 offsets from a corner
     "register": 2,   # v2: surface target, modes auto / pinned / off
-    "ingest": 2,     # v2: world-anchored grid, vertex ids, face normals
+    "ingest": 3,     # v3: sorted runs (Arrow IPC) of world-anchored keys, vertex ids, face normals
     "partition": 2,  # v2: store schema 2 (vertex ids, vertex patches, normals, side tables)
     "labels": 1,
     "outliers": 2,   # v2: flags in outliers.parquet, not in patches.parquet
@@ -51,6 +51,26 @@ def os_error_message(e: OSError) -> str:
     return f"cannot write{where}: {what}"
 
 
+def reset_peak_rss() -> None:
+    """Reset this process's peak RSS (Linux: ``5 > /proc/self/clear_refs``), so that the peak read after a
+    unit is that unit's, not the worker's lifetime peak. A no-op where unsupported."""
+    with contextlib.suppress(OSError):
+        with open("/proc/self/clear_refs", "w") as f:
+            f.write("5")
+
+
+def peak_rss_mb() -> float:
+    """Peak RSS (VmHWM) of this process since the last reset, MiB; NaN when unknown."""
+    try:
+        with open("/proc/self/status") as f:
+            for line in f:
+                if line.startswith("VmHWM:"):
+                    return round(int(line.split()[1]) / 1024, 1)
+    except (OSError, ValueError):
+        pass
+    return float("nan")
+
+
 def unit_params(stage: str, params: dict) -> str:
     """The parameter hash recorded for a unit of ``stage``."""
     return params_hash({**params, "_stage_version": STAGE_VERSIONS[stage]})
@@ -69,6 +89,7 @@ def run_unit(wd: WorkDir, stage: str, unit: str, fingerprint: str, params: dict,
     if rec is not None:
         return {**rec.summary, "unit": unit, "status": rec.status, "skipped": True, "seconds": rec.seconds}
     t0 = time.perf_counter()
+    reset_peak_rss()
     try:
         out = work()
     except EmptyTileError as e:
@@ -82,7 +103,7 @@ def run_unit(wd: WorkDir, stage: str, unit: str, fingerprint: str, params: dict,
             on_fail()
         return {"unit": unit, "status": "failed", "error": msg, "skipped": False, "seconds": secs}
     secs = time.perf_counter() - t0
-    summary = {**out.summary, "unit": unit, "status": out.status}
+    summary = {**out.summary, "unit": unit, "status": out.status, "peak_rss_mb": peak_rss_mb()}
     write_record(wd, ManifestRecord(stage, unit, out.status, fingerprint, ph, seconds=secs,
                                     outputs=out.outputs, summary=summary))
     return {**summary, "skipped": False, "seconds": secs}

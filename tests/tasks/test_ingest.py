@@ -84,7 +84,7 @@ def test_store_v2_round_trip_welds_a_patch(tmp_path):
 def test_glb_seams_are_welded_on_ingest(tmp_path):
     """A GLB splits vertices at UV seams; its faces still share vertex ids after ingest."""
     from flows.campus import scan_inputs
-    from storage.columns import read_columns
+    from storage.columns import RunReader
     from storage.pointcloud_io import PointChunk, write_points
     from storage.workdir import WorkDir
     from tasks.ingest import plan_units, run_ingest_unit
@@ -105,6 +105,6 @@ def test_glb_seams_are_welded_on_ingest(tmp_path):
     unit = next(u for u in plan_units(records, cfg.tiling.chunk_points) if u.kind == "mesh")
     run_ingest_unit(unit, cfg, wd, frame, None)
     cols = np.concatenate([np.stack([c[f"vid{v}"] for v in range(3)], axis=1)
-                           for c, _ in map(read_columns, sorted((wd.root / "staging").rglob("m*.parquet")))])
+                           for c in (RunReader(p).read() for p in sorted((wd.root / "staging").rglob("m*.arrow")))])
     assert len(cols) == 12 and len(np.unique(cols)) == 8  # 36 split vertices, 8 corners
     assert _components(cols) == 1
