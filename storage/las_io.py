@@ -178,7 +178,7 @@ def _check_las_complete(path: Path, h: laspy.LasHeader) -> None:
 def _chunk_from_las(record, h: laspy.LasHeader) -> PointChunk:
     arr = record.array
     n = len(arr)
-    xyz = np.empty((n, 3), dtype=np.float64)
+    xyz = np.empty((n, 3), dtype=np.float64, order="F")  # column-major: every later step works per axis
     for i, name in enumerate("XYZ"):
         np.multiply(arr[name], h.scales[i], out=xyz[:, i])  # one pass per axis, no temporaries
         xyz[:, i] += h.offsets[i]

@@ -126,7 +126,7 @@ def face_columns(mesh: MeshData, tri_local: np.ndarray, vids: np.ndarray, normal
 
 
 def to_campus(world: np.ndarray, frame: CampusFrame, matrix: np.ndarray | None, source: str) -> np.ndarray:
-    """world (n, 3) float64 -> campus-local (n, 3) float64, applying the registration when given.
+    """world (n, 3) float64 -> campus-local (n, 3) float64 (column-major), applying the registration when given.
 
     Patch cells are computed from this float64 result (``origin + local``, i.e. world coordinates), not
     from the float32 values stored, so a place keeps its patch whatever the origin; the cast to float32
@@ -135,13 +135,25 @@ def to_campus(world: np.ndarray, frame: CampusFrame, matrix: np.ndarray | None, 
     """
     from storage.frame import MAX_LOCAL_EXTENT_M
 
-    local = np.subtract(world, frame.origin_array, dtype=np.float64)
-    if matrix is not None:
+    world = np.asarray(world)
+    n = len(world)
+    d = [np.subtract(world[:, a], frame.origin_array[a], dtype=np.float64) for a in range(3)]  # contiguous columns
+    if matrix is None:
+        local = np.empty((n, 3), np.float64, order="F")
+        for a in range(3):
+            local[:, a] = d[a]
+    else:  # per output axis, in place on contiguous columns: ~3x a (n, 3) @ (3, 3) on C-ordered rows
         m = np.asarray(matrix, np.float64)
-        local = local @ m[:3, :3].T
-        local += m[:3, 3]
-    if len(local):
-        lo, hi = local.min(axis=0), local.max(axis=0)  # NaN propagates into both
+        local = np.empty((n, 3), np.float64, order="F")
+        for a in range(3):
+            col = local[:, a]
+            np.multiply(d[0], m[a, 0], out=col)
+            col += m[a, 1] * d[1]
+            col += m[a, 2] * d[2]
+            col += m[a, 3]
+    if n:
+        lo = np.array([local[:, a].min() for a in range(3)])  # NaN propagates into both
+        hi = np.array([local[:, a].max() for a in range(3)])
         if not (np.isfinite(lo).all() and np.isfinite(hi).all()):
             bad = int((~np.isfinite(local).all(axis=1)).sum())
             raise InputError(source, f"{bad} coordinates are NaN or infinite")
