@@ -13,11 +13,23 @@ from .atomic import atomic_path
 from .errors import InputError
 
 
+def arrow_array(values: np.ndarray, type: pa.DataType | None = None) -> pa.Array:
+    """A numpy column as an Arrow array without a copy where the layout allows (contiguous numeric, no
+    nulls). ``pa.array`` takes ~0.2 s per million float32 values here; wrapping the buffer takes microseconds."""
+    v = np.asarray(values)
+    if v.ndim == 1 and v.dtype.kind in "iuf" and v.dtype.isnative:
+        v = np.ascontiguousarray(v)
+        t = pa.from_numpy_dtype(v.dtype)
+        if type is None or type == t:
+            return pa.Array.from_buffers(t, len(v), [None, pa.py_buffer(v)])
+    return pa.array(v, type=type)
+
+
 def write_columns(path: str | Path, cols: dict[str, np.ndarray], meta: dict | None = None,
                   compression: str = "lz4") -> Path:
     """Write equal-length 1-D numpy columns as one Parquet file, atomically; ``meta`` is stored as
     JSON under the ``ms3d`` key of the schema metadata."""
-    table = pa.table({k: pa.array(np.ascontiguousarray(v)) for k, v in cols.items()})
+    table = pa.table({k: arrow_array(v) for k, v in cols.items()})
     if meta is not None:
         table = table.replace_schema_metadata({"ms3d": json.dumps(meta)})
     with atomic_path(path) as tmp:
@@ -57,7 +69,7 @@ def write_run(path: str | Path, cols: dict[str, np.ndarray], meta: dict | None =
     starts = np.arange(0, n, RUN_ROW_GROUP)
     stops = np.minimum(starts + RUN_ROW_GROUP, n)
     batches = [[int(keys[a]), int(keys[b - 1]), int(b - a)] for a, b in zip(starts, stops)]
-    table = pa.table({k: pa.array(np.ascontiguousarray(v)) for k, v in cols.items()})
+    table = pa.table({k: arrow_array(v) for k, v in cols.items()})
     table = table.replace_schema_metadata({"ms3d": json.dumps(meta or {}), "ms3d_batches": json.dumps(batches)})
     with atomic_path(path) as tmp, pa.OSFile(str(tmp), "wb") as sink, \
             ipc.new_file(sink, table.schema) as writer:

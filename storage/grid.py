@@ -126,10 +126,15 @@ class PatchGrid:
         ijk = np.asarray(ijk)
         if ijk.ndim != 2 or ijk.shape[1] != 3:
             raise ValueError(f"ijk must be (n, 3), got {ijk.shape}")
-        b = ijk.astype(np.int64) + _BIAS
-        if b.size and ((b < 0).any() or (b > _MASK).any()):
-            raise GridRangeError(f"cells beyond the packable range +-{_BIAS.tolist()} (i, j, k)")
-        return (b[:, 0] << _SHIFT[0]) | (b[:, 1] << _SHIFT[1]) | b[:, 2]
+        out = np.zeros(len(ijk), dtype=np.int64)
+        for a in range(3):  # per axis, in place: no (n, 3) temporaries
+            b = ijk[:, a].astype(np.int64)
+            b += _BIAS[a]
+            if b.size and (b.min() < 0 or b.max() > _MASK[a]):
+                raise GridRangeError(f"cells beyond the packable range +-{_BIAS.tolist()} (i, j, k)")
+            b <<= _SHIFT[a]
+            out |= b
+        return out
 
     @staticmethod
     def unpack(keys: np.ndarray) -> np.ndarray:
