@@ -363,6 +363,7 @@ def main(argv: list[str] | None = None) -> dict:
     ap.add_argument("--big-tile-points", type=int, default=50_000_000, help="points of the memory check's tile")
     ap.add_argument("--small-tile-points", type=int, default=4_000_000, help="points of the in-memory comparison")
     ap.add_argument("--budget-mb", type=int, default=2048)
+    ap.add_argument("--skip-memory", action="store_true", help="only the throughput sections")
     ap.add_argument("--workers", type=int, default=2)
     ap.add_argument("--work", type=Path, help="scratch folder (inputs kept and reused); default: temp")
     ap.add_argument("--seed", type=int, default=7)
@@ -397,7 +398,8 @@ def main(argv: list[str] | None = None) -> dict:
     except Exception:  # noqa: BLE001 - report what failed, keep the other section
         r["errors"].append("throughput: " + traceback.format_exc())
     try:
-        memory(work, a.big_tile_points, a.small_tile_points, a.budget_mb, r)
+        if not a.skip_memory:
+            memory(work, a.big_tile_points, a.small_tile_points, a.budget_mb, r)
     except Exception:  # noqa: BLE001
         r["errors"].append("memory: " + traceback.format_exc())
     finally:

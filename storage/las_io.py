@@ -185,7 +185,7 @@ def _chunk_from_las(record, h: laspy.LasHeader) -> PointChunk:
     dims = set(h.point_format.dimension_names)
     rgb = None
     if "red" in dims:
-        rgb = np.empty((n, 3), dtype=np.uint16)
+        rgb = np.empty((n, 3), dtype=np.uint16, order="F")  # contiguous columns, as stored
         for i, name in enumerate(("red", "green", "blue")):
             rgb[:, i] = arr[name]
     extra = {name: np.array(record[name]) for name in h.point_format.extra_dimension_names}

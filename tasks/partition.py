@@ -214,6 +214,33 @@ def _sorted_columns(cols: dict | None, part: Partition) -> dict:
     return out
 
 
+def merge_runs(pieces: list[dict[str, np.ndarray]]) -> tuple[dict[str, np.ndarray], Partition]:
+    """Merge sorted runs into one table sorted by ``patch``, stably (run order, then row order).
+
+    pieces: column dicts, each sorted by its int64 ``patch`` column, same columns and dtypes. Each run's
+    rows are scattered straight to their places (their target positions ascend within a run), so the
+    columns are copied once, never concatenated first. Returns (sorted columns, Partition).
+    """
+    keys = np.concatenate([p["patch"] for p in pieces]) if pieces else np.zeros(0, np.int64)
+    part = _partition_of({"patch": keys}, None)
+    n = len(keys)
+    pos = np.empty(n, np.int64)
+    pos[part.order] = np.arange(n, dtype=np.int64)
+    out = {}
+    for name in (pieces[0] if pieces else {}):
+        if name == "patch":
+            continue
+        col = np.empty(n, dtype=np.asarray(pieces[0][name]).dtype)
+        at = 0
+        for p in pieces:
+            m = len(p[name])
+            col[pos[at:at + m]] = p[name]
+            at += m
+        out[name] = col
+    out["patch"] = part.sorted_keys()
+    return out, part
+
+
 def _segment_bbox(lo: list, hi: list, part: Partition) -> tuple[np.ndarray, np.ndarray]:
     """Per-patch min of ``lo`` arrays and max of ``hi`` arrays (each a list of 3 sorted (n,) arrays)."""
     u = len(part.keys)

@@ -7,7 +7,7 @@ row-group statistics so that the row groups it touches fit the budget; its rows 
 run (only the row groups overlapping the range), stably sorted by key, and appended to the store's
 tables, whose row groups are written as they complete (``storage.patch_store.TableWriter``). A block
 never splits a patch (its bounds are keys), and the result is the same file, byte for byte, as the
-in-memory path (``tasks.partition.build_tile_tables`` + ``write_tile_tables``): rows of one patch keep
+in-memory path (``tasks.patches.write_tile_store``: ``merge_runs`` + ``write_tile_tables``): rows of one patch keep
 the order run by run, and the row groups fall at the same rows.
 
 Memory: one block (at most the budget's rows, plus up to one row group per run when a single step of
@@ -31,7 +31,7 @@ from storage.patch_store import (
     complete_columns,
     write_patches_table,
 )
-from tasks.partition import Partition, SideSummary, _partition_of, patches_table, summarise_side
+from tasks.partition import SideSummary, merge_runs, patches_table, summarise_side
 
 KEY_MAX = np.iinfo(np.int64).max
 # Bytes of memory per row while partitioning (measured: benchmarks/partition_bench.py --big-tile):
@@ -114,12 +114,6 @@ def read_range(run: Run, lo: int, hi: int) -> dict[str, np.ndarray] | None:
     return {k: v[a:b] for k, v in cols.items()}
 
 
-def block_partition(keys: np.ndarray) -> tuple[np.ndarray, Partition]:
-    """Stable order of a block's rows by key, and its Partition (for the per-patch summary)."""
-    part = _partition_of({"patch": keys}, None)
-    return part.order, part
-
-
 def stream_side(runs: list[Run], table: str, out: Path, meta: TileMeta, budget_rows: int) -> SideSummary:
     """Merge the runs of one side (table "points" or "faces") into the store file ``out``."""
     n_rows = sum(r.n_rows for r in runs)
@@ -136,10 +130,8 @@ def stream_side(runs: list[Run], table: str, out: Path, meta: TileMeta, budget_r
                 pieces.append(cols)
             if not pieces:
                 continue
-            block = {k: np.concatenate([p[k] for p in pieces]) for k in pieces[0]}
+            block, part = merge_runs(pieces)
             del pieces
-            order, part = block_partition(block["patch"])
-            block = {k: v[order] for k, v in block.items()}
             block = complete_columns(block, table, out)
             parts.append(summarise_side(block, part, faces=table == "faces"))
             writer.write(block)

@@ -47,33 +47,28 @@ from storage.patch_store import (
 from storage.workdir import STALE_FILE, WorkDir
 from tasks.config import CampusConfig
 from tasks.ingest import staged_files, staging_fingerprint
-from tasks.partition import build_tile_tables
+from tasks.partition import SideSummary
 from tasks.units import Done, run_unit
 
 log = logging.getLogger("ms3d.patches")
 
 
-def _concat(parts: list[dict[str, np.ndarray]]) -> dict[str, np.ndarray] | None:
-    if not parts:
-        return None
-    return {k: np.concatenate([p[k] for p in parts]) for k in parts[0]}
-
-
-def load_staged_tile(parts: list[Path]) -> tuple[dict | None, dict | None, list[str]]:
-    """A tile's staging runs (sorted paths) as column dicts: (points, faces, textures), texture
-    indices of each mesh file shifted into the tile's concatenated texture list."""
-    pts_parts, face_parts, textures = [], [], []
+def staged_pieces(parts: list[Path]) -> tuple[dict[str, list[dict]], list[str]]:
+    """A tile's staging runs (sorted paths) as {"points": [columns per run], "faces": [...]} and the
+    tile's texture list, texture indices of each mesh run shifted into it."""
+    pieces: dict[str, list[dict]] = {"points": [], "faces": []}
+    textures: list[str] = []
     for p in parts:
         reader = RunReader(p)
-        cols, meta = reader.read(), reader.meta
+        cols = reader.read()
         if p.name.startswith("p"):
-            pts_parts.append(cols)
+            pieces["points"].append(cols)
         else:
             base = len(textures)
-            textures += meta.get("textures", [])
+            textures += reader.meta.get("textures", [])
             cols["texture"] = np.where(cols["texture"] >= 0, cols["texture"] + base, -1).astype(np.int16)
-            face_parts.append(cols)
-    return _concat(pts_parts), _concat(face_parts), textures
+            pieces["faces"].append(cols)
+    return pieces, textures
 
 
 def remove_store(tile_dir: Path) -> None:
@@ -107,11 +102,20 @@ def write_tile_store(parts: list[Path], tile_dir: Path, meta: TileMeta, cfg: Cam
     free = budget_bytes - current_rss_bytes()
     need = rows_p * IN_MEMORY_BYTES["points"] + rows_f * IN_MEMORY_BYTES["faces"]
     if need <= free and not force_stream:
-        points, faces, textures = load_staged_tile(parts)
-        pts_s, faces_s, patches = build_tile_tables(points, faces, cfg.grid(), frame.origin)
-        del points, faces
+        from storage.patch_store import write_tile_tables as write
+        from tasks.partition import merge_runs, patches_table, summarise_side
+
+        pieces, textures = staged_pieces(parts)
+        sides = {}
+        for side, faces in (("points", False), ("faces", True)):
+            if pieces[side]:
+                cols, part = merge_runs(pieces[side])
+                sides[side] = (cols, summarise_side(cols, part, faces))
+            pieces[side] = None  # free the runs as soon as they are merged
+        empty = SideSummary.empty()
+        patches = patches_table(sides.get("points", (None, empty))[1], sides.get("faces", (None, empty))[1])
         meta = TileMeta(meta.tile, meta.patch_size_m, meta.crs, tuple(textures))
-        write_tile_tables(tile_dir, pts_s or None, faces_s or None, patches, meta)
+        write(tile_dir, sides.get("points", (None,))[0], sides.get("faces", (None,))[0], patches, meta)
         return {"n_points": rows_p, "n_faces": rows_f, "n_patches": len(patches["patch"]), "streamed": False}
     budget_rows = max(int(free // max(STREAM_BYTES["points"], STREAM_BYTES["faces"])), 10_000)
     out = stream_partition_tile(point_runs, face_runs, tile_dir, meta, budget_rows)
