@@ -88,7 +88,7 @@ def run_unit(wd: WorkDir, stage: str, unit: str, fingerprint: str, params: dict,
     rec = is_done(wd, stage, unit, fingerprint, ph)
     if rec is not None:
         return {**rec.summary, "unit": unit, "status": rec.status, "skipped": True, "seconds": rec.seconds}
-    t0 = time.perf_counter()
+    t0, c0 = time.perf_counter(), time.process_time()
     reset_peak_rss()
     try:
         out = work()
@@ -103,7 +103,8 @@ def run_unit(wd: WorkDir, stage: str, unit: str, fingerprint: str, params: dict,
             on_fail()
         return {"unit": unit, "status": "failed", "error": msg, "skipped": False, "seconds": secs}
     secs = time.perf_counter() - t0
-    summary = {**out.summary, "unit": unit, "status": out.status, "peak_rss_mb": peak_rss_mb()}
+    summary = {**out.summary, "unit": unit, "status": out.status, "peak_rss_mb": peak_rss_mb(),
+               "cpu_seconds": round(time.process_time() - c0, 3)}
     write_record(wd, ManifestRecord(stage, unit, out.status, fingerprint, ph, seconds=secs,
                                     outputs=out.outputs, summary=summary))
     return {**summary, "skipped": False, "seconds": secs}
