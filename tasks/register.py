@@ -119,6 +119,8 @@ class RegistrationResult:
             "n_target": self.n_target,
             "seconds": self.seconds,
             "method": self.method,
+            "step_seconds": {k: [float(x) for x in v] if isinstance(v, (list, tuple)) else v
+                             for k, v in (self.details.get("seconds") or {}).items()},
         }
 
 
