@@ -309,7 +309,7 @@ def _reprocess(cfg: CampusConfig, cfg_json: dict, wd: WorkDir, ex) -> dict:
         if not hints[r.source]:
             incomplete.append(r.path)
         for tk in hints[r.source]:
-            blocked.setdefault(tk, f"input {r.name} failed: {err}")
+            blocked.setdefault(tk, f"blocked: its input {r.name} failed (see that input's error)")
 
     # the plan names the staging files and tiles that should exist; everything else goes
     prune_staging(wd, {u.key for u in units})

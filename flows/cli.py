@@ -175,12 +175,20 @@ def error_line(e: BaseException) -> tuple[str, int]:
     return f"ms3d: internal error: {type(e).__name__}: {first} (run with --debug for the traceback)", 3
 
 
+def _ms3d_only(record: logging.LogRecord) -> bool:
+    """Without --verbose the terminal shows ms3d's own log lines; Prefect and Dask keep theirs in the run
+    history (a failed flow run's traceback included)."""
+    return not record.name.startswith(("prefect", "distributed", "dask", "uvicorn", "httpx"))
+
+
 def main(argv: list[str] | None = None) -> int:
     a = build_parser().parse_args(argv)
     verbose = a.verbose or a.debug
     logging.basicConfig(level=logging.INFO if verbose else logging.WARNING, format="%(levelname)s %(name)s: %(message)s")
     if not verbose:
         _quiet_logs()
+        for h in logging.getLogger().handlers:
+            h.addFilter(_ms3d_only)
     try:
         return a.func(a)
     except (Exception, KeyboardInterrupt) as e:

@@ -15,9 +15,14 @@ class CampusRunFailed(RuntimeError):
         lines = []
         if failed:
             lines.append(f"{len(failed)} unit(s) failed:")
-            lines += [f"  {u}: {e}" for u, e in list(failed.items())[:20]]
-            if len(failed) > 20:
-                lines.append(f"  ... and {len(failed) - 20} more (ms3d status {summary['work_dir']})")
+            groups: dict[str, list[str]] = {}
+            for unit, err in failed.items():  # tiles blocked by one input share one line
+                groups.setdefault(err, []).append(unit)
+            for err, units in list(groups.items())[:20]:
+                names = ", ".join(units[:6]) + (f" and {len(units) - 6} more" if len(units) > 6 else "")
+                lines.append(f"  {names}: {err}")
+            if len(groups) > 20:
+                lines.append(f"  ... and {len(groups) - 20} more errors (ms3d status {summary['work_dir']})")
         if summary.get("incomplete"):
             lines.append(f"the campus is INCOMPLETE: {len(summary['incomplete'])} input(s) of unknown extent "
                          "could not be read, so no tile holds their data")

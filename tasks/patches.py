@@ -146,7 +146,7 @@ def run_partition_tile(tile: TileId, cfg: CampusConfig, wd: WorkDir, frame: Camp
     def work() -> Done:
         t0 = time.perf_counter()
         if blocked:
-            raise InputError(None, f"tile {tile.key}: {blocked}")
+            raise InputError(None, blocked)
         if not parts:
             remove_store(tile_dir)  # a tile that lost its data
             raise EmptyTileError(None, f"tile {tile.key} holds no points and no faces")

@@ -76,8 +76,10 @@ def test_bad_inputs_fail_only_their_tiles(tmp_path, handmade_campus, prefect_api
     st = campus_status(cfg.work_dir)
     failed = st["failed"]
     assert failed, "bad inputs must fail their tiles"
-    assert any("truncated" in e and "west.laz" in e for e in failed.values())
-    assert any("NaN" in e and "middle.obj" in e for e in failed.values())
+    bad = st["bad_inputs"]
+    assert any("truncated" in e and "west.laz" in k for k, e in bad.items())
+    assert any("NaN" in e and "middle.obj" in k for k, e in bad.items())
+    assert any("west.laz" in e for e in failed.values()) and any("middle.obj" in e for e in failed.values())
     x = lambda k: int(k.split("_")[0]) * 20 - 500_000
     west = {k for k, e in failed.items() if "west.laz" in e}
     assert all(x(k) < 40 for k in west)  # only tiles of the west region
