@@ -1,0 +1,525 @@
+"""Merge: per ground tile, the retained mesh and the rebuilt regions become one clean :class:`TileMesh`.
+
+Inputs of tile T (``tiles/{ix}_{iy}/``): the patch store's faces (corners inline, campus vertex ids,
+per-corner uv, texture index), the patch grades (``grades.parquet``; else the labels; else unknown),
+and the rebuilt regions that reach into T (repair's output, any objects with the attributes of
+:class:`RebuiltRegion`; none until repair runs). Output: ``tiles/{ix}_{iy}/merged.npz`` + ``merged.json``
+(:mod:`storage.tile_mesh`), the input of export.
+
+Rules:
+
+- **Retained** faces are the store faces of T whose patch no region replaces (and which no region
+  names in ``replaced_faces``). They keep the original texture: the tile's texture list references
+  the input atlases by path (nothing is copied) and uv become per-vertex.
+- **Rebuilt** faces are the region faces whose centroid lies in a patch of T (the rule that assigns a
+  store face to its tile), so a face belongs to exactly one tile even when its region spans several.
+  They take their region's atlas (or its vertex colours) and provenance (grade bad, source rebuilt,
+  region id).
+- Corners are **welded by vertex id** (:mod:`tasks.merge_weld`): a rebuilt region that gives its kept
+  border vertices their campus vertex ids (``vertex_ids``) is closed to the retained mesh exactly,
+  whatever the float noise; a vertex is split only where its corners differ in texture, uv or colour.
+  Where a region moved a kept vertex, the retained position wins (the retained faces come first).
+- **No face twice**: a face on the same three vertices as an earlier face (either orientation) is
+  dropped, and so is a face with two corners on one vertex.
+
+Memory is bounded by the tile (one store, the regions touching it). The stage
+:func:`run_merge_tile` is resumable: its fingerprint is the tile's store, its grade/label table, the
+campus frame and the rebuilt regions touching it; an unchanged result is not rewritten, so export's
+fingerprint of the tile (the file's bytes) does not change either.
+"""
+
+from __future__ import annotations
+
+import contextlib
+import hashlib
+import os
+import socket
+import time
+from collections.abc import Callable, Sequence
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Protocol, runtime_checkable
+
+import numpy as np
+
+from storage.atomic import file_fingerprint, file_sha256
+from storage.errors import EmptyTileError, InputError
+from storage.grid import PatchGrid
+from storage.ids import TileId
+from storage.manifest import combine_fingerprints
+from storage.patch_store import PATCHES_FILE, PatchStore, side_table_path
+from storage.tile_mesh import (
+    GRADE_BAD,
+    GRADE_UNKNOWN,
+    NO_REGION,
+    SOURCE_MESH,
+    SOURCE_REBUILT,
+    TileMesh,
+    read_tile_mesh,
+    tile_mesh_paths,
+    write_tile_mesh,
+)
+from storage.workdir import STALE_FILE, WorkDir, campus_frame, read_campus
+from tasks.merge_weld import face_keep_mask, weld_corners, weld_keys
+from tasks.units import Done, run_unit
+
+STORE_FACE_COLUMNS = ([f"{a}{v}" for v in range(3) for a in "xyz"] + [f"vid{v}" for v in range(3)]
+                      + [f"{a}{v}" for v in range(3) for a in "uv"]
+                      + ["texture", "red", "green", "blue", "src_face", "source", "patch"])  # fmt: skip
+REBUILT_GREY = np.array([170, 170, 170], np.uint8)  # rebuilt faces with neither atlas nor colours
+
+# ------------------------------------------------------------------------------ the repair contract
+
+
+@runtime_checkable
+class RebuiltRegion(Protocol):
+    """What merge needs of one rebuilt region; repair's own type satisfies it by having these attributes.
+
+    Required: ``region`` (int, RegionId.n), ``vertices`` ((n, 3) float32 metres campus-local), ``faces``
+    ((m, 3) int into vertices), ``replaced_patches`` ((p,) int64 packed keys of the patches, in any tile,
+    whose original faces the region replaces). Optional (read with ``getattr``, see :class:`RegionMesh`):
+    ``vertex_ids``, ``uv``, ``atlas``, ``colors``, ``textured``, ``replaced_faces``, ``fingerprint``.
+    """
+
+    region: int
+    vertices: np.ndarray
+    faces: np.ndarray
+    replaced_patches: np.ndarray
+
+
+@dataclass(frozen=True, eq=False)
+class RegionMesh:
+    """One rebuilt region as merge takes it.
+
+    region: region number (>= 0). vertices: (n, 3) float32 metres campus-local. faces: (m, 3) int64.
+    replaced_patches: (p,) int64 packed patch keys (``PatchGrid.pack``) whose original faces go.
+    vertex_ids: (n,) int64 campus vertex id of each vertex kept from the original mesh (its border
+    vertices: they weld exactly to the retained faces), -1 for a new vertex; None: all new.
+    uv: (n, 2) float32 per vertex (OBJ convention) into ``atlas`` (a JPEG/PNG path), or None.
+    colors: (n, 3) uint8 sRGB for faces not textured, or None (grey).
+    textured: (m,) bool, which faces use the atlas (the others, e.g. faces no camera saw, use
+    ``colors``); None: every face when there is an atlas.
+    replaced_faces: (k, 2) int64 (source, src_face) of further original faces the region replaces
+    (beyond those of ``replaced_patches``), or None.
+    fingerprint: the region's content identity for resume ("" : hashed from the arrays here).
+    """
+
+    region: int
+    vertices: np.ndarray
+    faces: np.ndarray
+    replaced_patches: np.ndarray
+    vertex_ids: np.ndarray | None = None
+    uv: np.ndarray | None = None
+    atlas: str | None = None
+    colors: np.ndarray | None = None
+    textured: np.ndarray | None = None
+    replaced_faces: np.ndarray | None = None
+    fingerprint: str = ""
+
+    def __post_init__(self):
+        n, m = len(self.vertices), len(self.faces)
+        bad = [
+            (self.region >= 0, "region must be >= 0"),
+            (np.shape(self.vertices) == (n, 3), "vertices must be (n, 3)"),
+            (np.shape(self.faces) == (m, 3), "faces must be (m, 3)"),
+            (m == 0 or (np.min(self.faces) >= 0 and np.max(self.faces) < n), "faces index outside the vertices"),
+            (np.ndim(self.replaced_patches) == 1, "replaced_patches must be (p,)"),
+            (self.vertex_ids is None or np.shape(self.vertex_ids) == (n,), "vertex_ids must be (n,)"),
+            (self.uv is None or np.shape(self.uv) == (n, 2), "uv must be (n, 2)"),
+            (self.colors is None or np.shape(self.colors) == (n, 3), "colors must be (n, 3)"),
+            (self.textured is None or np.shape(self.textured) == (m,), "textured must be (m,)"),
+            (self.atlas is None or self.uv is not None, "an atlas needs uv"),
+            (self.replaced_faces is None or np.shape(self.replaced_faces)[1:] == (2,), "replaced_faces must be (k, 2)"),
+        ]  # fmt: skip
+        for ok, problem in bad:
+            if not ok:
+                raise ValueError(f"rebuilt region {self.region}: {problem}")
+
+    @classmethod
+    def of(cls, obj) -> RegionMesh:
+        """A RegionMesh of any object with the attributes of :class:`RebuiltRegion` (arrays cast)."""
+        if isinstance(obj, RegionMesh):
+            return obj
+        opt = lambda name, dtype: None if getattr(obj, name, None) is None else np.asarray(getattr(obj, name), dtype)
+        atlas = getattr(obj, "atlas", None)
+        return cls(region=int(obj.region), vertices=np.asarray(obj.vertices, np.float32),
+                   faces=np.asarray(obj.faces, np.int64).reshape(-1, 3),
+                   replaced_patches=np.asarray(obj.replaced_patches, np.int64).reshape(-1),
+                   vertex_ids=opt("vertex_ids", np.int64), uv=opt("uv", np.float32),
+                   atlas=None if atlas is None else str(atlas), colors=opt("colors", np.uint8),
+                   textured=opt("textured", bool), replaced_faces=opt("replaced_faces", np.int64),
+                   fingerprint=str(getattr(obj, "fingerprint", "") or ""))  # fmt: skip
+
+    def content_fingerprint(self) -> str:
+        """``fingerprint`` if repair gave one, else a hash of the arrays and the atlas file."""
+        if self.fingerprint:
+            return self.fingerprint
+        h = hashlib.sha256(str(self.region).encode())
+        for a in (self.vertices, self.faces, self.replaced_patches, self.vertex_ids, self.uv, self.colors,
+                  self.textured, self.replaced_faces):
+            h.update(b"-" if a is None else np.ascontiguousarray(a).tobytes() + str(a.shape).encode())
+        if self.atlas is not None:
+            h.update(self.atlas.encode())
+            with contextlib.suppress(OSError):
+                h.update(file_fingerprint(self.atlas).encode())
+        return h.hexdigest()[:32]
+
+
+# ------------------------------------------------------------------------------ face soups
+
+
+@dataclass(frozen=True, eq=False)
+class FaceSoup:
+    """Faces as unshared corners, before welding.
+
+    xyz: (m, 3, 3) float32 metres campus-local. keys: (m, 3) int64 weld key per corner (campus vertex
+    id, or a region's own key < 0). uv: (m, 3, 2) float32 (0 where untextured). texture: (m,) int32
+    index into the merge's texture list, -1 untextured. color: (m, 3, 3) uint8 per corner.
+    grade / source: (m,) int8; region: (m,) int32 (storage.tile_mesh conventions).
+    """
+
+    xyz: np.ndarray
+    keys: np.ndarray
+    uv: np.ndarray
+    texture: np.ndarray
+    color: np.ndarray
+    grade: np.ndarray
+    source: np.ndarray
+    region: np.ndarray
+
+    @property
+    def n_faces(self) -> int:
+        return len(self.keys)
+
+    def take(self, rows: np.ndarray) -> FaceSoup:
+        return FaceSoup(**{k: getattr(self, k)[rows] for k in _SOUP_FIELDS})
+
+
+_SOUP_FIELDS = ("xyz", "keys", "uv", "texture", "color", "grade", "source", "region")
+
+
+def concat_soups(parts: Sequence[FaceSoup]) -> FaceSoup:
+    return FaceSoup(**{k: np.concatenate([getattr(p, k) for p in parts]) for k in _SOUP_FIELDS})
+
+
+def _position_keys(xyz: np.ndarray, base: int) -> np.ndarray:
+    """(c, 3) float32 corners -> (c,) int64 keys equal for bit-identical positions, all <= base."""
+    bits = np.ascontiguousarray(xyz, np.float32).view(np.uint32).astype(np.int64)
+    _, inverse = np.unique(bits, axis=0, return_inverse=True)
+    return base - inverse.reshape(-1)
+
+
+def store_soup(cols: dict[str, np.ndarray], grade: np.ndarray) -> FaceSoup:
+    """The soup of patch-store face rows.
+
+    cols: store face columns (at least :data:`STORE_FACE_COLUMNS` but src_face/source/patch), (m,) each.
+    grade: (m,) int8 per face. A face is textured when its texture index is >= 0 and its three uv are
+    finite. Corners without a vertex id (-1: an input written without ids) weld by exact position.
+    """
+    xyz = np.stack([np.stack([cols[f"{a}{v}"] for a in "xyz"], axis=1) for v in range(3)], axis=1)
+    keys = np.stack([cols[f"vid{v}"] for v in range(3)], axis=1).astype(np.int64, copy=False)
+    if (keys < 0).any():  # no ids: weld exactly coincident corners, in a key range of their own
+        missing = keys < 0
+        keys = keys.copy()
+        keys[missing] = _position_keys(xyz[missing], -(1 << 62))
+    uv = np.stack([np.stack([cols[f"{a}{v}"] for a in "uv"], axis=1) for v in range(3)], axis=1)
+    finite = np.isfinite(uv).all(axis=(1, 2))
+    texture = np.where(finite & (cols["texture"] >= 0), cols["texture"], -1).astype(np.int32)
+    uv = np.where((texture >= 0)[:, None, None], uv, np.float32(0)).astype(np.float32, copy=False)
+    rgb = np.stack([cols["red"], cols["green"], cols["blue"]], axis=1).astype(np.uint8, copy=False)
+    m = len(keys)
+    return FaceSoup(xyz=xyz, keys=keys, uv=uv, texture=texture, color=np.repeat(rgb[:, None, :], 3, axis=1),
+                    grade=np.asarray(grade, np.int8), source=np.full(m, SOURCE_MESH, np.int8),
+                    region=np.full(m, NO_REGION, np.int32))  # fmt: skip
+
+
+def region_soup(r: RegionMesh, texture_index: int) -> FaceSoup:
+    """The soup of one rebuilt region's faces. texture_index: its atlas in the merge's texture list
+    (ignored without an atlas). New vertices get keys ``-1 - (region << 32 | index)``: negative, so
+    never a campus vertex id (``source << 32 | index`` with source < 2**31), and distinct per region."""
+    f = r.faces
+    m = len(f)
+    ids = np.full(len(r.vertices), -1, np.int64) if r.vertex_ids is None else r.vertex_ids
+    own = -1 - ((np.int64(r.region) << 32) | np.arange(len(r.vertices), dtype=np.int64))
+    keys = np.where(ids >= 0, ids, own)[f]
+    textured = np.full(m, r.atlas is not None) if r.textured is None else (r.textured & (r.atlas is not None))
+    uv = np.zeros((m, 3, 2), np.float32) if r.uv is None else r.uv[f]
+    textured &= np.isfinite(uv).all(axis=(1, 2))
+    uv = np.where(textured[:, None, None], uv, np.float32(0)).astype(np.float32, copy=False)
+    colors = np.broadcast_to(REBUILT_GREY, (len(r.vertices), 3)) if r.colors is None else r.colors
+    return FaceSoup(xyz=r.vertices[f], keys=keys, uv=uv, texture=np.where(textured, texture_index, -1).astype(np.int32),
+                    color=np.ascontiguousarray(colors[f], np.uint8), grade=np.full(m, GRADE_BAD, np.int8),
+                    source=np.full(m, SOURCE_REBUILT, np.int8), region=np.full(m, r.region, np.int32))  # fmt: skip
+
+
+# ------------------------------------------------------------------------------ welding a soup
+
+
+@dataclass(frozen=True)
+class WeldStats:
+    """Counts of one weld: faces in and out, dropped duplicates / degenerate faces, vertices, seam splits."""
+
+    faces_in: int
+    faces_out: int
+    duplicates: int
+    degenerate: int
+    vertices: int
+    split_vertices: int
+
+
+def weld_soup(tile_key: str, soup: FaceSoup, textures: Sequence[str]) -> tuple[TileMesh, WeldStats]:
+    """Weld a soup into a TileMesh (see the module docstring). textures: the paths ``soup.texture``
+    indexes; the TileMesh keeps only those its faces use, in first-use order of their indices."""
+    m = soup.n_faces
+    welded = weld_keys(soup.keys.reshape(-1))
+    keep = face_keep_mask(welded[0], m)
+    f = welded[0].reshape(m, 3)
+    degenerate = int(((f[:, 0] == f[:, 1]) | (f[:, 1] == f[:, 2]) | (f[:, 0] == f[:, 2])).sum())
+    del f
+    s = soup
+    if not keep.all():
+        s = soup.take(np.flatnonzero(keep))
+        welded = weld_keys(s.keys.reshape(-1))
+    textured = s.texture >= 0
+    # texture + colour in one attribute (colour only matters where untextured), uv bits in the other
+    rgb = s.color.reshape(-1, 3)
+    packed_rgb = (rgb[:, 0].astype(np.uint32) << 16) | (rgb[:, 1].astype(np.uint32) << 8) | rgb[:, 2]
+    attr_a = np.repeat((s.texture.astype(np.int64) + 1) << 24, 3)
+    attr_a |= np.where(np.repeat(textured, 3), np.uint32(0), packed_rgb)
+    del packed_rgb
+    uv_bits = s.uv.reshape(-1, 2).view(np.uint32)
+    attr_b = uv_bits[:, 0].astype(np.int64) << 32
+    attr_b |= uv_bits[:, 1]
+    w = weld_corners(s.keys.reshape(-1), attr_a, attr_b, welded)
+    del attr_a, attr_b, welded
+
+    used = np.unique(s.texture[textured])
+    remap = np.full(len(textures) + 1, -1, np.int16)
+    remap[used] = np.arange(len(used), dtype=np.int16)
+    face_texture = remap[s.texture]  # -1 stays -1 (remap[-1] is the spare slot)
+    any_textured = bool(textured.any())
+    mesh = TileMesh(
+        tile=tile_key,
+        vertices=np.ascontiguousarray(s.xyz.reshape(-1, 3)[w.position_corner], np.float32),
+        faces=w.faces, face_texture=face_texture.astype(np.int16),
+        uv=np.ascontiguousarray(s.uv.reshape(-1, 2)[w.corner], np.float32) if any_textured else None,
+        textures=[str(textures[i]) for i in used], vertex_colors=np.ascontiguousarray(s.color.reshape(-1, 3)[w.corner]),
+        grade=s.grade, source=s.source, region=s.region,
+    )  # fmt: skip
+    stats = WeldStats(faces_in=m, faces_out=mesh.n_faces, duplicates=m - int(keep.sum()) - degenerate,
+                      degenerate=degenerate, vertices=mesh.n_vertices, split_vertices=w.n_split)
+    return mesh, stats
+
+
+# ------------------------------------------------------------------------------ one tile, pure
+
+
+def faces_in_tile(xyz: np.ndarray, grid: PatchGrid, origin, tile: TileId) -> tuple[np.ndarray, np.ndarray]:
+    """Which faces belong to ``tile`` by the store's rule (the tile holding the centre of the patch
+    holding the face centroid). xyz: (m, 3, 3) float32 campus-local; origin: (3,) float64 world.
+    Returns ((m,) bool, (m,) int64 patch key of each face)."""
+    if len(xyz) == 0:
+        return np.zeros(0, bool), np.zeros(0, np.int64)
+    cells = grid.face_cells([xyz[:, v, a] for v in range(3) for a in range(3)], origin)
+    t = grid.tile_of_cells(cells)
+    return (t[:, 0] == tile.ix) & (t[:, 1] == tile.iy), grid.pack(cells)
+
+
+@dataclass(frozen=True)
+class MergeStats:
+    """What one tile's merge did: faces of the store retained / replaced, rebuilt faces taken (and
+    how many of them lie in a patch whose original faces were retained: a sign that a region overlaps
+    the retained mesh), the weld's counts, regions used."""
+
+    retained_faces: int
+    replaced_faces: int
+    rebuilt_faces: int
+    rebuilt_in_retained_patches: int
+    weld: WeldStats
+    regions: tuple[int, ...] = field(default_factory=tuple)
+
+    def to_json(self) -> dict:
+        return {"retained_faces": self.retained_faces, "replaced_faces": self.replaced_faces,
+                "rebuilt_faces": self.rebuilt_faces, "rebuilt_in_retained_patches": self.rebuilt_in_retained_patches,
+                "faces": self.weld.faces_out, "vertices": self.weld.vertices,
+                "duplicates_dropped": self.weld.duplicates, "degenerate_dropped": self.weld.degenerate,
+                "split_vertices": self.weld.split_vertices, "regions": list(self.regions)}  # fmt: skip
+
+
+def retained_soup(cols: dict[str, np.ndarray], face_grade: np.ndarray, regions: Sequence[RegionMesh]
+                  ) -> tuple[FaceSoup, np.ndarray, int]:
+    """The store faces of a tile that no region replaces.
+
+    cols: the tile's store face columns (:data:`STORE_FACE_COLUMNS`), (m,) each; face_grade: (m,) int8
+    grade of each row's patch; regions: the rebuilt regions reaching into the tile.
+    Returns (their soup, (r,) int64 sorted keys of the patches holding them, number of faces replaced).
+    """
+    patch = cols["patch"]
+    replaced = np.zeros(len(patch), bool)
+    if regions:
+        replaced = np.isin(patch, np.concatenate([r.replaced_patches for r in regions]))
+        named = [r.replaced_faces for r in regions if r.replaced_faces is not None and len(r.replaced_faces)]
+        if named:
+            pairs = np.concatenate(named)
+            face_key = (cols["source"].astype(np.int64) << 32) | cols["src_face"]
+            replaced |= np.isin(face_key, (pairs[:, 0] << 32) | pairs[:, 1])
+    if not replaced.any():
+        return store_soup(cols, face_grade), np.unique(patch), 0
+    keep = np.flatnonzero(~replaced)
+    return (store_soup({k: v[keep] for k, v in cols.items()}, face_grade[keep]), np.unique(patch[keep]),
+            int(replaced.sum()))
+
+
+def merge_tile(tile: TileId, retained: FaceSoup, retained_patches: np.ndarray, textures: Sequence[str],
+               regions: Sequence[RegionMesh], grid: PatchGrid, origin, replaced_faces: int = 0
+               ) -> tuple[TileMesh, MergeStats]:
+    """One tile's merged mesh: the retained faces (:func:`retained_soup`) and the faces of ``regions``
+    that the tile owns (:func:`faces_in_tile`), welded (:func:`weld_soup`).
+
+    textures: the store's texture paths (what ``retained.texture`` indexes); regions: the rebuilt
+    regions reaching into the tile (any order); grid, origin: the campus patch grid and (3,) float64
+    world origin; replaced_faces: carried into the stats. Raises EmptyTileError when no face is left.
+    """
+    regions = sorted(regions, key=lambda r: r.region)
+    if len({r.region for r in regions}) != len(regions):
+        raise InputError(None, f"tile {tile.key}: two rebuilt regions with one region number")
+    all_textures = list(textures)
+    parts, rebuilt, overlap = [retained], 0, 0
+    for r in regions:
+        index = -1
+        if r.atlas is not None:
+            if r.atlas not in all_textures:
+                all_textures.append(r.atlas)
+            index = all_textures.index(r.atlas)
+        soup = region_soup(r, index)
+        own, face_patch = faces_in_tile(soup.xyz, grid, origin, tile)
+        if own.any():
+            rows = np.flatnonzero(own)
+            parts.append(soup.take(rows))
+            rebuilt += len(rows)
+            overlap += int(np.isin(face_patch[rows], retained_patches).sum())
+    soup = concat_soups(parts) if len(parts) > 1 else retained
+    if soup.n_faces == 0:
+        raise EmptyTileError(None, f"tile {tile.key}: no faces left after merging")
+    mesh, weld = weld_soup(tile.key, soup, all_textures)
+    if mesh.n_faces == 0:
+        raise EmptyTileError(None, f"tile {tile.key}: every face is degenerate")
+    return mesh, MergeStats(retained.n_faces, replaced_faces, rebuilt, overlap, weld, tuple(r.region for r in regions))
+
+
+def _read_retained(store: PatchStore, regions: Sequence[RegionMesh]) -> tuple[FaceSoup, np.ndarray, int, str]:
+    """Read a tile store's faces and keep the retained ones (the columns are freed on return)."""
+    grade, grade_source = patch_grades(store)
+    counts = store.patches()["n_faces"].astype(np.int64)
+    if counts.sum() != store.n_faces:
+        raise InputError(store.tile_dir / PATCHES_FILE, "face counts do not add up to the faces table")
+    _, cols = store.read_all(point_columns=[], face_columns=STORE_FACE_COLUMNS)
+    return (*retained_soup(cols, np.repeat(grade, counts), regions), grade_source)
+
+
+# ------------------------------------------------------------------------------ stage
+
+MERGE_STAGE = "merge"
+RegionSource = Callable[[WorkDir, TileId], Sequence[RebuiltRegion]]
+
+
+def patch_grades(store: PatchStore) -> tuple[np.ndarray, str]:
+    """(u,) int8 grade per patch of the store (0 good, 1 bad, -1 unknown) and where it came from:
+    "grades" (classify), "labels" (truth labels), or "none" (all unknown)."""
+    keys = store.patches()["patch"]
+    grades = store.side("grades")
+    if grades is not None:
+        return grades["grade"].astype(np.int8), "grades"
+    labels = store.side("labels")
+    if labels is not None:
+        return labels["label"].astype(np.int8), "labels"
+    return np.full(len(keys), GRADE_UNKNOWN, np.int8), "none"
+
+
+def remove_merged(tile_dir: Path) -> None:
+    """Remove a tile's merged mesh (the .json, which marks it complete, first)."""
+    npz, meta = tile_mesh_paths(tile_dir)
+    meta.unlink(missing_ok=True)
+    npz.unlink(missing_ok=True)
+    with contextlib.suppress(OSError):
+        tile_dir.rmdir()  # only when nothing else is left in it
+
+
+def _same_on_disk(tile_dir: Path, mesh: TileMesh) -> bool:
+    """Whether tile_dir already holds exactly ``mesh`` (then it is not rewritten)."""
+    try:
+        old = read_tile_mesh(tile_dir)
+    except InputError:
+        return False
+    if [str(Path(t).resolve()) for t in mesh.textures] != old.textures or old.tile != mesh.tile:
+        return False
+    for name in ("vertices", "faces", "face_texture", "grade", "source", "region", "uv", "vertex_colors"):
+        a, b = getattr(mesh, name), getattr(old, name)
+        if (a is None) != (b is None) or (a is not None and not np.array_equal(a, b)):
+            return False
+    return True
+
+
+def _side_fingerprint(tile_dir: Path) -> str:
+    for name in ("grades", "labels"):
+        p = side_table_path(tile_dir, name)
+        if p.exists():
+            return f"{name}:{file_sha256(p)}"
+    return "none"
+
+
+def merge_fingerprint(tile_dir: Path, regions: Sequence[RegionMesh], frame_json: dict) -> str:
+    """The identity of a tile's merge inputs: store files, grades (or labels), frame, rebuilt regions."""
+    store = [file_fingerprint(tile_dir / n) for n in ("faces.parquet", PATCHES_FILE)]
+    regs = [f"{r.region}:{r.content_fingerprint()}" for r in sorted(regions, key=lambda r: r.region)]
+    return combine_fingerprints([*store, _side_fingerprint(tile_dir), repr(sorted(frame_json.items())), *regs])
+
+
+def run_merge_tile(tile: TileId, cfg, wd: WorkDir, regions: RegionSource | Sequence | None = None) -> dict | None:
+    """Merge one tile into ``tiles/{ix}_{iy}/merged.npz`` + ``merged.json``.
+
+    cfg: the CampusConfig (its patch grid decides which tile owns a rebuilt face). regions: repair's
+    ``region_meshes_for_tile`` (called as ``regions(wd, tile)``), or the list itself; None before repair.
+    Returns the unit summary (status done / empty / failed, counts, ``rewritten``), or None when there is
+    nothing to do: a tile without a store loses its merged mesh; a stale store (its input failed) keeps
+    its last good one.
+    """
+    tile_dir = wd.tile_dir(tile)
+    if not (tile_dir / PATCHES_FILE).exists():
+        remove_merged(tile_dir)
+        return None
+    if (tile_dir / STALE_FILE).exists():
+        return None
+    try:
+        found = regions(wd, tile) if callable(regions) else (regions or [])
+        region_list = [RegionMesh.of(r) for r in found]
+        frame_json = read_campus(wd)["frame"]
+        fp = merge_fingerprint(tile_dir, region_list, frame_json)
+    except (InputError, ValueError, OSError) as e:
+        return {"unit": tile.key, "status": "failed", "error": f"tile {tile.key}: merge inputs: {e}", "skipped": False}
+    grid = cfg.grid()
+
+    def work() -> Done:
+        t0 = time.perf_counter()
+        store = PatchStore(tile_dir)
+        retained, retained_patches, n_replaced, grade_source = _read_retained(store, region_list)
+        frame = campus_frame({"frame": frame_json})
+        mesh, stats = merge_tile(tile, retained, retained_patches, store.meta.textures, region_list, grid,
+                                 frame.origin_array, n_replaced)
+        del retained
+        for t in mesh.textures:
+            if not Path(t).is_file():
+                raise InputError(t, f"texture image of tile {tile.key} not found")
+        rewritten = not _same_on_disk(tile_dir, mesh)
+        if rewritten:
+            write_tile_mesh(tile_dir, mesh)
+        npz, meta = tile_mesh_paths(tile_dir)
+        summary = {"tile": tile.key, **stats.to_json(), "grades_from": grade_source, "textures": len(mesh.textures),
+                   "rewritten": rewritten, "merge_seconds": time.perf_counter() - t0,
+                   "worker": f"{socket.gethostname()}:{os.getpid()}"}  # fmt: skip
+        return Done(outputs=[str(p.relative_to(wd.root)) for p in (npz, meta)], summary=summary)
+
+    res = run_unit(wd, MERGE_STAGE, tile.key, fp, {"grid": grid.to_json()}, work)
+    if res.get("status") == "empty":
+        remove_merged(tile_dir)
+    return res
