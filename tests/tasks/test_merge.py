@@ -328,3 +328,44 @@ def test_tiny_campus_rerun_skips_and_a_relabelled_tile_is_redone(tiny_merged_run
     third = {r["unit"]: r for r in (run_merge_tile(t, cfg, wd) for t in wd.live_tiles())}
     assert [k for k, r in third.items() if not r["skipped"]] == [target.key]
     assert third[target.key]["rewritten"] and (read_tile_mesh(wd.tile_dir(target)).grade == GRADE_BAD).all()
+
+
+# ------------------------------------------------------------------------------ the run report
+
+
+def test_report_renders_rebuilt_regions_before_and_after(handmade):
+    from tasks.report import run_report
+
+    cfg, wd, tmp = handmade
+    for t in TILES:
+        run_merge_tile(t, cfg, wd, regions=[_region(cfg, tmp)])
+    res = run_report(cfg, wd)
+    page = Path(res["report"]).read_text()
+    assert res["figures"] == ["class_map", f"region_{REGION:06d}"] and res["truth"] is None
+    for name in res["figures"]:
+        assert f'id="{name}"' in page
+    assert page.count("data:image/png;base64,") == 2 and "No truth for these inputs" in page
+    assert (wd.report_dir / "regions" / f"region_{REGION:06d}.png").stat().st_size > 5_000
+    assert "ms3d view" in page and "merge" in page  # the stage table names the merge stage
+
+
+def test_tiny_campus_report_names_its_figures_and_caches_quality(tiny_merged_run, tmp_path):
+    from tasks.export import run_export
+    from tasks.report import run_report
+
+    cfg0, wd0, _ = tiny_merged_run
+    work = tmp_path / "work"
+    shutil.copytree(wd0.root, work, ignore=shutil.ignore_patterns("staging", "scan"))
+    cfg, wd = cfg0.model_copy(update={"work_dir": str(work)}), WorkDir(work)
+    run_export(work)
+    res = run_report(cfg, wd)
+    page = Path(res["report"]).read_text()
+    assert res["figures"] == ["patch_faces_histogram", "patch_points_histogram", "class_map"]
+    assert all(f'id="{n}"' in page for n in res["figures"]) and page.count("data:image/png;base64,") == 3
+    for words in ("Registration (MLS → mesh)", "mvs.obj", "F@5 cm", "merged model", 'href="tileset.json"',
+                  f"ms3d view {work}", "partition", "merge"):
+        assert words in page, words
+    assert "Could not make this section" not in page
+    quality = (wd.report_dir / "quality.json").stat().st_mtime_ns
+    again = run_report(cfg, wd)  # quality comes from the cache: the merged tiles did not change
+    assert again["seconds"] < res["seconds"] and (wd.report_dir / "quality.json").stat().st_mtime_ns == quality
