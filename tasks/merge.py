@@ -5,6 +5,7 @@ per-corner uv, texture index), the patch grades (``grades.parquet``; else the la
 and the rebuilt regions that reach into T (repair's output, any objects with the attributes of
 :class:`RebuiltRegion`; none until repair runs). Output: ``tiles/{ix}_{iy}/merged.npz`` + ``merged.json``
 (:mod:`storage.tile_mesh`), the input of export.
+The repair contract is in :mod:`tasks.merge_region`, soups and their weld in :mod:`tasks.merge_soup`.
 
 Rules:
 
@@ -31,14 +32,12 @@ fingerprint of the tile (the file's bytes) does not change either.
 from __future__ import annotations
 
 import contextlib
-import hashlib
 import os
 import socket
 import time
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Protocol, runtime_checkable
 
 import numpy as np
 
@@ -48,267 +47,18 @@ from storage.grid import PatchGrid
 from storage.ids import TileId
 from storage.manifest import combine_fingerprints
 from storage.patch_store import PATCHES_FILE, PatchStore, side_table_path
-from storage.tile_mesh import (
-    GRADE_BAD,
-    GRADE_UNKNOWN,
-    NO_REGION,
-    SOURCE_MESH,
-    SOURCE_REBUILT,
-    TileMesh,
-    tile_mesh_paths,
-    write_tile_mesh,
-)
+from storage.tile_mesh import GRADE_UNKNOWN, TileMesh, tile_mesh_paths, write_tile_mesh
 from storage.workdir import STALE_FILE, WorkDir, campus_frame, read_campus
-from tasks.merge_weld import face_keep_mask, weld_corners, weld_keys
+from tasks.merge_region import RebuiltRegion, RegionMesh
+from tasks.merge_soup import FaceSoup, WeldStats, concat_soups, region_soup, store_soup, weld_soup
 from tasks.units import Done, run_unit
+
+__all__ = ["FaceSoup", "MergeStats", "RebuiltRegion", "RegionMesh", "faces_in_tile", "merge_tile", "retained_soup",
+           "run_merge_tile", "weld_soup"]
 
 STORE_FACE_COLUMNS = ([f"{a}{v}" for v in range(3) for a in "xyz"] + [f"vid{v}" for v in range(3)]
                       + [f"{a}{v}" for v in range(3) for a in "uv"]
                       + ["texture", "red", "green", "blue", "src_face", "source", "patch"])  # fmt: skip
-REBUILT_GREY = np.array([170, 170, 170], np.uint8)  # rebuilt faces with neither atlas nor colours
-
-# ------------------------------------------------------------------------------ the repair contract
-
-
-@runtime_checkable
-class RebuiltRegion(Protocol):
-    """What merge needs of one rebuilt region; repair's own type satisfies it by having these attributes.
-
-    Required: ``region`` (int, RegionId.n), ``vertices`` ((n, 3) float32 metres campus-local), ``faces``
-    ((m, 3) int into vertices), ``replaced_patches`` ((p,) int64 packed keys of the patches, in any tile,
-    whose original faces the region replaces). Optional (read with ``getattr``, see :class:`RegionMesh`):
-    ``vertex_ids``, ``uv``, ``atlas``, ``colors``, ``textured``, ``replaced_faces``, ``fingerprint``.
-    """
-
-    region: int
-    vertices: np.ndarray
-    faces: np.ndarray
-    replaced_patches: np.ndarray
-
-
-@dataclass(frozen=True, eq=False)
-class RegionMesh:
-    """One rebuilt region as merge takes it.
-
-    region: region number (>= 0). vertices: (n, 3) float32 metres campus-local. faces: (m, 3) int64.
-    replaced_patches: (p,) int64 packed patch keys (``PatchGrid.pack``) whose original faces go.
-    vertex_ids: (n,) int64 campus vertex id of each vertex kept from the original mesh (its border
-    vertices: they weld exactly to the retained faces), -1 for a new vertex; None: all new.
-    uv: (n, 2) float32 per vertex (OBJ convention) into ``atlas`` (a JPEG/PNG path), or None.
-    colors: (n, 3) uint8 sRGB for faces not textured, or None (grey).
-    textured: (m,) bool, which faces use the atlas (the others, e.g. faces no camera saw, use
-    ``colors``); None: every face when there is an atlas.
-    replaced_faces: (k, 2) int64 (source, src_face) of further original faces the region replaces
-    (beyond those of ``replaced_patches``), or None.
-    fingerprint: the region's content identity for resume ("" : hashed from the arrays here).
-    """
-
-    region: int
-    vertices: np.ndarray
-    faces: np.ndarray
-    replaced_patches: np.ndarray
-    vertex_ids: np.ndarray | None = None
-    uv: np.ndarray | None = None
-    atlas: str | None = None
-    colors: np.ndarray | None = None
-    textured: np.ndarray | None = None
-    replaced_faces: np.ndarray | None = None
-    fingerprint: str = ""
-
-    def __post_init__(self):
-        n, m = len(self.vertices), len(self.faces)
-        bad = [
-            (self.region >= 0, "region must be >= 0"),
-            (np.shape(self.vertices) == (n, 3), "vertices must be (n, 3)"),
-            (np.shape(self.faces) == (m, 3), "faces must be (m, 3)"),
-            (m == 0 or (np.min(self.faces) >= 0 and np.max(self.faces) < n), "faces index outside the vertices"),
-            (np.ndim(self.replaced_patches) == 1, "replaced_patches must be (p,)"),
-            (self.vertex_ids is None or np.shape(self.vertex_ids) == (n,), "vertex_ids must be (n,)"),
-            (self.uv is None or np.shape(self.uv) == (n, 2), "uv must be (n, 2)"),
-            (self.colors is None or np.shape(self.colors) == (n, 3), "colors must be (n, 3)"),
-            (self.textured is None or np.shape(self.textured) == (m,), "textured must be (m,)"),
-            (self.atlas is None or self.uv is not None, "an atlas needs uv"),
-            (self.replaced_faces is None or np.shape(self.replaced_faces)[1:] == (2,), "replaced_faces must be (k, 2)"),
-        ]  # fmt: skip
-        for ok, problem in bad:
-            if not ok:
-                raise ValueError(f"rebuilt region {self.region}: {problem}")
-
-    @classmethod
-    def of(cls, obj) -> RegionMesh:
-        """A RegionMesh of any object with the attributes of :class:`RebuiltRegion` (arrays cast)."""
-        if isinstance(obj, RegionMesh):
-            return obj
-        opt = lambda name, dtype: None if getattr(obj, name, None) is None else np.asarray(getattr(obj, name), dtype)
-        atlas = getattr(obj, "atlas", None)
-        return cls(region=int(obj.region), vertices=np.asarray(obj.vertices, np.float32),
-                   faces=np.asarray(obj.faces, np.int64).reshape(-1, 3),
-                   replaced_patches=np.asarray(obj.replaced_patches, np.int64).reshape(-1),
-                   vertex_ids=opt("vertex_ids", np.int64), uv=opt("uv", np.float32),
-                   atlas=None if atlas is None else str(atlas), colors=opt("colors", np.uint8),
-                   textured=opt("textured", bool), replaced_faces=opt("replaced_faces", np.int64),
-                   fingerprint=str(getattr(obj, "fingerprint", "") or ""))  # fmt: skip
-
-    def content_fingerprint(self) -> str:
-        """``fingerprint`` if repair gave one, else a hash of the arrays and the atlas file."""
-        if self.fingerprint:
-            return self.fingerprint
-        h = hashlib.sha256(str(self.region).encode())
-        for a in (self.vertices, self.faces, self.replaced_patches, self.vertex_ids, self.uv, self.colors,
-                  self.textured, self.replaced_faces):
-            h.update(b"-" if a is None else np.ascontiguousarray(a).tobytes() + str(a.shape).encode())
-        if self.atlas is not None:
-            h.update(self.atlas.encode())
-            with contextlib.suppress(OSError):
-                h.update(file_fingerprint(self.atlas).encode())
-        return h.hexdigest()[:32]
-
-
-# ------------------------------------------------------------------------------ face soups
-
-
-@dataclass(frozen=True, eq=False)
-class FaceSoup:
-    """Faces as unshared corners, before welding.
-
-    xyz: (m, 3, 3) float32 metres campus-local. keys: (m, 3) int64 weld key per corner (campus vertex
-    id, or a region's own key < 0). uv: (m, 3, 2) float32 (0 where untextured). texture: (m,) int32
-    index into the merge's texture list, -1 untextured. color: (m, 3, 3) uint8 per corner.
-    grade / source: (m,) int8; region: (m,) int32 (storage.tile_mesh conventions).
-    """
-
-    xyz: np.ndarray
-    keys: np.ndarray
-    uv: np.ndarray
-    texture: np.ndarray
-    color: np.ndarray
-    grade: np.ndarray
-    source: np.ndarray
-    region: np.ndarray
-
-    @property
-    def n_faces(self) -> int:
-        return len(self.keys)
-
-    def take(self, rows: np.ndarray) -> FaceSoup:
-        return FaceSoup(**{k: getattr(self, k)[rows] for k in _SOUP_FIELDS})
-
-
-_SOUP_FIELDS = ("xyz", "keys", "uv", "texture", "color", "grade", "source", "region")
-
-
-def concat_soups(parts: Sequence[FaceSoup]) -> FaceSoup:
-    return FaceSoup(**{k: np.concatenate([getattr(p, k) for p in parts]) for k in _SOUP_FIELDS})
-
-
-def _position_keys(xyz: np.ndarray, base: int) -> np.ndarray:
-    """(c, 3) float32 corners -> (c,) int64 keys equal for bit-identical positions, all <= base."""
-    bits = np.ascontiguousarray(xyz, np.float32).view(np.uint32).astype(np.int64)
-    _, inverse = np.unique(bits, axis=0, return_inverse=True)
-    return base - inverse.reshape(-1)
-
-
-def store_soup(cols: dict[str, np.ndarray], grade: np.ndarray) -> FaceSoup:
-    """The soup of patch-store face rows.
-
-    cols: store face columns (at least :data:`STORE_FACE_COLUMNS` but src_face/source/patch), (m,) each.
-    grade: (m,) int8 per face. A face is textured when its texture index is >= 0 and its three uv are
-    finite. Corners without a vertex id (-1: an input written without ids) weld by exact position.
-    """
-    xyz = np.stack([np.stack([cols[f"{a}{v}"] for a in "xyz"], axis=1) for v in range(3)], axis=1)
-    keys = np.stack([cols[f"vid{v}"] for v in range(3)], axis=1).astype(np.int64, copy=False)
-    if (keys < 0).any():  # no ids: weld exactly coincident corners, in a key range of their own
-        missing = keys < 0
-        keys = keys.copy()
-        keys[missing] = _position_keys(xyz[missing], -(1 << 62))
-    uv = np.stack([np.stack([cols[f"{a}{v}"] for a in "uv"], axis=1) for v in range(3)], axis=1)
-    finite = np.isfinite(uv).all(axis=(1, 2))
-    texture = np.where(finite & (cols["texture"] >= 0), cols["texture"], -1).astype(np.int32)
-    uv = np.where((texture >= 0)[:, None, None], uv, np.float32(0)).astype(np.float32, copy=False)
-    rgb = np.stack([cols["red"], cols["green"], cols["blue"]], axis=1).astype(np.uint8, copy=False)
-    m = len(keys)
-    return FaceSoup(xyz=xyz, keys=keys, uv=uv, texture=texture, color=np.repeat(rgb[:, None, :], 3, axis=1),
-                    grade=np.asarray(grade, np.int8), source=np.full(m, SOURCE_MESH, np.int8),
-                    region=np.full(m, NO_REGION, np.int32))  # fmt: skip
-
-
-def region_soup(r: RegionMesh, texture_index: int) -> FaceSoup:
-    """The soup of one rebuilt region's faces. texture_index: its atlas in the merge's texture list
-    (ignored without an atlas). New vertices get keys ``-1 - (region << 32 | index)``: negative, so
-    never a campus vertex id (``source << 32 | index`` with source < 2**31), and distinct per region."""
-    f = r.faces
-    m = len(f)
-    ids = np.full(len(r.vertices), -1, np.int64) if r.vertex_ids is None else r.vertex_ids
-    own = -1 - ((np.int64(r.region) << 32) | np.arange(len(r.vertices), dtype=np.int64))
-    keys = np.where(ids >= 0, ids, own)[f]
-    textured = np.full(m, r.atlas is not None) if r.textured is None else (r.textured & (r.atlas is not None))
-    uv = np.zeros((m, 3, 2), np.float32) if r.uv is None else r.uv[f]
-    textured &= np.isfinite(uv).all(axis=(1, 2))
-    uv = np.where(textured[:, None, None], uv, np.float32(0)).astype(np.float32, copy=False)
-    colors = np.broadcast_to(REBUILT_GREY, (len(r.vertices), 3)) if r.colors is None else r.colors
-    return FaceSoup(xyz=r.vertices[f], keys=keys, uv=uv, texture=np.where(textured, texture_index, -1).astype(np.int32),
-                    color=np.ascontiguousarray(colors[f], np.uint8), grade=np.full(m, GRADE_BAD, np.int8),
-                    source=np.full(m, SOURCE_REBUILT, np.int8), region=np.full(m, r.region, np.int32))  # fmt: skip
-
-
-# ------------------------------------------------------------------------------ welding a soup
-
-
-@dataclass(frozen=True)
-class WeldStats:
-    """Counts of one weld: faces in and out, dropped duplicates / degenerate faces, vertices, seam splits."""
-
-    faces_in: int
-    faces_out: int
-    duplicates: int
-    degenerate: int
-    vertices: int
-    split_vertices: int
-
-
-def weld_soup(tile_key: str, soup: FaceSoup, textures: Sequence[str]) -> tuple[TileMesh, WeldStats]:
-    """Weld a soup into a TileMesh (see the module docstring). textures: the paths ``soup.texture``
-    indexes; the TileMesh keeps only those its faces use, in first-use order of their indices."""
-    m = soup.n_faces
-    welded = weld_keys(soup.keys.reshape(-1))
-    keep = face_keep_mask(welded[0], m)
-    f = welded[0].reshape(m, 3)
-    degenerate = int(((f[:, 0] == f[:, 1]) | (f[:, 1] == f[:, 2]) | (f[:, 0] == f[:, 2])).sum())
-    del f
-    s = soup
-    if not keep.all():
-        s = soup.take(np.flatnonzero(keep))
-        welded = weld_keys(s.keys.reshape(-1))
-    textured = s.texture >= 0
-    # texture + colour in one attribute (colour only matters where untextured), uv bits in the other
-    rgb = s.color.reshape(-1, 3)
-    packed_rgb = (rgb[:, 0].astype(np.uint32) << 16) | (rgb[:, 1].astype(np.uint32) << 8) | rgb[:, 2]
-    attr_a = np.repeat((s.texture.astype(np.int64) + 1) << 24, 3)
-    attr_a |= np.where(np.repeat(textured, 3), np.uint32(0), packed_rgb)
-    del packed_rgb
-    uv_bits = s.uv.reshape(-1, 2).view(np.uint32)
-    attr_b = uv_bits[:, 0].astype(np.int64) << 32
-    attr_b |= uv_bits[:, 1]
-    w = weld_corners(s.keys.reshape(-1), attr_a, attr_b, welded)
-    del attr_a, attr_b, welded
-
-    used = np.unique(s.texture[textured])
-    remap = np.full(len(textures) + 1, -1, np.int16)
-    remap[used] = np.arange(len(used), dtype=np.int16)
-    face_texture = remap[s.texture]  # -1 stays -1 (remap[-1] is the spare slot)
-    any_textured = bool(textured.any())
-    mesh = TileMesh(
-        tile=tile_key,
-        vertices=np.ascontiguousarray(s.xyz.reshape(-1, 3)[w.position_corner], np.float32),
-        faces=w.faces, face_texture=face_texture.astype(np.int16),
-        uv=np.ascontiguousarray(s.uv.reshape(-1, 2)[w.corner], np.float32) if any_textured else None,
-        textures=[str(textures[i]) for i in used], vertex_colors=np.ascontiguousarray(s.color.reshape(-1, 3)[w.corner]),
-        grade=s.grade, source=s.source, region=s.region,
-    )  # fmt: skip
-    stats = WeldStats(faces_in=m, faces_out=mesh.n_faces, duplicates=m - int(keep.sum()) - degenerate,
-                      degenerate=degenerate, vertices=mesh.n_vertices, split_vertices=w.n_split)
-    return mesh, stats
-
 
 # ------------------------------------------------------------------------------ one tile, pure
 

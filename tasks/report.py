@@ -20,15 +20,12 @@ region renders) and the patches of the regions it renders.
 
 from __future__ import annotations
 
-import base64
 import datetime
-import html
 import json
 import logging
 import math
 import time
 from collections.abc import Callable
-from dataclasses import dataclass, field
 from pathlib import Path
 
 import numpy as np
@@ -36,56 +33,16 @@ import numpy as np
 from storage.atomic import file_sha256, write_bytes_atomic, write_json_atomic
 from storage.errors import InputError
 from storage.grid import PatchGrid
-from storage.ids import TileId
 from storage.manifest import all_records
 from storage.patch_store import PatchStore
-from storage.tile_mesh import SOURCE_REBUILT, read_tile_mesh, tile_mesh_paths
+from storage.tile_mesh import read_tile_mesh, tile_mesh_paths
 from storage.workdir import WorkDir, campus_frame, read_campus
-
-from .report_figures import BAD_COLOUR, MESH_COLOUR, REBUILT_COLOUR, class_map_png, render_png, view_basis
+from tasks.report_figures import class_map_png
+from tasks.report_html import Section, esc, render_page, table
+from tasks.report_regions import regions_section
 
 log = logging.getLogger("ms3d.report")
 REPORT_VERSION = 1
-MAX_REGION_RENDERS = 12
-REGION_MARGIN_M = 1.5
-
-
-@dataclass
-class Section:
-    """One part of the page: a title, HTML body and the figures (name -> PNG bytes) it embeds."""
-
-    title: str
-    body: str = ""
-    figures: dict[str, bytes] = field(default_factory=dict)
-
-
-def _esc(x) -> str:
-    return html.escape(str(x))
-
-
-def _fmt(x, digits: int = 3) -> str:
-    if isinstance(x, float):
-        return "–" if not math.isfinite(x) else f"{x:,.{digits}f}"
-    if isinstance(x, int):
-        return f"{x:,}"
-    return _esc(x) if x is not None else "–"
-
-
-def _table(header: list[str], rows: list[list]) -> str:
-    head = "".join(f"<th>{_esc(h)}</th>" for h in header)
-    body = "".join("<tr>" + "".join(f"<td>{c if isinstance(c, _Raw) else _fmt(c)}</td>" for c in r) + "</tr>"
-                   for r in rows)
-    return f"<table><tr>{head}</tr>{body}</table>"
-
-
-class _Raw(str):
-    """A table cell already in HTML."""
-
-
-def _img(name: str, data: bytes, caption: str = "") -> str:
-    b64 = base64.b64encode(data).decode()
-    cap = f"<figcaption>{_esc(caption or name)}</figcaption>"
-    return f'<figure id="{_esc(name)}"><img alt="{_esc(name)}" src="data:image/png;base64,{b64}">{cap}</figure>'
 
 
 # ------------------------------------------------------------------------------ sections
@@ -122,21 +79,21 @@ def inputs_section(campus: dict, wd: WorkDir, truth: Path | None) -> Section:
     rows = [[Path(r["path"]).name, r["kind"], r.get("count"), r.get("crs") or "–",
              " × ".join(f"{h - lo:,.1f}" for lo, h in zip(r["lo"], r["hi"])) if r.get("lo") else "–",
              r.get("error") or "ok"] for r in campus.get("inputs", [])]  # fmt: skip
-    body = _table(["file", "kind", "points / faces", "CRS in file", "extent x × y × z (m)", "status"], rows)
+    body = table(["file", "kind", "points / faces", "CRS in file", "extent x × y × z (m)", "status"], rows)
     grid = campus.get("grid", {})
-    body += _table(["CRS", "origin (world m)", "vertical datum", "patch size (m)", "tile size (m)"], [[
+    body += table(["CRS", "origin (world m)", "vertical datum", "patch size (m)", "tile size (m)"], [[
         frame.get("crs"), ", ".join(f"{v:,.3f}" for v in frame.get("origin", [])), frame.get("vertical_datum"),
         " × ".join(str(v) for v in grid.get("size_m", [])), grid.get("tile_size_m")]])
     skipped = campus.get("skipped_files") or []
     if skipped:
-        body += f"<p>skipped files: {_esc(', '.join(str(s) for s in skipped[:20]))}</p>"
+        body += f"<p>skipped files: {esc(', '.join(str(s) for s in skipped[:20]))}</p>"
     reg = dict(campus.get("registration", {}))
     recorded = wd.root / "registration.json"
     if recorded.exists():
         reg = json.loads(recorded.read_text()) | {k: v for k, v in reg.items() if k in ("reused", "mode")}
     if "matrix" in reg:
         parts = similarity_parts(reg["matrix"])
-        body += "<h3>Registration (MLS → mesh)</h3>" + _table(
+        body += "<h3>Registration (MLS → mesh)</h3>" + table(
             ["method", "scale", "rotation (deg)", "translation (m)", "fitness", "inlier RMSE (m)", "coarse fitness",
              "points used", "seconds", "reused"],
             [[reg.get("method"), parts["scale"], parts["rotation_deg"],
@@ -170,7 +127,7 @@ def histogram_section(wd: WorkDir) -> Section:
     if out:
         rows = [[name, out[name]["mean_log10"], out[name]["std_log10"], out[name]["low"], out[name]["high"],
                  out[name]["flagged"]] for name in ("points", "faces") if name in out]  # fmt: skip
-        sec.body += _table(["per patch", "mean log10", "sd log10", "kept from", "kept to", "flagged"], rows)
+        sec.body += table(["per patch", "mean log10", "sd log10", "kept from", "kept to", "flagged"], rows)
     for p in sorted(wd.report_dir.glob("patch_*_histogram.png")):
         sec.figures[p.stem] = p.read_bytes()
     if not sec.figures:
@@ -209,7 +166,7 @@ def class_map_section(wd: WorkDir, grid: PatchGrid, origin: np.ndarray) -> Secti
     sec.figures["class_map"] = png
     n_bad = int((value >= 0.5).sum()) if kind == "score" else int((value == 1).sum())
     sec.body = (f"<p>Each pixel is a column of patches (the worst over height) coloured by "
-                f"{'score' if kind == 'score' else 'grade'} ({_esc(src)}): {n_bad:,} of {len(value):,} patches bad.</p>")
+                f"{'score' if kind == 'score' else 'grade'} ({esc(src)}): {n_bad:,} of {len(value):,} patches bad.</p>")
     return sec
 
 
@@ -225,13 +182,13 @@ def stages_section(wd: WorkDir) -> Section:
         rows.append([stage, len(recs), status["done"], status["empty"], status["failed"], float(sum(secs)),
                      float(max(secs)), f"{max(rss):,.0f}" if rss else "–"])
         errors += [f"{stage} {r.unit}: {r.error}" for r in recs if r.status == "failed"]
-    body = _table(["stage", "units", "done", "empty", "failed", "seconds (sum)", "seconds (slowest unit)",
+    body = table(["stage", "units", "done", "empty", "failed", "seconds (sum)", "seconds (slowest unit)",
                    "peak RSS MB"], rows)  # fmt: skip
     body += ("<p>Seconds are each unit's own work time (skipped units keep the time of the run that did them). "
              "Peak RSS is the worker process's peak at the end of a unit (an upper bound of the stage's own "
              "peak when a worker ran other stages before); – where the stage did not record it.</p>")
     if errors:
-        body += "<h3>Failures</h3><ul>" + "".join(f"<li>{_esc(e)}</li>" for e in errors[:50]) + "</ul>"
+        body += "<h3>Failures</h3><ul>" + "".join(f"<li>{esc(e)}</li>" for e in errors[:50]) + "</ul>"
     return Section("Stages: time and memory", body)
 
 
@@ -285,109 +242,17 @@ def quality_section(wd: WorkDir, truth: Path | None, origin: np.ndarray, tiles: 
     for name, q in cache["rows"].items():
         table.append([name, q["fscore"][0], q["fscore"][1], q["accuracy"]["mean_m"], q["completeness"]["mean_m"],
                       100 * q["uncovered_fraction"], q["evaluated_area_m2"]])  # fmt: skip
-    sec.body = _table(["model", "F@5 cm", "F@10 cm", "accuracy mean (m)", "completeness mean (m)",
+    sec.body = table(["model", "F@5 cm", "F@10 cm", "accuracy mean (m)", "completeness mean (m)",
                        "facade uncovered (%)", "facade area (m²)"], table)
     per = cache["rows"]["merged model"].get("per_class", {})
     if per:
-        sec.body += "<h3>Merged model per class</h3>" + _table(
+        sec.body += "<h3>Merged model per class</h3>" + table(
             ["class", "F@5 cm", "accuracy mean (m)", "completeness mean (m)", "area (m²)"],
             [[c, q["fscore"][0], q["accuracy"]["mean_m"], q["completeness"]["mean_m"], q["completeness"]["area_m2"]]
              for c, q in per.items()])  # fmt: skip
     if not any_rebuilt:
         sec.body += "<p>No region was rebuilt: the merged model is the input mesh, retained whole.</p>"
     return sec
-
-
-def _region_boxes(wd: WorkDir, tiles: list[str]) -> dict[int, dict]:
-    """Per rebuilt region: bbox of its faces (campus-local), face count, normals sample, tiles."""
-    out: dict[int, dict] = {}
-    for k in tiles:
-        tm = read_tile_mesh(wd.root / "tiles" / k)
-        rebuilt = np.flatnonzero(tm.source == SOURCE_REBUILT)
-        if not len(rebuilt):
-            continue
-        for r in np.unique(tm.region[rebuilt]):
-            tri = tm.vertices[tm.faces[rebuilt[tm.region[rebuilt] == r]]].astype(np.float64)
-            n = np.cross(tri[:, 1] - tri[:, 0], tri[:, 2] - tri[:, 0])
-            rec = out.setdefault(int(r), {"lo": np.full(3, np.inf), "hi": np.full(3, -np.inf), "faces": 0,
-                                          "normal": np.zeros(3), "tiles": []})  # fmt: skip
-            rec["lo"] = np.minimum(rec["lo"], tri.reshape(-1, 3).min(axis=0))
-            rec["hi"] = np.maximum(rec["hi"], tri.reshape(-1, 3).max(axis=0))
-            rec["faces"] += len(tri)
-            rec["normal"] += n.sum(axis=0)
-            rec["tiles"].append(k)
-    return out
-
-
-def _in_box(tri: np.ndarray, lo: np.ndarray, hi: np.ndarray) -> np.ndarray:
-    c = tri.mean(axis=1)
-    return ((c >= lo) & (c <= hi)).all(axis=1)
-
-
-def regions_section(wd: WorkDir, tiles: list[str], grid: PatchGrid, origin: np.ndarray) -> tuple[Section, bool]:
-    sec = Section("Rebuilt regions: before and after")
-    boxes = _region_boxes(wd, tiles)
-    if not boxes:
-        sec.body = "<p>No rebuilt region in the merged tiles (repair has not run, or found nothing to rebuild).</p>"
-        return sec, False
-    shown = sorted(boxes, key=lambda r: -boxes[r]["faces"])[:MAX_REGION_RENDERS]
-    rows = []
-    for r in shown:
-        b = boxes[r]
-        lo, hi = b["lo"] - REGION_MARGIN_M, b["hi"] + REGION_MARGIN_M
-        before_tri, before_col, after_tri, after_col = [], [], [], []
-        near = {TileId.from_key(k) for k in tiles} & set(_tiles_for_box(grid, origin, lo, hi))
-        for t in sorted(near):
-            tm = read_tile_mesh(wd.tile_dir(t))
-            tri = tm.vertices[tm.faces]
-            sel = _in_box(tri, lo, hi)
-            after_tri.append(tri[sel])
-            after_col.append(np.where((tm.source[sel] == SOURCE_REBUILT)[:, None], REBUILT_COLOUR, MESH_COLOUR))
-            tri_b, bad = _store_faces_in_box(wd, t, lo, hi)
-            before_tri.append(tri_b)
-            before_col.append(np.where(bad[:, None], BAD_COLOUR, MESH_COLOUR))
-        before, after = np.concatenate(before_tri), np.concatenate(after_tri)
-        basis = view_basis(b["normal"][None, :])
-        png = render_png([("before: input mesh, bad patches red", before, np.concatenate(before_col)),
-                          ("after: merged, rebuilt faces orange", after, np.concatenate(after_col))], basis,
-                         f"region {r}: {b['faces']:,} rebuilt faces in tiles {', '.join(b['tiles'])}")  # fmt: skip
-        name = f"region_{r:06d}"
-        write_bytes_atomic(wd.report_dir / "regions" / f"{name}.png", png)
-        sec.figures[name] = png
-        rows.append([r, b["faces"], " × ".join(f"{v:.1f}" for v in b["hi"] - b["lo"]), ", ".join(b["tiles"])])
-    sec.body = _table(["region", "rebuilt faces", "extent (m)", "tiles"], rows)
-    if len(boxes) > len(shown):
-        sec.body += f"<p>{len(boxes) - len(shown)} smaller regions not rendered.</p>"
-    return sec, True
-
-
-def _tiles_for_box(grid: PatchGrid, origin: np.ndarray, lo: np.ndarray, hi: np.ndarray) -> list[TileId]:
-    return [TileId(int(a), int(b)) for a, b in grid.tiles_for_bounds(lo + origin, hi + origin)]
-
-
-def _store_faces_in_box(wd: WorkDir, tile: TileId, lo: np.ndarray, hi: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """The input mesh faces of a tile store with centroids in [lo, hi]: (triangles (k, 3, 3), bad (k,) bool),
-    reading only the patches whose boxes meet it."""
-    try:
-        store = PatchStore(wd.tile_dir(tile))
-    except InputError:
-        return np.zeros((0, 3, 3), np.float32), np.zeros(0, bool)
-    p = store.patches()
-    meets = ((p["xmax"] >= lo[0]) & (p["xmin"] <= hi[0]) & (p["ymax"] >= lo[1]) & (p["ymin"] <= hi[1])
-             & (p["zmax"] >= lo[2]) & (p["zmin"] <= hi[2]) & (p["n_faces"] > 0))  # fmt: skip
-    grades = store.side("grades")
-    labels = store.side("labels")
-    bad_patch = (grades["grade"] == 1) if grades is not None else (labels["label"] == 1) if labels is not None \
-        else np.zeros(len(p["patch"]), bool)
-    keys = p["patch"][meets]
-    if not len(keys):
-        return np.zeros((0, 3, 3), np.float32), np.zeros(0, bool)
-    cols = [f"{a}{v}" for v in range(3) for a in "xyz"]
-    parts = store.read_patches(keys.tolist(), point_columns=[], face_columns=cols)
-    tri = np.concatenate([d.triangles() for d in parts])
-    bad = np.repeat(bad_patch[meets], [d.n_faces for d in parts])
-    sel = _in_box(tri, lo, hi)
-    return tri[sel], bad[sel]
 
 
 def output_section(wd: WorkDir) -> Section:
@@ -397,41 +262,18 @@ def output_section(wd: WorkDir) -> Section:
     if (out / "tileset.json").exists():
         nodes = json.loads(state.read_text()).get("nodes", {}) if state.exists() else {}
         leaves = [n for k, n in nodes.items() if k.startswith("L0_")]
-        body += _table(["tiles", "quadtree nodes", "leaf triangles", "bytes", "root geometric error (m)"], [[
+        body += table(["tiles", "quadtree nodes", "leaf triangles", "bytes", "root geometric error (m)"], [[
             len(leaves), len(nodes), int(sum(n.get("faces", 0) for n in leaves)),
             int(sum(n.get("bytes", 0) for n in nodes.values())),
             float(json.loads((out / "tileset.json").read_text())["root"]["geometricError"])]])
         links = [(n, n) for n in ("tileset.json", "overview.glb", "georef.json") if (out / n).exists()]
-        body += "<p>" + " · ".join(f'<a href="{_esc(h)}">{_esc(t)}</a>' for t, h in links) + "</p>"
+        body += "<p>" + " · ".join(f'<a href="{esc(h)}">{esc(t)}</a>' for t, h in links) + "</p>"
     else:
         body += "<p>No tileset yet (the export stage has not run).</p>"
-    body += (f"<p>Open the model in a browser: <code>ms3d view {_esc(wd.root)}</code> "
+    body += (f"<p>Open the model in a browser: <code>ms3d view {esc(wd.root)}</code> "
              "(serves this folder's <code>output/</code> on localhost with the viewer page; colour by grade, "
              "source or region and click a face for its provenance).</p>")
     return Section("Output: 3D Tiles", body)
-
-
-# ------------------------------------------------------------------------------ page
-
-_CSS = """body{font-family:system-ui,sans-serif;margin:2em auto;max-width:72em;color:#222}
-h1{font-size:1.6em}h2{border-bottom:1px solid #ccc;padding-bottom:.2em;margin-top:2em}h3{font-size:1.05em}
-table{border-collapse:collapse;margin:.6em 0;font-size:.9em}td,th{border:1px solid #ddd;padding:.25em .6em;
-text-align:right}th{background:#f4f4f4}td:first-child,th:first-child{text-align:left}
-figure{display:inline-block;margin:.5em}img{max-width:100%;border:1px solid #eee}
-figcaption{font-size:.8em;color:#666}code{background:#f4f4f4;padding:0 .3em}.note{color:#a33}"""
-
-
-def render_page(title: str, subtitle: str, sections: list[Section]) -> str:
-    """The HTML page of ``sections`` (figures embedded as data URIs)."""
-    parts = [(f"<!doctype html><html><head><meta charset='utf-8'><title>{_esc(title)}</title>"
-             f"<style>{_CSS}</style></head><body><h1>{_esc(title)}</h1><p>{_esc(subtitle)}</p><nav><ol>")]
-    parts += [f'<li><a href="#s{n}">{_esc(s.title)}</a></li>' for n, s in enumerate(sections)]
-    parts.append("</ol></nav>")
-    for n, s in enumerate(sections):
-        parts.append(f'<h2 id="s{n}">{_esc(s.title)}</h2>{s.body}')
-        parts += [_img(name, data) for name, data in s.figures.items()]
-    parts.append("</body></html>")
-    return "\n".join(parts)
 
 
 def _guarded(title: str, fn: Callable[[], Section]) -> Section:
@@ -440,7 +282,7 @@ def _guarded(title: str, fn: Callable[[], Section]) -> Section:
         return fn()
     except (InputError, OSError, ValueError, KeyError) as e:
         log.warning("report section %r: %s", title, e)
-        return Section(title, f"<p class='note'>Could not make this section: {_esc(e)}</p>")
+        return Section(title, f"<p class='note'>Could not make this section: {esc(e)}</p>")
 
 
 def run_report(cfg, wd: WorkDir, truth_dir: str | Path | None = None, quality: bool = True) -> dict:
