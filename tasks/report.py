@@ -51,13 +51,15 @@ REPORT_VERSION = 1
 def similarity_parts(matrix) -> dict:
     """A 4x4 similarity as scale, rotation angle (deg) and translation (m).
 
-    >>> similarity_parts(np.diag([2.0, 2.0, 2.0, 1.0]))["scale"]
-    2.0
+    >>> p = similarity_parts(np.diag([2.0, 2.0, 2.0, 1.0]))
+    >>> round(p["scale"], 6), round(p["rotation_deg"], 6)
+    (2.0, 0.0)
     """
     m = np.asarray(matrix, np.float64)
     s = float(np.cbrt(np.linalg.det(m[:3, :3])))
     r = m[:3, :3] / s
-    angle = math.degrees(math.acos(float(np.clip((np.trace(r) - 1) / 2, -1, 1))))
+    axis = np.array([r[2, 1] - r[1, 2], r[0, 2] - r[2, 0], r[1, 0] - r[0, 1]])  # 2 sin(angle) * unit axis
+    angle = math.degrees(math.atan2(float(np.linalg.norm(axis)), float(np.trace(r) - 1)))  # exact near 0
     return {"scale": s, "rotation_deg": angle, "translation_m": m[:3, 3].tolist(),
             "translation_norm_m": float(np.linalg.norm(m[:3, 3]))}
 
