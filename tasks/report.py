@@ -235,17 +235,17 @@ def quality_section(wd: WorkDir, truth: Path | None, origin: np.ndarray, tiles: 
         merged = evaluate_mesh(np.concatenate(vs), np.concatenate(fs), tv - t_origin, tf, spacing_m=spacing_m,
                                true_face_mask=facade_mask(tc), true_face_class=tc, class_names=CLASS_NAMES)
         del vs, fs
-        rows = {"merged model": merged.to_dict()}
+        models = {"merged model": merged.to_dict()}
         if any_rebuilt:
-            rows["input mesh"] = quality_of_mesh(truth / "mesh", truth, spacing_m=spacing_m).to_dict()
-        cache = {"key": key, "rows": rows}
+            models["input mesh"] = quality_of_mesh(truth / "mesh", truth, spacing_m=spacing_m).to_dict()
+        cache = {"key": key, "rows": models}
         write_json_atomic(cache_path, cache)
-    table = []
+    rows = []
     for name, q in cache["rows"].items():
-        table.append([name, q["fscore"][0], q["fscore"][1], q["accuracy"]["mean_m"], q["completeness"]["mean_m"],
+        rows.append([name, q["fscore"][0], q["fscore"][1], q["accuracy"]["mean_m"], q["completeness"]["mean_m"],
                       100 * q["uncovered_fraction"], q["evaluated_area_m2"]])  # fmt: skip
     sec.body = table(["model", "F@5 cm", "F@10 cm", "accuracy mean (m)", "completeness mean (m)",
-                       "facade uncovered (%)", "facade area (m²)"], table)
+                       "facade uncovered (%)", "facade area (m²)"], rows)
     per = cache["rows"]["merged model"].get("per_class", {})
     if per:
         sec.body += "<h3>Merged model per class</h3>" + table(
