@@ -43,6 +43,8 @@ from tasks.report_regions import regions_section
 
 log = logging.getLogger("ms3d.report")
 REPORT_VERSION = 1
+QUALITY_TILE_M = 25.0  # quality is evaluated tile by tile (memory): distances capped at the buffer
+QUALITY_BUFFER_M = 2.0
 
 
 # ------------------------------------------------------------------------------ sections
@@ -208,6 +210,23 @@ def _merged_fingerprint(wd: WorkDir, tiles: list[str]) -> str:
     return h.hexdigest()[:32]
 
 
+def merged_surface(wd: WorkDir, tiles: list[str], shift: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """The merged tiles as one mesh for quality: (vertices (n, 3) float64 = campus-local + ``shift``,
+    faces (m, 3) int64). Each tile's vertices are welded by exact position (merge splits a vertex at
+    seams only, every copy at one position), which cuts memory several times on seam-rich meshes."""
+    from tasks.merge_weld import first_of_groups
+
+    vs, fs, off = [], [], 0
+    for k in tiles:
+        tm = read_tile_mesh(wd.root / "tiles" / k)
+        b = tm.vertices.view(np.uint32).astype(np.int64)
+        group, first = first_of_groups((b[:, 0] << 32) | b[:, 1], b[:, 2])
+        vs.append(tm.vertices[first].astype(np.float64) + shift)
+        fs.append(group[tm.faces] + off)
+        off += len(first)
+    return np.concatenate(vs), np.concatenate(fs)
+
+
 def quality_section(wd: WorkDir, truth: Path | None, origin: np.ndarray, tiles: list[str], any_rebuilt: bool,
                     spacing_m: float = 0.05) -> Section:
     sec = Section("Quality against the truth")
@@ -217,27 +236,26 @@ def quality_section(wd: WorkDir, truth: Path | None, origin: np.ndarray, tiles: 
     if not tiles:
         sec.body = "<p>No merged tiles yet.</p>"
         return sec
-    from tasks.quality import evaluate_mesh, facade_mask
-    from tasks.quality_io import CLASS_NAMES, load_truth, quality_of_mesh
+    from storage.mesh_io import read_mesh
+    from tasks.quality import evaluate_by_tile, facade_mask
+    from tasks.quality_io import CLASS_NAMES, load_truth
 
     cache_path = wd.report_dir / "quality.json"
     key = {"version": REPORT_VERSION, "merged": _merged_fingerprint(wd, tiles), "spacing_m": spacing_m,
+           "tile_m": QUALITY_TILE_M, "buffer_m": QUALITY_BUFFER_M,
            "truth": file_sha256(min((truth / "truth").glob("truth_mesh*.ply"))), "rebuilt": any_rebuilt}
     cache = json.loads(cache_path.read_text()) if cache_path.exists() else {}
     if cache.get("key") != key:
         tv, tf, tc, t_origin = load_truth(truth)
-        vs, fs, off = [], [], 0
-        for k in tiles:
-            tm = read_tile_mesh(wd.root / "tiles" / k)
-            vs.append(tm.vertices.astype(np.float64) + origin - t_origin)
-            fs.append(tm.faces.astype(np.int64) + off)
-            off += tm.n_vertices
-        merged = evaluate_mesh(np.concatenate(vs), np.concatenate(fs), tv - t_origin, tf, spacing_m=spacing_m,
-                               true_face_mask=facade_mask(tc), true_face_class=tc, class_names=CLASS_NAMES)
-        del vs, fs
-        models = {"merged model": merged.to_dict()}
+        kw = {"tile_size_m": QUALITY_TILE_M, "buffer_m": QUALITY_BUFFER_M, "spacing_m": spacing_m,
+              "true_face_mask": facade_mask(tc), "true_face_class": tc, "class_names": CLASS_NAMES}
+        v, f = merged_surface(wd, tiles, origin - t_origin)
+        models = {"merged model": evaluate_by_tile(v, f, tv - t_origin, tf, **kw).total.to_dict()}
+        del v, f
         if any_rebuilt:
-            models["input mesh"] = quality_of_mesh(truth / "mesh", truth, spacing_m=spacing_m).to_dict()
+            mesh = read_mesh(truth / "mesh", offset=t_origin)
+            models["input mesh"] = evaluate_by_tile(mesh.vertices - t_origin, mesh.faces, tv - t_origin, tf,
+                                                    **kw).total.to_dict()
         cache = {"key": key, "rows": models}
         write_json_atomic(cache_path, cache)
     rows = []
@@ -252,6 +270,9 @@ def quality_section(wd: WorkDir, truth: Path | None, origin: np.ndarray, tiles: 
             ["class", "F@5 cm", "accuracy mean (m)", "completeness mean (m)", "area (m²)"],
             [[c, q["fscore"][0], q["accuracy"]["mean_m"], q["completeness"]["mean_m"], q["completeness"]["area_m2"]]
              for c, q in per.items()])  # fmt: skip
+    sec.body += (f"<p>Surfaces sampled every {spacing_m * 100:g} cm, evaluated in {QUALITY_TILE_M:g} m tiles "
+                 f"(distances capped at {QUALITY_BUFFER_M:g} m); uncovered: facade area of the truth with no "
+                 "surface within 20 cm along its normal.</p>")
     if not any_rebuilt:
         sec.body += "<p>No region was rebuilt: the merged model is the input mesh, retained whole.</p>"
     return sec
