@@ -23,6 +23,7 @@ from __future__ import annotations
 
 import argparse
 import json
+import math
 import os
 import shutil
 import subprocess
@@ -73,7 +74,7 @@ def _child_merge(work: str, processes: int = 1) -> dict:
     t0, c0 = time.perf_counter(), time.process_time()
     if processes <= 1:
         runs = [_merge_one(work, k)[0] for k in keys]
-        peak = _vm_hwm_mb()
+        peak = _vm_hwm_mb()  # since the last unit began: run_unit resets the peak per unit (max taken below)
     else:
         import multiprocessing
         from concurrent.futures import ProcessPoolExecutor
@@ -86,6 +87,7 @@ def _child_merge(work: str, processes: int = 1) -> dict:
     done = [r for r in runs if r and r["status"] == "done"]
     failed = [r["error"] for r in runs if r and r["status"] == "failed"]
     cpu = time.process_time() - c0 if processes <= 1 else sum(r["seconds"] for r in done)  # pool: tile seconds
+    peak = max([peak] + [r["peak_rss_mb"] for r in done if math.isfinite(r.get("peak_rss_mb", math.nan))])
     return {"tiles": len(done), "faces": sum(r["faces"] for r in done), "wall_s": wall, "cpu_s": cpu,
             "peak_rss_mb": peak, "failed": failed, "processes": processes,
             "slowest_tile_s": max((r["seconds"] for r in done), default=0.0),

@@ -189,8 +189,8 @@ def stages_section(wd: WorkDir) -> Section:
     body = table(["stage", "units", "done", "empty", "failed", "seconds (sum)", "seconds (slowest unit)",
                    "peak RSS MB"], rows)  # fmt: skip
     body += ("<p>Seconds are each unit's own work time (skipped units keep the time of the run that did them). "
-             "Peak RSS is the worker process's peak at the end of a unit (an upper bound of the stage's own "
-             "peak when a worker ran other stages before); – where the stage did not record it.</p>")
+             "Peak RSS is the largest over the stage's units of the worker process's resident memory while the unit "
+             "ran (tasks.units resets the peak before each unit); – where the stage did not record it.</p>")
     if errors:
         body += "<h3>Failures</h3><ul>" + "".join(f"<li>{esc(e)}</li>" for e in errors[:50]) + "</ul>"
     return Section("Stages: time and memory", body)
