@@ -32,9 +32,11 @@ fingerprint of the tile (the file's bytes) does not change either.
 from __future__ import annotations
 
 import contextlib
+import json
 import os
 import socket
 import time
+import zipfile
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -202,9 +204,6 @@ def remove_merged(tile_dir: Path) -> None:
 def _same_on_disk(tile_dir: Path, mesh: TileMesh) -> bool:
     """Whether tile_dir already holds exactly ``mesh`` (then it is not rewritten). Reads the old arrays
     one at a time, stopping at the first difference, so it costs at most one array of memory."""
-    import json
-    import zipfile
-
     npz, meta = tile_mesh_paths(tile_dir)
     try:
         doc = json.loads(meta.read_text())
