@@ -101,6 +101,7 @@ class CampusConfig(_Model):
     tiling: TilingConfig = Field(default_factory=TilingConfig)
     partition: PartitionConfig = Field(default_factory=PartitionConfig)
     cluster: ClusterConfig = Field(default_factory=ClusterConfig)
+    export: ExportConfig = Field(default_factory=lambda: ExportConfig(), description="3D Tiles output (merge has no parameters of its own)")
     runner: Literal["dask", "local", "inline"] = Field(
         "dask", description="'local': Prefect tasks in the flow process; 'inline': no Prefect at all, one process (debugging, tests)")
 

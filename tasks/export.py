@@ -351,6 +351,10 @@ def run_export(work_dir: str | Path, config: ExportConfig | None = None, tiles: 
     size = _tile_size_m(campus)
     ij = np.array([[int(v) for v in k.split("_")] for k in tiles], np.float64)
     centre = ((ij.min(axis=0) + ij.max(axis=0) + 1) / 2) * size
+    if "grid" in campus:  # a pipeline work dir: tile keys are world-anchored (storage.grid), not origin-relative
+        grid = campus["grid"]
+        centre = ((ij.min(axis=0) + ij.max(axis=0) + 1) / 2) * float(grid["tile_size_m"]) \
+            + np.asarray(grid["anchor_m"][:2], np.float64) - frame.origin_array[:2]
     georef = make_georef(frame.crs, frame.origin, (centre[0], centre[1], 0.0), frame.vertical_datum)
     base = _sha(EXPORT_VERSION, cfg.model_dump(mode="json"), georef.to_json())
 

@@ -1,0 +1,142 @@
+"""Figures of the run report: the class map (top view of patches) and renders of rebuilt regions.
+
+Pure functions over arrays that return PNG bytes (matplotlib's Agg canvas, no pyplot state, so they are
+safe in worker threads). Renders are orthographic, flat-shaded by the angle between each face normal and
+the view direction, painted back to front: a few hundred thousand triangles at most, which is what a
+region and its surroundings hold.
+"""
+
+from __future__ import annotations
+
+import io
+import math
+
+import numpy as np
+
+GRADE_COLOURS = {-1: (0.75, 0.75, 0.75), 0: (0.30, 0.65, 0.35), 1: (0.85, 0.25, 0.20)}
+REBUILT_COLOUR = np.array([0.95, 0.60, 0.15])
+MESH_COLOUR = np.array([0.78, 0.78, 0.80])
+BAD_COLOUR = np.array([0.90, 0.35, 0.30])
+MAX_MAP_PX = 2000
+
+
+def _png(fig) -> bytes:
+    buf = io.BytesIO()
+    fig.savefig(buf, format="png")
+    return buf.getvalue()
+
+
+def _figure(w_in: float, h_in: float, dpi: int = 100):
+    from matplotlib.backends.backend_agg import FigureCanvasAgg
+    from matplotlib.figure import Figure
+
+    fig = Figure(figsize=(w_in, h_in), dpi=dpi)
+    FigureCanvasAgg(fig)
+    return fig
+
+
+def column_raster(i: np.ndarray, j: np.ndarray, value: np.ndarray, reduce: str = "max",
+                  max_px: int = MAX_MAP_PX) -> tuple[np.ndarray, tuple[int, int], int]:
+    """Patch columns (i, j) -> a 2D raster of ``value`` reduced over k (and over binned columns).
+
+    i, j: (n,) int64 patch cells; value: (n,) float (NaN = no value). reduce: "max" (worst score or
+    grade). Returns (raster (rows, cols) float64, NaN where empty, row 0 = lowest j; (i0, j0) the cell of
+    pixel (0, 0); bin: cells per pixel side, so the raster is at most ``max_px`` a side).
+
+    >>> r, origin, b = column_raster(np.array([5, 5, 6]), np.array([2, 2, 3]), np.array([0.1, 0.7, 0.2]))
+    >>> r.tolist(), origin, b
+    ([[0.7, nan], [nan, 0.2]], (5, 2), 1)
+    """
+    if reduce != "max":
+        raise ValueError(f"unknown reduction {reduce!r}")
+    i0, j0 = int(i.min()), int(j.min())
+    span = max(int(i.max()) - i0, int(j.max()) - j0) + 1
+    b = max(1, math.ceil(span / max_px))
+    c, r = (i - i0) // b, (j - j0) // b
+    raster = np.full((int(r.max()) + 1, int(c.max()) + 1), -np.inf)
+    ok = np.isfinite(value)
+    np.maximum.at(raster, (r[ok], c[ok]), value[ok])
+    raster[raster == -np.inf] = np.nan
+    return raster, (i0, j0), b
+
+
+def class_map_png(i: np.ndarray, j: np.ndarray, value: np.ndarray, kind: str, cell_xy_m: tuple[float, float],
+                  corner_xy_m: tuple[float, float], title: str) -> bytes:
+    """Top view of patch columns coloured by score (kind "score": 0 good .. 1 bad, worst over the column)
+    or grade (kind "grade": -1 unknown, 0 good, 1 bad). cell_xy_m: patch size in x/y; corner_xy_m:
+    campus-local x/y of cell (0, 0)'s corner (anchor - origin), so the axes are campus-local metres."""
+    from matplotlib.colors import ListedColormap
+    from matplotlib.patches import Patch
+
+    raster, (i0, j0), b = column_raster(i, j, value)
+    x0 = corner_xy_m[0] + i0 * cell_xy_m[0]
+    y0 = corner_xy_m[1] + j0 * cell_xy_m[1]
+    extent = (x0, x0 + raster.shape[1] * b * cell_xy_m[0], y0, y0 + raster.shape[0] * b * cell_xy_m[1])
+    aspect = (extent[3] - extent[2]) / max(extent[1] - extent[0], 1e-9)
+    fig = _figure(9, max(3.0, min(9.0, 9 * aspect + 1)))
+    ax = fig.add_subplot(1, 1, 1)
+    if kind == "score":
+        im = ax.imshow(raster, origin="lower", extent=extent, cmap="RdYlGn_r", vmin=0, vmax=1,
+                       interpolation="nearest")
+        fig.colorbar(im, ax=ax, label="score (worst in the column): 0 good, 1 bad", shrink=0.8)
+    else:
+        cmap = ListedColormap([GRADE_COLOURS[-1], GRADE_COLOURS[0], GRADE_COLOURS[1]])
+        ax.imshow(raster + 1, origin="lower", extent=extent, cmap=cmap, vmin=-0.5, vmax=2.5, interpolation="nearest")
+        ax.legend(handles=[Patch(color=GRADE_COLOURS[g], label=n) for g, n in ((0, "good"), (1, "bad"), (-1, "unknown"))],
+                  loc="upper right", fontsize=8)  # fmt: skip
+    ax.set_xlabel("x (m, campus-local)")
+    ax.set_ylabel("y (m, campus-local)")
+    ax.set_aspect("equal")
+    ax.set_title(title)
+    fig.tight_layout()
+    return _png(fig)
+
+
+def view_basis(normals: np.ndarray, elevation_deg: float = 25.0) -> np.ndarray:
+    """(3, 3) rows right, up, forward of an orthographic camera looking at surfaces with mean outward
+    ``normals`` (k, 3) from the front and ``elevation_deg`` above; straight down when they face up."""
+    n = np.asarray(normals, np.float64).mean(axis=0) if len(normals) else np.zeros(3)
+    h = np.array([n[0], n[1], 0.0])
+    if np.linalg.norm(h) < 0.2 * max(abs(n[2]), 1e-9):  # roofs and ground: from above, a little tilted
+        h, elevation_deg = np.array([0.0, 1.0, 0.0]), 70.0
+    h /= np.linalg.norm(h)
+    e = math.radians(elevation_deg)
+    forward = -h * math.cos(e) - np.array([0, 0, 1.0]) * math.sin(e)
+    right = np.cross(forward, [0, 0, 1.0])
+    right /= np.linalg.norm(right)
+    up = np.cross(right, forward)
+    return np.stack([right, up, forward])
+
+
+def render_png(panels: list[tuple[str, np.ndarray, np.ndarray]], basis: np.ndarray, title: str,
+               size_in: float = 4.5) -> bytes:
+    """Panels side by side, one camera: each (caption, triangles (m, 3, 3) float metres, colours (m, 3)
+    float RGB in [0, 1]). Flat shading by |cos| between face normal and view direction."""
+    from matplotlib.collections import PolyCollection
+
+    fig = _figure(size_in * len(panels), size_in + 0.4)
+    pts = [tri.reshape(-1, 3) @ basis[:2].T for _, tri, _ in panels if len(tri)]
+    lo = np.min([p.min(axis=0) for p in pts], axis=0) if pts else np.zeros(2)
+    hi = np.max([p.max(axis=0) for p in pts], axis=0) if pts else np.ones(2)
+    pad = 0.04 * float(max(hi - lo)) + 1e-3
+    for n, (caption, tri, colour) in enumerate(panels):
+        ax = fig.add_subplot(1, len(panels), n + 1)
+        if len(tri):
+            tri = np.asarray(tri, np.float64)
+            normal = np.cross(tri[:, 1] - tri[:, 0], tri[:, 2] - tri[:, 0])
+            normal /= np.maximum(np.linalg.norm(normal, axis=1, keepdims=True), 1e-12)
+            shade = 0.35 + 0.65 * np.abs(normal @ basis[2])
+            depth = (tri.mean(axis=1) @ basis[2])
+            order = np.argsort(-depth)  # far first
+            xy = tri[order] @ basis[:2].T
+            rgb = np.clip(np.asarray(colour, np.float64)[order] * shade[order, None], 0, 1)
+            ax.add_collection(PolyCollection(xy, facecolors=rgb, edgecolors=rgb, linewidths=0.1))
+        ax.set_xlim(lo[0] - pad, hi[0] + pad)
+        ax.set_ylim(lo[1] - pad, hi[1] + pad)
+        ax.set_aspect("equal")
+        ax.set_xticks([])
+        ax.set_yticks([])
+        ax.set_title(f"{caption} ({len(tri):,} faces)", fontsize=9)
+    fig.suptitle(title, fontsize=10)
+    fig.tight_layout()
+    return _png(fig)
