@@ -18,11 +18,21 @@ import os
 import time
 from pathlib import Path
 
-from prefect import flow, task, unmapped
+from prefect import flow
 from prefect.artifacts import create_table_artifact
-from prefect.cache_policies import NONE as NO_CACHE
 
-from flows.progress import wait_all
+from flows.executors import InlineExecutor, PrefectExecutor
+from flows.stage_tasks import (
+    _cfg,
+    export_task,
+    ingest_task,
+    merge_task,
+    outliers_task,
+    partition_task,
+    register_task,
+    report_task,
+    scan_task,
+)
 from flows.summary import CampusRunFailed, summarise
 from storage.errors import InputError
 from storage.manifest import consolidate
@@ -31,130 +41,8 @@ from tasks.config import CampusConfig
 
 log = logging.getLogger("ms3d.flow")
 
-__all__ = ["CampusRunFailed", "make_task_runner", "reprocess_campus", "reprocess_from_config", "run_campus"]
-
-# ------------------------------------------------------------------------------------------ tasks
-
-
-def _cfg(cfg_json: dict) -> CampusConfig:
-    return CampusConfig.model_validate(cfg_json)
-
-
-@task(name="scan", cache_policy=NO_CACHE)
-def scan_task(files: list[dict], cfg_json: dict) -> list[dict]:
-    """Scan a batch of input files ({"path", "kind", "source"})."""
-    from tasks.scan import run_scan_file
-
-    cfg = _cfg(cfg_json)
-    wd = WorkDir(cfg.work_dir)
-    return [run_scan_file(f["path"], f["kind"], f["source"], cfg, wd) for f in files]
-
-
-@task(name="register", cache_policy=NO_CACHE)
-def register_task(records: list[dict], frame_json: dict, cfg_json: dict) -> dict:
-    from storage.frame import CampusFrame
-    from storage.inputs import InputFile
-    from tasks.register_stage import run_register
-
-    cfg = _cfg(cfg_json)
-    try:
-        return run_register([InputFile(**r) for r in records], CampusFrame.from_json(frame_json), cfg,
-                            WorkDir(cfg.work_dir))
-    except InputError as e:
-        return {"error": str(e)}
-
-
-@task(name="ingest", cache_policy=NO_CACHE)
-def ingest_task(units: list[dict], cfg_json: dict, frame_json: dict, matrix: list | None) -> list[dict]:
-    """Route a batch of ingest units to staging files."""
-    import numpy as np
-
-    from storage.frame import CampusFrame
-    from tasks.ingest import IngestUnit, run_ingest_unit
-
-    cfg = _cfg(cfg_json)
-    wd, frame = WorkDir(cfg.work_dir), CampusFrame.from_json(frame_json)
-    m = None if matrix is None else np.asarray(matrix, np.float64)
-    return [run_ingest_unit(IngestUnit(**u), cfg, wd, frame, m) for u in units]
-
-
-@task(name="partition", cache_policy=NO_CACHE)
-def partition_task(tile_keys: list[str], cfg_json: dict, frame_json: dict, blocked: dict[str, str]) -> list[dict]:
-    """Partition a batch of tiles into patch stores, then label them."""
-    from storage.frame import CampusFrame
-    from storage.ids import TileId
-    from tasks.patches import run_labels_tile, run_partition_tile
-
-    delay = float(os.environ.get("MS3D_FAULT_PARTITION_DELAY_S", "0") or 0)  # fault-injection hook for tests
-    cfg = _cfg(cfg_json)
-    wd, frame = WorkDir(cfg.work_dir), CampusFrame.from_json(frame_json)
-    out = []
-    for k in tile_keys:
-        if delay:
-            time.sleep(delay)
-        t = TileId.from_key(k)
-        res = run_partition_tile(t, cfg, wd, frame, blocked.get(k))
-        if res["status"] == "done":
-            lab = run_labels_tile(t, cfg, wd)
-            if lab is not None and lab["status"] == "failed":
-                res = {**res, "labels_error": lab["error"]}
-        out.append(res)
-    return out
-
-
-@task(name="outliers", cache_policy=NO_CACHE)
-def outliers_task(cfg_json: dict) -> dict:
-    from tasks.patches import run_outliers
-
-    cfg = _cfg(cfg_json)
-    return run_outliers(cfg, WorkDir(cfg.work_dir))
-
-
-# ------------------------------------------------------------------------------------------ executors
-
-
-class PrefectExecutor:
-    """Runs tasks as Prefect task runs on the flow's task runner (Dask workers)."""
-
-    def __init__(self, progress: bool):
-        self.progress = progress
-
-    def map(self, tsk, batches: list, label: str, **consts) -> _Mapped:
-        futs = tsk.map(batches, **{k: unmapped(v) for k, v in consts.items()}) if batches else []
-        return _Mapped(batches, futs, label, self.progress)
-
-    def submit(self, tsk, *args):
-        return tsk.submit(*args)
-
-
-class _Mapped:
-    def __init__(self, batches, futs, label, progress):
-        self.batches, self.futs, self.label, self.progress = batches, futs, label, progress
-
-    def results(self) -> list[dict]:
-        return _collect(self.batches, wait_all(self.futs, self.label, self.progress), self.label)
-
-
-class InlineExecutor:
-    """Runs the task functions in this process, one after the other, without Prefect (tests, debugging)."""
-
-    def map(self, tsk, batches: list, label: str, **consts) -> _Done:
-        return _Done([r for b in batches for r in tsk.fn(b, **consts)])
-
-    def submit(self, tsk, *args) -> _Done:
-        return _Done(tsk.fn(*args))
-
-
-class _Done:
-    def __init__(self, value):
-        self.value = value
-
-    def results(self):
-        return self.value
-
-    def result(self):
-        return self.value
-
+__all__ = ["CampusRunFailed", "InlineExecutor", "make_task_runner", "reprocess_campus", "reprocess_from_config",
+           "run_campus", "scan_inputs"]
 
 # ------------------------------------------------------------------------------------------ planning
 
@@ -175,34 +63,6 @@ def balanced_batches(items: list, weights: list[float], n_batches: int) -> list[
 
 def _batches(items: list, size: int) -> list[list]:
     return [items[i:i + size] for i in range(0, len(items), size)]
-
-
-def _collect(batches: list[list], states: list, what: str) -> list[dict]:
-    """Unit summaries of mapped tasks; a task that crashed (a bug, a killed worker beyond Dask's
-    retries) fails each of its units with its one-line error."""
-    out = []
-    for batch, st in zip(batches, states):
-        if st.is_completed():
-            out += st.result()
-        else:
-            err = _state_error(st)
-            out += [{"unit": _unit_name(u), "status": "failed", "error": f"{what} task failed: {err}",
-                     "skipped": False} for u in batch]
-    return out
-
-
-def _unit_name(u) -> str:
-    if isinstance(u, dict):
-        return u.get("key") or f"{u.get('source', 0):08x}"
-    return str(u)
-
-
-def _state_error(state) -> str:
-    try:
-        state.result()
-    except Exception as e:  # noqa: BLE001 - the message is what we report
-        return f"{type(e).__name__}: {e}".splitlines()[0]
-    return state.message or "failed"
 
 
 # ------------------------------------------------------------------------------------------ flow
@@ -329,11 +189,26 @@ def _reprocess(cfg: CampusConfig, cfg_json: dict, wd: WorkDir, ex) -> dict:
     drop_unplanned_records(wd, "labels", set(tiles))
 
     outliers = ex.submit(outliers_task, cfg_json).result()
+
+    # output: one clean mesh per tile, then 3D Tiles and the run report
+    merges = ex.map(merge_task, tile_batches, "merge", cfg_json=cfg_json).results()
+    for s in merges:
+        if s["status"] == "failed":
+            failed[f"merge {s['unit']}"] = s["error"]
+    drop_unplanned_records(wd, "merge", set(tiles))
+    exported = ex.submit(export_task, cfg_json).result()
+    if exported["status"] == "failed":
+        failed["export"] = exported["error"]
+    report = ex.submit(report_task, cfg_json).result() if cfg.report.enabled else {"status": "skipped"}
+    if report["status"] == "failed":
+        failed["report"] = report["error"]
     consolidate(wd)
     summary = summarise(wd, time.perf_counter() - t_wall, failed, outliers, since=t_start,
-                        stages={"scan": scans, "ingest": ingests, "partition": parts},
+                        stages={"scan": scans, "ingest": ingests, "partition": parts, "merge": merges},
                         incomplete=incomplete, skipped_files=list(found.skipped),
                         registration=registration)
+    summary["output"] = {"tileset": str(wd.root / "output" / "tileset.json") if exported["status"] == "done" else None,
+                         "report": report.get("report")}
     return summary
 
 

@@ -5,6 +5,7 @@
     ms3d serve CONFIG --cron "0 2 * * *"            scheduled reprocessing (a served Prefect deployment)
     ms3d status WORKDIR                             tiles done / failed / pending, with errors
     ms3d demo                                       synth demo campus + run + print where things are
+    ms3d view WORKDIR                               the campus's 3D Tiles in a browser (localhost)
     ms3d ui WORKDIR                                 show the run history in the Prefect UI
 
 Every user error (config, YAML, inputs, CRS, work dir) prints one line ``ms3d: error: ...`` and exits
@@ -89,6 +90,18 @@ def _cmd_demo(a) -> int:
     return run_demo(Path(a.out), Path(a.work), seed=a.seed, preset=a.preset)
 
 
+def _cmd_view(a) -> int:
+    from flows.view import serve_viewer
+    from storage.errors import InputError
+    from storage.workdir import WorkDir
+
+    wd = WorkDir(a.work_dir)
+    if not (wd.root / "output" / "tileset.json").exists():
+        raise InputError(wd.root, "no output/tileset.json: run `ms3d run CONFIG` first")
+    serve_viewer(wd.root, port=a.port)
+    return 0
+
+
 def _cmd_ui(a) -> int:
     import subprocess
 
@@ -142,6 +155,11 @@ def build_parser() -> argparse.ArgumentParser:
     d.add_argument("--seed", type=int, default=7)
     d.add_argument("--preset", default="demo")
     d.set_defaults(func=_cmd_demo)
+
+    v = sub.add_parser("view", help="serve the campus's 3D Tiles with a viewer page on localhost")
+    v.add_argument("work_dir")
+    v.add_argument("--port", type=int, default=8765)
+    v.set_defaults(func=_cmd_view)
 
     u = sub.add_parser("ui", help="start a Prefect server on the work dir's run history")
     u.add_argument("work_dir")

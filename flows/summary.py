@@ -90,4 +90,9 @@ def format_summary(s: dict) -> str:
                      + ", ".join(f"{p.rsplit('/', 1)[-1]} ({why})" for p, why in s["skipped_files"][:5])
                      + (" ..." if len(s["skipped_files"]) > 5 else ""))
     lines.append(f"wall {s['wall_seconds']:.1f} s, sum of task times {s['task_seconds']:.1f} s")
+    out = s.get("output") or {}
+    if out.get("tileset"):
+        lines.append(f"3D Tiles: {out['tileset']}  (view: ms3d view {s['work_dir']})")
+    if out.get("report"):
+        lines.append(f"report:   {out['report']}")
     return "\n".join(lines)

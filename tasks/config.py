@@ -93,6 +93,11 @@ class ClusterConfig(_Model):
     tiles_per_task: int = Field(1, ge=1, description="tiles handled by one Prefect task run")
 
 
+class ReportConfig(_Model):
+    enabled: bool = Field(True, description="write output/report.html at the end of every run")
+    quality: bool = Field(True, description="measure the model against the truth when the inputs have one (a synth campus); minutes on the demo, cached after")
+
+
 class CampusConfig(_Model):
     name: str = "campus"
     work_dir: str = "ms3d-work/campus"
@@ -101,6 +106,7 @@ class CampusConfig(_Model):
     tiling: TilingConfig = Field(default_factory=TilingConfig)
     partition: PartitionConfig = Field(default_factory=PartitionConfig)
     cluster: ClusterConfig = Field(default_factory=ClusterConfig)
+    report: ReportConfig = Field(default_factory=ReportConfig)
     export: ExportConfig = Field(default_factory=lambda: ExportConfig(), description="3D Tiles output (merge has no parameters of its own)")
     runner: Literal["dask", "local", "inline"] = Field(
         "dask", description="'local': Prefect tasks in the flow process; 'inline': no Prefect at all, one process (debugging, tests)")

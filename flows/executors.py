@@ -1,0 +1,80 @@
+"""Where the campus flow runs its tasks: as Prefect task runs on the flow's task runner (Dask workers), or
+inline in this process without Prefect (tests, debugging). Both give the flow the same two calls."""
+
+from __future__ import annotations
+
+from prefect import unmapped
+
+from flows.progress import wait_all
+
+class PrefectExecutor:
+    """Runs tasks as Prefect task runs on the flow's task runner (Dask workers)."""
+
+    def __init__(self, progress: bool):
+        self.progress = progress
+
+    def map(self, tsk, batches: list, label: str, **consts) -> _Mapped:
+        futs = tsk.map(batches, **{k: unmapped(v) for k, v in consts.items()}) if batches else []
+        return _Mapped(batches, futs, label, self.progress)
+
+    def submit(self, tsk, *args):
+        return tsk.submit(*args)
+
+
+class _Mapped:
+    def __init__(self, batches, futs, label, progress):
+        self.batches, self.futs, self.label, self.progress = batches, futs, label, progress
+
+    def results(self) -> list[dict]:
+        return _collect(self.batches, wait_all(self.futs, self.label, self.progress), self.label)
+
+
+class InlineExecutor:
+    """Runs the task functions in this process, one after the other, without Prefect (tests, debugging)."""
+
+    def map(self, tsk, batches: list, label: str, **consts) -> _Done:
+        return _Done([r for b in batches for r in tsk.fn(b, **consts)])
+
+    def submit(self, tsk, *args) -> _Done:
+        return _Done(tsk.fn(*args))
+
+
+class _Done:
+    def __init__(self, value):
+        self.value = value
+
+    def results(self):
+        return self.value
+
+    def result(self):
+        return self.value
+
+
+
+
+def _collect(batches: list[list], states: list, what: str) -> list[dict]:
+    """Unit summaries of mapped tasks; a task that crashed (a bug, a killed worker beyond Dask's
+    retries) fails each of its units with its one-line error."""
+    out = []
+    for batch, st in zip(batches, states):
+        if st.is_completed():
+            out += st.result()
+        else:
+            err = _state_error(st)
+            out += [{"unit": _unit_name(u), "status": "failed", "error": f"{what} task failed: {err}",
+                     "skipped": False} for u in batch]
+    return out
+
+
+def _unit_name(u) -> str:
+    if isinstance(u, dict):
+        return u.get("key") or f"{u.get('source', 0):08x}"
+    return str(u)
+
+
+def _state_error(state) -> str:
+    try:
+        state.result()
+    except Exception as e:  # noqa: BLE001 - the message is what we report
+        return f"{type(e).__name__}: {e}".splitlines()[0]
+    return state.message or "failed"

@@ -1,0 +1,32 @@
+"""The export stage in the flow: 3D Tiles of every merged tile, recorded in the manifest like the other
+stages (``tasks.export.run_export`` rebuilds only the nodes whose content changed)."""
+
+from __future__ import annotations
+
+import time
+
+from storage.errors import InputError
+from storage.manifest import ManifestRecord, write_record
+from storage.workdir import WorkDir
+from tasks.units import os_error_message, peak_rss_mb, reset_peak_rss
+
+
+def run_export_stage(cfg, wd: WorkDir) -> dict:
+    """Export when any tile has a merged mesh; returns the unit summary (status done / empty / failed)."""
+    from tasks.export import run_export
+
+    if not any((wd.root / "tiles").glob("*/merged.json")):
+        return {"unit": "campus", "status": "empty", "skipped": False}
+    t0, c0 = time.perf_counter(), time.process_time()
+    reset_peak_rss()
+    try:
+        out = run_export(wd.root, cfg.export, workers=1)  # one process: a Dask worker may not fork a pool
+    except (InputError, OSError) as e:
+        msg = str(e) if isinstance(e, InputError) else os_error_message(e)
+        write_record(wd, ManifestRecord("export", "campus", "failed", error=msg, seconds=time.perf_counter() - t0))
+        return {"unit": "campus", "status": "failed", "error": f"export: {msg}", "skipped": False}
+    summary = {k: v for k, v in out.items() if isinstance(v, (int, float, str, bool))}
+    summary |= {"peak_rss_mb": peak_rss_mb(), "cpu_seconds": round(time.process_time() - c0, 3)}
+    write_record(wd, ManifestRecord("export", "campus", "done", seconds=time.perf_counter() - t0,
+                                    outputs=["output/tileset.json"], summary=summary))
+    return {"unit": "campus", "status": "done", "skipped": out.get("built", 1) == 0, **summary}
