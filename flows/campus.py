@@ -24,11 +24,12 @@ from prefect.artifacts import create_table_artifact
 from flows.executors import InlineExecutor, PrefectExecutor
 from flows.stage_tasks import (
     _cfg,
-    export_task,
+    export_nodes_task,
     ingest_task,
     merge_task,
     outliers_task,
     partition_task,
+    quality_task,
     register_task,
     report_task,
     scan_task,
@@ -121,6 +122,7 @@ def _reprocess(cfg: CampusConfig, cfg_json: dict, wd: WorkDir, ex) -> dict:
     import numpy as np
 
     from storage.workdir import write_campus
+    from tasks.export_stage import run_export_stage
     from tasks.ingest import plan_units, prune_staging, tiles_hint
     from tasks.plan import drop_unplanned_records, sweep_temporary_files
 
@@ -196,7 +198,10 @@ def _reprocess(cfg: CampusConfig, cfg_json: dict, wd: WorkDir, ex) -> dict:
         if s["status"] == "failed":
             failed[f"merge {s['unit']}"] = s["error"]
     drop_unplanned_records(wd, "merge", set(tiles))
-    exported = ex.submit(export_task, cfg_json).result()
+    quality = ex.submit(quality_task, cfg_json) if cfg.report.enabled and cfg.report.quality else None
+    exported = run_export_stage(cfg, wd, map_jobs=lambda jobs: _map_export_jobs(ex, jobs, n_workers))
+    if quality is not None and quality.result().get("status") == "failed":
+        failed["quality"] = quality.result()["error"]
     if exported["status"] == "failed":
         failed["export"] = exported["error"]
     report = ex.submit(report_task, cfg_json).result() if cfg.report.enabled else {"status": "skipped"}
@@ -210,6 +215,17 @@ def _reprocess(cfg: CampusConfig, cfg_json: dict, wd: WorkDir, ex) -> dict:
     summary["output"] = {"tileset": str(wd.root / "output" / "tileset.json") if exported["status"] == "done" else None,
                          "report": report.get("report")}
     return summary
+
+
+def _map_export_jobs(ex, jobs: list, n_workers: int) -> list[dict]:
+    """Build 3D Tiles nodes as mapped tasks (one level of the quadtree at a time); records in job order."""
+    indexed = list(enumerate(jobs))
+    batches = balanced_batches(indexed, [1.0] * len(indexed), 4 * n_workers)
+    got = {r["index"]: r for r in ex.map(export_nodes_task, batches, "export").results() if "index" in r}
+    bad = [r.get("error", "export task failed") for i, r in got.items() if r["status"] != "done"]
+    if bad or len(got) != len(jobs):
+        raise InputError(None, "; ".join(bad) or "an export task failed (see the run history)")
+    return [got[i]["record"] for i in range(len(jobs))]
 
 
 def _size(path: str) -> float:

@@ -119,24 +119,62 @@ def _region_source():
     return region_meshes_for_tile
 
 
-@task(name="export", cache_policy=NO_CACHE)
-def export_task(cfg_json: dict) -> dict:
-    """3D Tiles of the merged tiles (only the tiles and ancestors whose content changed are rewritten)."""
-    from tasks.export_stage import run_export_stage
+@task(name="export-nodes", cache_policy=NO_CACHE)
+def export_nodes_task(jobs: list) -> list[dict]:
+    """Build a batch of 3D Tiles nodes ((index, job) pairs of ``tasks.export``); returns their records."""
+    from storage.manifest import ManifestRecord, write_record
+    from tasks.export import build_node
+    from tasks.units import peak_rss_mb, reset_peak_rss
+
+    out = []
+    for i, job in jobs:
+        t0, c0 = time.perf_counter(), time.process_time()
+        reset_peak_rss()
+        try:
+            rec = build_node(job)
+        except (InputError, OSError) as e:
+            out.append({"index": i, "status": "failed", "error": f"{job.node.key}: {e}"})
+            continue
+        summary = {"uri": rec.get("uri"), "faces": rec.get("faces"), "peak_rss_mb": peak_rss_mb(),
+                   "cpu_seconds": round(time.process_time() - c0, 3)}
+        write_record(WorkDir(job.out.parent), ManifestRecord("export", job.node.key, "done", job.fingerprint,
+                                                             seconds=time.perf_counter() - t0, summary=summary))
+        out.append({"index": i, "record": rec, "status": "done"})
+    return out
+
+
+@task(name="quality", cache_policy=NO_CACHE)
+def quality_task(cfg_json: dict) -> dict:
+    """The model measured against the truth (synth campuses), cached for the report."""
+    from tasks.report import run_quality
 
     cfg = _cfg(cfg_json)
-    return run_export_stage(cfg, WorkDir(cfg.work_dir))
+    return _recorded("quality", WorkDir(cfg.work_dir), lambda: run_quality(cfg, WorkDir(cfg.work_dir)))
+
+
+def _recorded(stage: str, wd: WorkDir, fn) -> dict:
+    """Run a campus-wide step, record its seconds and peak RSS in the manifest; errors come back as data."""
+    from storage.manifest import ManifestRecord, write_record
+    from tasks.units import os_error_message, peak_rss_mb, reset_peak_rss
+
+    t0, c0 = time.perf_counter(), time.process_time()
+    reset_peak_rss()
+    try:
+        out = fn()
+    except (InputError, OSError) as e:
+        msg = str(e) if isinstance(e, InputError) else os_error_message(e)
+        return {"status": "failed", "error": f"{stage}: {msg}"}
+    summary = {k: v for k, v in out.items() if isinstance(v, (int, float, str, bool)) or v is None}
+    summary |= {"peak_rss_mb": peak_rss_mb(), "cpu_seconds": round(time.process_time() - c0, 3)}
+    write_record(wd, ManifestRecord(stage, "campus", out.get("status", "done"), seconds=time.perf_counter() - t0,
+                                    summary=summary))
+    return {"status": "done", **out}
 
 
 @task(name="report", cache_policy=NO_CACHE)
 def report_task(cfg_json: dict) -> dict:
     from tasks.report import run_report
-    from tasks.units import peak_rss_mb, reset_peak_rss
 
     cfg = _cfg(cfg_json)
-    reset_peak_rss()
-    try:
-        out = run_report(cfg, WorkDir(cfg.work_dir), quality=cfg.report.quality)
-    except (InputError, OSError) as e:
-        return {"status": "failed", "error": f"report: {e}"}
-    return out | {"status": "done", "peak_rss_mb": peak_rss_mb()}
+    return _recorded("report", WorkDir(cfg.work_dir),
+                     lambda: run_report(cfg, WorkDir(cfg.work_dir), quality=cfg.report.quality))

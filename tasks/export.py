@@ -323,14 +323,32 @@ def _run_jobs(fn, jobs: list[_Job], workers: int) -> list[dict]:
         return list(pool.map(fn, jobs))
 
 
+def build_node(job: _Job) -> dict:
+    """Build one node of the export quadtree (a leaf from its merged tile, a parent from its children's
+    cached meshes, or the overview); picklable, so a flow can map it over workers."""
+    if job.node.h < 0:
+        return _build_overview(job)
+    return _build_leaf(job) if job.node.h == 0 else _build_parent(job)
+
+
+def _build_overview(job: _Job) -> dict:
+    root_key = dict(job.children)["root"]["key"]
+    ov = decimate(load_lod(job.cache / f"{root_key}.npz"), job.cfg.overview_max_faces, job.cfg.hausdorff_samples,
+                  _backend(job.cfg)).mesh
+    nbytes = _write_glb(job.out, "overview.glb", lod_gltf(ov), job.cfg.compression)
+    return {"fingerprint": job.fingerprint, "uri": "overview.glb", "bytes": nbytes}
+
+
 def run_export(work_dir: str | Path, config: ExportConfig | None = None, tiles: list[str] | None = None,
-               workers: int = 1) -> dict:
+               workers: int = 1, map_jobs=None) -> dict:
     """Write ``work_dir/output`` (see the module docstring) from ``tiles/*/merged.npz``.
 
     tiles: tile keys to export (default: every tile with a merged mesh). workers: processes building
     the nodes of one level side by side (1 inside a Dask worker, whose daemon process may not fork a
-    pool; memory grows to ``workers`` tiles). Returns a summary: nodes built / reused, faces, bytes,
-    seconds, the paths written.
+    pool; memory grows to ``workers`` tiles). map_jobs: instead, a callable ``(jobs) -> records`` that
+    runs :func:`build_node` on every job (in order), e.g. as tasks mapped over a cluster; this function
+    then only plans, and writes the small JSON files. Returns a summary: nodes built / reused, faces,
+    bytes, seconds, the paths written.
     """
     from storage.workdir import WorkDir, campus_frame, read_campus
 
@@ -381,15 +399,17 @@ def run_export(work_dir: str | Path, config: ExportConfig | None = None, tiles: 
                 reused.append(n.key)
             else:
                 jobs.append(job)
-        for job, rec in zip(jobs, _run_jobs(_build_leaf if level[0].h == 0 else _build_parent, jobs, workers)):
+        results = (map_jobs(jobs) if map_jobs is not None else _run_jobs(build_node, jobs, workers)) if jobs else []
+        for job, rec in zip(jobs, results):
             nodes[job.node.key] = rec
             built.append(job.node.key)
 
     root = tree.root
     overview = out / "overview.glb"
     if root.key in built or not overview.exists():
-        ov = decimate(load_lod(cache / f"{root.key}.npz"), cfg.overview_max_faces, cfg.hausdorff_samples, _backend(cfg)).mesh
-        _write_glb(out, "overview.glb", lod_gltf(ov), cfg.compression)
+        job = _Job(QuadNode(-1, 0, 0), nodes[root.key]["fingerprint"], out, cache, georef, cfg,
+                   children=(("root", {"key": root.key}),))
+        (map_jobs([job]) if map_jobs is not None else [build_node(job)])
 
     doc = tileset_json(tree, nodes, georef)
     text = (json.dumps(doc, indent=1) + "\n").encode()

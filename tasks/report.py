@@ -227,15 +227,11 @@ def merged_surface(wd: WorkDir, tiles: list[str], shift: np.ndarray) -> tuple[np
     return np.concatenate(vs), np.concatenate(fs)
 
 
-def quality_section(wd: WorkDir, truth: Path | None, origin: np.ndarray, tiles: list[str], any_rebuilt: bool,
-                    spacing_m: float = 0.05) -> Section:
-    sec = Section("Quality against the truth")
-    if truth is None:
-        sec.body = "<p>No truth for these inputs (quality is measured on synth campuses only).</p>"
-        return sec
-    if not tiles:
-        sec.body = "<p>No merged tiles yet.</p>"
-        return sec
+def ensure_quality(wd: WorkDir, truth: Path, origin: np.ndarray, tiles: list[str], any_rebuilt: bool,
+                   spacing_m: float = 0.05) -> dict:
+    """The quality figures of the merged model (and of the input mesh when regions were rebuilt) against the
+    truth, computed when ``report/quality.json`` does not hold them for these merged tiles already. The
+    expensive part of the report: the flow runs it beside the export, the page only reads it."""
     from storage.mesh_io import read_mesh
     from tasks.quality import evaluate_by_tile, facade_mask
     from tasks.quality_io import CLASS_NAMES, load_truth
@@ -258,6 +254,32 @@ def quality_section(wd: WorkDir, truth: Path | None, origin: np.ndarray, tiles: 
                                                     **kw).total.to_dict()
         cache = {"key": key, "rows": models}
         write_json_atomic(cache_path, cache)
+    return cache
+
+
+def run_quality(cfg, wd: WorkDir) -> dict:
+    """Fill the report's quality cache (see :func:`ensure_quality`); a no-op without truth or merged tiles."""
+    from tasks.report_regions import any_rebuilt_region
+
+    truth = truth_dir_of(cfg)
+    tiles = merged_tiles(wd)
+    if truth is None or not tiles:
+        return {"status": "empty"}
+    origin = campus_frame(read_campus(wd)).origin_array
+    cache = ensure_quality(wd, truth, origin, tiles, any_rebuilt_region(wd, tiles))
+    return {"status": "done", "fscore_5cm": cache["rows"]["merged model"]["fscore"][0]}
+
+
+def quality_section(wd: WorkDir, truth: Path | None, origin: np.ndarray, tiles: list[str], any_rebuilt: bool,
+                    spacing_m: float = 0.05) -> Section:
+    sec = Section("Quality against the truth")
+    if truth is None:
+        sec.body = "<p>No truth for these inputs (quality is measured on synth campuses only).</p>"
+        return sec
+    if not tiles:
+        sec.body = "<p>No merged tiles yet.</p>"
+        return sec
+    cache = ensure_quality(wd, truth, origin, tiles, any_rebuilt, spacing_m)
     rows = []
     for name, q in cache["rows"].items():
         rows.append([name, q["fscore"][0], q["fscore"][1], q["accuracy"]["mean_m"], q["completeness"]["mean_m"],

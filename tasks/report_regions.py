@@ -24,6 +24,11 @@ MAX_REGION_RENDERS = 12
 REGION_MARGIN_M = 1.5
 
 
+def any_rebuilt_region(wd: WorkDir, tiles: list[str]) -> bool:
+    """Whether any merged tile holds a rebuilt face (the same test the regions section makes)."""
+    return any((read_tile_mesh(wd.root / "tiles" / k).source == SOURCE_REBUILT).any() for k in tiles)
+
+
 def _region_boxes(wd: WorkDir, tiles: list[str]) -> dict[int, dict]:
     """Per rebuilt region: bbox of its faces (campus-local), face count, normals sample, tiles."""
     out: dict[int, dict] = {}

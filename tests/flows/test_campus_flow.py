@@ -36,13 +36,14 @@ def test_tiny_campus_on_dask_processes_then_resume(tiny_campus, tmp_path, prefec
     assert str(os.getpid()) not in pids
     # ... and every task run was recorded by the one server of this session (no per-worker servers):
     # scan batches + register + mesh ingest batches + one task per point range + partition batches + outliers
+    # + merge batches + export + report
     st = summary["stages"]
     n_files = st["scan"]["run"] + st["scan"]["skipped"]
     n_mesh = len(list((tiny_campus / "mesh").rglob("*.obj")))
     n_points = st["ingest"]["run"] - n_mesh
     n_tiles = len(summary["tile_rows"])
     n_tasks = (min(4 * cfg.cluster.n_workers, n_files) + 1 + min(4 * cfg.cluster.n_workers, n_mesh) + n_points
-               + -(-n_tiles // cfg.cluster.tiles_per_task) + 1)
+               + -(-n_tiles // cfg.cluster.tiles_per_task) + 1 + -(-n_tiles // cfg.cluster.tiles_per_task) + 2)
     assert _task_runs_on_server(prefect_api) - before == n_tasks
     # every MLS point is in exactly one patch of one tile
     from storage.pointcloud_io import read_header
@@ -59,6 +60,8 @@ def test_tiny_campus_on_dask_processes_then_resume(tiny_campus, tmp_path, prefec
     recs2 = {r.unit: r for r in all_records(wd) if r.stage == "partition" and r.status == "done"}
     assert {k: r.updated_at for k, r in recs2.items()} == stamps  # no tile was redone
     assert (wd.report_dir / "patch_points_histogram.png").exists()
+    # the whole output: a tileset of the merged tiles and the run report
+    assert summary["output"]["tileset"] and (wd.root / "output" / "report.html").exists()
 
 
 def test_bad_inputs_fail_only_their_tiles(tmp_path, handmade_campus, prefect_api, capsys):
