@@ -198,10 +198,18 @@ def _reprocess(cfg: CampusConfig, cfg_json: dict, wd: WorkDir, ex) -> dict:
         if s["status"] == "failed":
             failed[f"merge {s['unit']}"] = s["error"]
     drop_unplanned_records(wd, "merge", set(tiles))
-    quality = ex.submit(quality_task, cfg_json) if cfg.report.enabled and cfg.report.quality else None
+    from tasks.report import quality_plan, write_quality
+
+    qplan = quality_plan(cfg, wd) if cfg.report.enabled and cfg.report.quality else None
+    shares = [ex.submit(quality_task, cfg_json, qplan, (k, n_workers)) for k in range(n_workers)] if qplan else []
     exported = run_export_stage(cfg, wd, map_jobs=lambda jobs: _map_export_jobs(ex, jobs, n_workers))
-    if quality is not None and quality.result().get("status") == "failed":
-        failed["quality"] = quality.result()["error"]
+    if shares:  # the model against the truth, measured beside the export in n_workers shares
+        got = [s.result() for s in shares]
+        bad = [g["error"] for g in got if g.get("status") == "failed"]
+        if bad:
+            failed["quality"] = bad[0]
+        else:
+            write_quality(wd, qplan["key"], [g["sums"] for g in got])
     if exported["status"] == "failed":
         failed["export"] = exported["error"]
     report = ex.submit(report_task, cfg_json).result() if cfg.report.enabled else {"status": "skipped"}

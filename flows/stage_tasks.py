@@ -144,15 +144,16 @@ def export_nodes_task(jobs: list) -> list[dict]:
 
 
 @task(name="quality", cache_policy=NO_CACHE)
-def quality_task(cfg_json: dict) -> dict:
-    """The model measured against the truth (synth campuses), cached for the report."""
-    from tasks.report import run_quality
+def quality_task(cfg_json: dict, plan: dict, part: tuple[int, int]) -> dict:
+    """One share of the model's quality against the truth: {"status", "sums": {model: QualityPartial}}."""
+    from tasks.report import run_quality_share
 
     cfg = _cfg(cfg_json)
-    return _recorded("quality", WorkDir(cfg.work_dir), lambda: run_quality(cfg, WorkDir(cfg.work_dir)))
+    return _recorded("quality", WorkDir(cfg.work_dir), lambda: {"sums": run_quality_share(
+        cfg, WorkDir(cfg.work_dir), plan, tuple(part))}, unit=f"share-{part[0]}-of-{part[1]}")
 
 
-def _recorded(stage: str, wd: WorkDir, fn) -> dict:
+def _recorded(stage: str, wd: WorkDir, fn, unit: str = "campus") -> dict:
     """Run a campus-wide step, record its seconds and peak RSS in the manifest; errors come back as data."""
     from storage.manifest import ManifestRecord, write_record
     from tasks.units import os_error_message, peak_rss_mb, reset_peak_rss
@@ -166,7 +167,7 @@ def _recorded(stage: str, wd: WorkDir, fn) -> dict:
         return {"status": "failed", "error": f"{stage}: {msg}"}
     summary = {k: v for k, v in out.items() if isinstance(v, (int, float, str, bool)) or v is None}
     summary |= {"peak_rss_mb": peak_rss_mb(), "cpu_seconds": round(time.process_time() - c0, 3)}
-    write_record(wd, ManifestRecord(stage, "campus", out.get("status", "done"), seconds=time.perf_counter() - t0,
+    write_record(wd, ManifestRecord(stage, unit, out.get("status", "done"), seconds=time.perf_counter() - t0,
                                     summary=summary))
     return {"status": "done", **out}
 

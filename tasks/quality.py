@@ -407,6 +407,25 @@ def evaluate_by_tile(pred_vertices, pred_faces, true_vertices, true_faces, *, ti
     are capped at buffer_m (and at max_distance_m). Sums are merged, so ``total`` equals
     ``evaluate_mesh(..., max_distance_m=buffer_m)`` (percentiles to the 0.05 mm histogram bin).
     """
+    total, tiles = evaluate_tiles(pred_vertices, pred_faces, true_vertices, true_faces, tile_size_m=tile_size_m,
+                                  buffer_m=buffer_m, true_face_mask=true_face_mask, true_face_class=true_face_class,
+                                  class_names=class_names, max_distance_m=max_distance_m, rng=rng, **kwargs)
+    if total is None:
+        pv, pf = _validated(pred_vertices, pred_faces, "predicted")
+        tv, tf = _validated(true_vertices, true_faces, "truth")
+        names = _class_names(None if true_face_class is None else np.asarray(true_face_class), class_names)
+        cap = buffer_m if max_distance_m is None else min(max_distance_m, buffer_m)
+        total = evaluate_partial(pv, pf, tv, tf, class_names=names, max_distance_m=cap, rng=seed_of(rng), **kwargs)
+    return TiledQuality(total.report(), tiles)
+
+
+def evaluate_tiles(pred_vertices, pred_faces, true_vertices, true_faces, *, tile_size_m: float = 100.0,
+                   buffer_m: float = 2.0, true_face_mask=None, true_face_class=None, class_names=None,
+                   max_distance_m: float | None = None, rng=0, part: tuple[int, int] = (0, 1),
+                   **kwargs) -> tuple[QualityPartial | None, dict]:
+    """The summed partial of the tiles of one share of the scene (``part`` = (k, n): the k-th of n
+    interleaved shares of the sorted tiles), and each tile's report; partials of all n shares add up to
+    the whole (:func:`evaluate_by_tile`). None when the share holds no tile."""
     pv, pf = _validated(pred_vertices, pred_faces, "predicted")
     tv, tf = _validated(true_vertices, true_faces, "truth")
     tc = None if true_face_class is None else np.asarray(true_face_class, np.int64)
@@ -418,18 +437,17 @@ def evaluate_by_tile(pred_vertices, pred_faces, true_vertices, true_faces, *, ti
     true_near = _faces_by_tile(tv, tf, tile_size_m, buffer_m)
     none = np.zeros(0, np.int64)
     total, tiles = None, {}
-    for tile in sorted(owners):
+    k, n = part
+    for tile in sorted(owners)[k::n]:
         pi, ti = pred_near.get(tile, none), true_near.get(tile, none)
-        part = evaluate_partial(*_submesh(pv, pf, pi), *_submesh(tv, tf, ti), tile=tile,
-                                tile_size_m=tile_size_m,
-                                true_face_mask=mask[ti], true_face_class=None if tc is None else tc[ti],
-                                class_names=names, max_distance_m=cap, rng=seed, **kwargs)
-        if part.accuracy.n[0] or part.completeness.n[0]:
-            tiles[tile] = part.report()
-        total = part if total is None else total + part
-    if total is None:
-        total = evaluate_partial(pv, pf, tv, tf, class_names=names, max_distance_m=cap, rng=seed, **kwargs)
-    return TiledQuality(total.report(), tiles)
+        p = evaluate_partial(*_submesh(pv, pf, pi), *_submesh(tv, tf, ti), tile=tile,
+                             tile_size_m=tile_size_m,
+                             true_face_mask=mask[ti], true_face_class=None if tc is None else tc[ti],
+                             class_names=names, max_distance_m=cap, rng=seed, **kwargs)
+        if p.accuracy.n[0] or p.completeness.n[0]:
+            tiles[tile] = p.report()
+        total = p if total is None else total + p
+    return total, tiles
 
 
 __all__ = [
@@ -442,6 +460,7 @@ __all__ = [
     "evaluate_by_tile",
     "evaluate_mesh",
     "evaluate_partial",
+    "evaluate_tiles",
     "facade_mask",
     "face_areas",
     "point_to_mesh_distance",

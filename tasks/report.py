@@ -227,47 +227,80 @@ def merged_surface(wd: WorkDir, tiles: list[str], shift: np.ndarray) -> tuple[np
     return np.concatenate(vs), np.concatenate(fs)
 
 
-def ensure_quality(wd: WorkDir, truth: Path, origin: np.ndarray, tiles: list[str], any_rebuilt: bool,
-                   spacing_m: float = 0.05) -> dict:
-    """The quality figures of the merged model (and of the input mesh when regions were rebuilt) against the
-    truth, computed when ``report/quality.json`` does not hold them for these merged tiles already. The
-    expensive part of the report: the flow runs it beside the export, the page only reads it."""
+def quality_key(wd: WorkDir, truth: Path, tiles: list[str], any_rebuilt: bool, spacing_m: float = 0.05) -> dict:
+    """What the cached quality figures depend on (merged tiles, truth, parameters)."""
+    return {"version": REPORT_VERSION, "merged": _merged_fingerprint(wd, tiles), "spacing_m": spacing_m,
+            "tile_m": QUALITY_TILE_M, "buffer_m": QUALITY_BUFFER_M,
+            "truth": file_sha256(min((truth / "truth").glob("truth_mesh*.ply"))), "rebuilt": any_rebuilt}
+
+
+def quality_share(wd: WorkDir, truth: Path, origin: np.ndarray, tiles: list[str], any_rebuilt: bool,
+                  part: tuple[int, int], spacing_m: float = 0.05) -> dict:
+    """The mergeable quality sums of one share of the quality tiles (``tasks.quality.evaluate_tiles``):
+    {model name: QualityPartial or None}. Shares run as separate tasks; their sums add up exactly."""
     from storage.mesh_io import read_mesh
-    from tasks.quality import evaluate_by_tile, facade_mask
+    from tasks.quality import evaluate_tiles, facade_mask
     from tasks.quality_io import CLASS_NAMES, load_truth
 
-    cache_path = wd.report_dir / "quality.json"
-    key = {"version": REPORT_VERSION, "merged": _merged_fingerprint(wd, tiles), "spacing_m": spacing_m,
-           "tile_m": QUALITY_TILE_M, "buffer_m": QUALITY_BUFFER_M,
-           "truth": file_sha256(min((truth / "truth").glob("truth_mesh*.ply"))), "rebuilt": any_rebuilt}
-    cache = json.loads(cache_path.read_text()) if cache_path.exists() else {}
-    if cache.get("key") != key:
-        tv, tf, tc, t_origin = load_truth(truth)
-        kw = {"tile_size_m": QUALITY_TILE_M, "buffer_m": QUALITY_BUFFER_M, "spacing_m": spacing_m,
-              "true_face_mask": facade_mask(tc), "true_face_class": tc, "class_names": CLASS_NAMES}
-        v, f = merged_surface(wd, tiles, origin - t_origin)
-        models = {"merged model": evaluate_by_tile(v, f, tv - t_origin, tf, **kw).total.to_dict()}
-        del v, f
-        if any_rebuilt:
-            mesh = read_mesh(truth / "mesh", offset=t_origin)
-            models["input mesh"] = evaluate_by_tile(mesh.vertices - t_origin, mesh.faces, tv - t_origin, tf,
-                                                    **kw).total.to_dict()
-        cache = {"key": key, "rows": models}
-        write_json_atomic(cache_path, cache)
+    tv, tf, tc, t_origin = load_truth(truth)
+    kw = {"tile_size_m": QUALITY_TILE_M, "buffer_m": QUALITY_BUFFER_M, "spacing_m": spacing_m,
+          "true_face_mask": facade_mask(tc), "true_face_class": tc, "class_names": CLASS_NAMES, "part": part}
+    v, f = merged_surface(wd, tiles, origin - t_origin)
+    out = {"merged model": evaluate_tiles(v, f, tv - t_origin, tf, **kw)[0]}
+    del v, f
+    if any_rebuilt:
+        mesh = read_mesh(truth / "mesh", offset=t_origin)
+        out["input mesh"] = evaluate_tiles(mesh.vertices - t_origin, mesh.faces, tv - t_origin, tf, **kw)[0]
+    return out
+
+
+def write_quality(wd: WorkDir, key: dict, shares: list[dict]) -> dict:
+    """Sum the shares into ``report/quality.json`` (the figures the report page shows)."""
+    rows = {}
+    for name in dict.fromkeys(n for s in shares for n in s):
+        parts = [s[name] for s in shares if s.get(name) is not None]
+        if parts:
+            total = parts[0]
+            for p in parts[1:]:
+                total = total + p
+            rows[name] = total.report().to_dict()
+    cache = {"key": key, "rows": rows}
+    write_json_atomic(wd.report_dir / "quality.json", cache)
     return cache
 
 
-def run_quality(cfg, wd: WorkDir) -> dict:
-    """Fill the report's quality cache (see :func:`ensure_quality`); a no-op without truth or merged tiles."""
+def ensure_quality(wd: WorkDir, truth: Path, origin: np.ndarray, tiles: list[str], any_rebuilt: bool,
+                   spacing_m: float = 0.05) -> dict:
+    """The quality figures of the merged model (and of the input mesh when regions were rebuilt) against the
+    truth, computed (in this process) when ``report/quality.json`` does not hold them already."""
+    cache_path = wd.report_dir / "quality.json"
+    key = quality_key(wd, truth, tiles, any_rebuilt, spacing_m)
+    cache = json.loads(cache_path.read_text()) if cache_path.exists() else {}
+    if cache.get("key") != key:
+        cache = write_quality(wd, key, [quality_share(wd, truth, origin, tiles, any_rebuilt, (0, 1), spacing_m)])
+    return cache
+
+
+def quality_plan(cfg, wd: WorkDir) -> dict | None:
+    """What a parallel quality run needs ({"key", "truth", "tiles", "rebuilt"}), or None when there is no
+    truth, no merged tile, or the cache is already up to date."""
     from tasks.report_regions import any_rebuilt_region
 
     truth = truth_dir_of(cfg)
     tiles = merged_tiles(wd)
     if truth is None or not tiles:
-        return {"status": "empty"}
+        return None
+    rebuilt = any_rebuilt_region(wd, tiles)
+    key = quality_key(wd, truth, tiles, rebuilt)
+    path = wd.report_dir / "quality.json"
+    if path.exists() and json.loads(path.read_text()).get("key") == key:
+        return None
+    return {"key": key, "truth": str(truth), "tiles": tiles, "rebuilt": rebuilt}
+
+
+def run_quality_share(cfg, wd: WorkDir, plan: dict, part: tuple[int, int]) -> dict:
     origin = campus_frame(read_campus(wd)).origin_array
-    cache = ensure_quality(wd, truth, origin, tiles, any_rebuilt_region(wd, tiles))
-    return {"status": "done", "fscore_5cm": cache["rows"]["merged model"]["fscore"][0]}
+    return quality_share(wd, Path(plan["truth"]), origin, plan["tiles"], plan["rebuilt"], part)
 
 
 def quality_section(wd: WorkDir, truth: Path | None, origin: np.ndarray, tiles: list[str], any_rebuilt: bool,
