@@ -220,6 +220,7 @@ def _reprocess(cfg: CampusConfig, cfg_json: dict, wd: WorkDir, ex) -> dict:
                         stages={"scan": scans, "ingest": ingests, "partition": parts, "merge": merges},
                         incomplete=incomplete, skipped_files=list(found.skipped),
                         registration=registration)
+    summary["task_runs"] = getattr(ex, "task_runs", 0)
     summary["output"] = {"tileset": str(wd.root / "output" / "tileset.json") if exported["status"] == "done" else None,
                          "report": report.get("report")}
     return summary

@@ -12,12 +12,15 @@ class PrefectExecutor:
 
     def __init__(self, progress: bool):
         self.progress = progress
+        self.task_runs = 0  # submitted so far (each should be one task run on the API)
 
     def map(self, tsk, batches: list, label: str, **consts) -> _Mapped:
         futs = tsk.map(batches, **{k: unmapped(v) for k, v in consts.items()}) if batches else []
+        self.task_runs += len(futs)
         return _Mapped(batches, futs, label, self.progress)
 
     def submit(self, tsk, *args):
+        self.task_runs += 1
         return tsk.submit(*args)
 
 
