@@ -89,12 +89,13 @@ def vertex_ids(source: int, faces: np.ndarray, canonical: np.ndarray) -> np.ndar
 def point_columns(chunk: PointChunk, local: np.ndarray, source: int) -> dict[str, np.ndarray]:
     """Staging/patch-store point columns from a chunk and its campus-local float32 xyz (n, 3)."""
     n = len(local)
-    rgb = chunk.rgb if chunk.rgb is not None else np.zeros((n, 3), np.uint16)
+    rgb = chunk.rgb if chunk.rgb is not None else np.zeros((n, 3), np.uint16, order="F")
+    u16 = lambda a: a.astype(np.uint16, copy=False)  # noqa: E731 - columns of an F-ordered (n, 3): no copy
     return {
         "x": local[:, 0], "y": local[:, 1], "z": local[:, 2],
         "intensity": chunk.intensity if chunk.intensity is not None else np.zeros(n, np.uint16),
         "gps_time": chunk.gps_time if chunk.gps_time is not None else np.zeros(n, np.float64),
-        "red": rgb[:, 0].astype(np.uint16), "green": rgb[:, 1].astype(np.uint16), "blue": rgb[:, 2].astype(np.uint16),
+        "red": u16(rgb[:, 0]), "green": u16(rgb[:, 1]), "blue": u16(rgb[:, 2]),
         "classification": chunk.classification if chunk.classification is not None else np.zeros(n, np.uint8),
         "source": np.full(n, source, np.uint32),
     }  # fmt: skip

@@ -61,3 +61,25 @@ def test_cli_parses_the_documented_commands():
     a = ap.parse_args(["run", "c.yaml", "--dask-address", "tcp://h:8786", "--set", "tiling.tile_size_m=50"])
     assert a.dask_address == "tcp://h:8786" and a.set == ["tiling.tile_size_m=50"]
     assert ap.parse_args(["synth", "--preset", "demo", "--seed", "3", "--out", "x"]).seed == 3
+
+
+def test_serve_and_view_errors_are_one_line(tmp_path, capsys):
+    p = tmp_path / "c.yaml"
+    p.write_text(f"work_dir: {tmp_path / 'w'}\n")
+    assert main(["serve", str(p), "--cron", "every night please"]) == 2
+    err = capsys.readouterr().err
+    assert err.startswith("ms3d: error: ") and "not a cron expression" in err and len(err.strip().splitlines()) == 1
+    (tmp_path / "w").mkdir()
+    assert main(["view", str(tmp_path / "w")]) == 2
+    assert "no output/tileset.json" in capsys.readouterr().err
+
+
+def test_a_second_run_on_a_busy_work_dir_is_refused(tmp_path):
+    from storage.workdir import WorkDir
+    from tasks.plan import work_dir_lock
+
+    wd = WorkDir(tmp_path / "w")
+    with work_dir_lock(wd):
+        with pytest.raises(InputError, match="in use by another ms3d run"):
+            with work_dir_lock(wd):
+                pass
