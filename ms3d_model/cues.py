@@ -16,6 +16,8 @@ from __future__ import annotations
 import numpy as np
 from scipy.spatial import cKDTree
 
+from .features import edge_neighbours, pair_seed, vertex_ids_from_coords
+
 CUE_NAMES = (
     "log_n_points", "log_n_faces", "mesh_area_m2", "log_point_density",
     "p2m_mean", "p2m_median", "p2m_p90", "p2m_max", "p2m_frac_5cm", "p2m_frac_15cm",
@@ -71,11 +73,7 @@ def closest_point_on_triangles(p: np.ndarray, tri: np.ndarray) -> np.ndarray:
 
 def open_edge_flags(vids: np.ndarray) -> np.ndarray:
     """(m, 3) bool: edge (v_j, v_{j+1}) of each face is used by no other face of ``vids`` (m, 3) int64."""
-    a, b = vids, np.roll(vids, -1, axis=1)
-    lo, hi = np.minimum(a, b).ravel(), np.maximum(a, b).ravel()
-    key = np.stack([lo, hi], axis=1)
-    _, inv, counts = np.unique(key, axis=0, return_inverse=True, return_counts=True)
-    return (counts[inv.ravel()] == 1).reshape(-1, 3)
+    return edge_neighbours(vids) == np.arange(len(vids))[:, None]
 
 
 def pair_cues(points: np.ndarray, tris: np.ndarray, open_edges: np.ndarray | None = None, seed: int = 0) -> np.ndarray:
@@ -113,8 +111,6 @@ def pair_cues(points: np.ndarray, tris: np.ndarray, open_edges: np.ndarray | Non
     w = area / total_area if total_area > 0 else np.full(m, 1.0 / m)
 
     # boundaries: edges of the patch without a neighbour in the patch, and tile-level open edges
-    from .features import edge_neighbours, vertex_ids_from_coords
-
     nb = edge_neighbours(vertex_ids_from_coords(t.astype(np.float32)))
     edge_len = np.linalg.norm(np.roll(t, -1, axis=1) - t, axis=2)  # (m, 3), edge j = v_j -> v_{j+1}
     patch_open = nb == np.arange(m)[:, None]
@@ -149,8 +145,6 @@ def pair_cues(points: np.ndarray, tris: np.ndarray, open_edges: np.ndarray | Non
 def batch_cues(points: list[np.ndarray], tris: list[np.ndarray], open_edges: list[np.ndarray] | None,
                keys: np.ndarray, seed: int = 0) -> np.ndarray:
     """(B, N_CUES) float32 cues of B pairs (one :func:`pair_cues` per pair; vectorised within each pair)."""
-    from .features import pair_seed
-
     out = np.empty((len(points), N_CUES), np.float32)
     for b in range(len(points)):
         oe = None if open_edges is None else open_edges[b]
