@@ -108,32 +108,51 @@ def tile_fingerprint(tile_dir: Path) -> str:
     return hashlib.sha256("|".join(parts).encode()).hexdigest()[:16]
 
 
+def _cache_name(cache_dir, campus_name: str, tile: str, kind: str, spec: dict) -> Path | None:
+    if not cache_dir:
+        return None
+    h = hashlib.sha256(json.dumps(spec, sort_keys=True).encode()).hexdigest()[:16]
+    return Path(cache_dir) / f"{campus_name}_{tile}_{kind}_{h}.npz"
+
+
+def _save_npz(path: Path, arrays: dict) -> None:
+    path.parent.mkdir(parents=True, exist_ok=True)
+    with atomic_path(path) as tmp:
+        with open(tmp, "wb") as fh:
+            np.savez(fh, **arrays)
+
+
 def tile_pair_set(tile_dir: str | Path, campus_name: str, max_points: int, max_faces: int, k_centre: int,
                   seed: int, cache_dir: str | Path | None = None, min_faces: int = 1, min_points: int = 1,
                   chunk: int = 256, labelled_only: bool = True) -> PairSet:
-    """All gradable (labelled) pairs of a tile, featurised; cached as .npz in ``cache_dir`` when given."""
+    """All gradable (labelled) pairs of a tile, featurised. With ``cache_dir``, features (per input size) and
+    cues (per tile) are cached as .npz, keyed by the tile's store fingerprint and the parameters."""
     tile_dir = Path(tile_dir)
-    spec = {"v": CACHE_VERSION, "tile": tile_fingerprint(tile_dir), "max_points": max_points, "max_faces": max_faces,
-            "k": k_centre, "seed": seed, "min": [min_faces, min_points], "cues": list(CUE_NAMES),
+    base = {"v": CACHE_VERSION, "tile": tile_fingerprint(tile_dir), "seed": seed, "min": [min_faces, min_points],
             "labelled_only": labelled_only}
-    h = hashlib.sha256(json.dumps(spec, sort_keys=True).encode()).hexdigest()[:16]
-    cache = Path(cache_dir) / f"{campus_name}_{tile_dir.name}_{h}.npz" if cache_dir else None
-    if cache is not None and cache.exists():
-        with np.load(cache) as d:
-            return PairSet.from_arrays(d)
+    f_path = _cache_name(cache_dir, campus_name, tile_dir.name, "feats",
+                         base | {"max_points": max_points, "max_faces": max_faces, "k": k_centre})
+    c_path = _cache_name(cache_dir, campus_name, tile_dir.name, "cues", base | {"cues": list(CUE_NAMES)})
+    if f_path is not None and f_path.exists() and c_path.exists():
+        with np.load(f_path) as d, np.load(c_path) as c:
+            return PairSet.from_arrays({**d, "cues": c["cues"]})
     tp = read_tile_pairs(tile_dir, min_faces, min_points)
     keep = np.flatnonzero(tp.labels >= 0) if labelled_only else np.arange(len(tp))
-    feats, cues = [], []
+    cues = None
+    if c_path is not None and c_path.exists():
+        with np.load(c_path) as c:
+            cues = c["cues"]
+    parts = []
     for s in range(0, len(keep), chunk):
-        f, c = featurise_tile_pairs(tp, keep[s:s + chunk], max_points, max_faces, k_centre, seed)
-        feats.append(PairSet(f, c, tp.labels[keep[s:s + chunk]], tp.ijk[keep[s:s + chunk]],
-                             np.zeros(len(c), np.int16), (campus_name,)).compact())
-    ps = PairSet.concat(feats) if feats else _empty(max_points, max_faces, k_centre, campus_name)
-    if cache is not None:
-        cache.parent.mkdir(parents=True, exist_ok=True)
-        with atomic_path(cache) as tmp:
-            with open(tmp, "wb") as fh:
-                np.savez(fh, **ps.to_arrays())
+        idx = keep[s:s + chunk]
+        f, c = featurise_tile_pairs(tp, idx, max_points, max_faces, k_centre, seed, with_cues=cues is None)
+        c = c if cues is None else cues[s:s + chunk]
+        parts.append(PairSet(f, c, tp.labels[idx], tp.ijk[idx], np.zeros(len(idx), np.int16), (campus_name,)).compact())
+    ps = PairSet.concat(parts) if parts else _empty(max_points, max_faces, k_centre, campus_name)
+    if f_path is not None:
+        arrays = ps.to_arrays()
+        _save_npz(c_path, {"cues": arrays.pop("cues")})
+        _save_npz(f_path, arrays | {"cues": np.zeros((len(ps), 0), np.float32)})
     return ps
 
 

@@ -30,6 +30,7 @@ STAGE_VERSIONS = {
     "partition": 2,  # v2: store schema 2 (vertex ids, vertex patches, normals, side tables)
     "labels": 1,
     "outliers": 2,   # v2: flags in outliers.parquet, not in patches.parquet
+    "classify": 1,
 }
 
 
