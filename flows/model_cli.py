@@ -31,7 +31,7 @@ def _cmd_train(a) -> int:
               f"{m['parameters']:,} parameters  {m['train_seconds']:.0f} s wall / {m['train_cpu_seconds']:.0f} s CPU  "
               f"-> {m['best_path']}")
     print(f"{summary['n_pairs']} pairs ({summary['n_train']} train, {summary['n_val']} validation); "
-          f"summary in {a.out}/summary.json")
+          f"summary in {a.out}/summary_*.json")
     return 0
 
 

@@ -51,7 +51,7 @@ def suite() -> dict[str, dict]:
     from ms3d_model.net import ABLATIONS, MESHNET
 
     s = {"ms3dqe": {}, "ms3dqe_plus": {"n_cues": N_CUES}, "pointnet": {"arch": "pointnet"}, "meshnet": MESHNET}
-    s.update({f"ablation{k.strip('()')}": v for k, v in ABLATIONS.items() if k != "Full"})
+    s.update({f"ablation{k.strip('()')}": v for k, v in ABLATIONS.items()})  # ablationFull: Table 4's budget
     return s
 
 
@@ -138,7 +138,7 @@ def run_training(spec: TrainSpec, step=None) -> dict:
                                                    "best_path", "model_hash", "kernel_stats_init")}
                           for k, v in results.items()}}
     Path(spec.out).mkdir(parents=True, exist_ok=True)
-    (Path(spec.out) / "summary.json").write_text(json.dumps(summary, indent=1, default=str))
+    (Path(spec.out) / f"summary_{'+'.join(spec.models)}.json").write_text(json.dumps(summary, indent=1, default=str))
     return summary
 
 

@@ -172,6 +172,8 @@ def train_model(profile: Profile, train: PairSet, val: PairSet, out_dir: str | P
     uses_cues = net_uses_cues(net)
     history, best, best_acc = [], {}, -1.0
     t_wall, t_cpu = time.perf_counter(), time.process_time()
+    if profile.val_pairs and len(val) > profile.val_pairs:
+        val = val.take(np.sort(np.random.default_rng(profile.seed + 1).permutation(len(val))[:profile.val_pairs]))
     n_per_epoch = min(profile.pairs_per_epoch or len(train), len(train))
     n_per_epoch -= n_per_epoch % profile.batch_size  # BatchNorm needs > 1 sample: whole batches only
     log.info("training %s: %d parameters, %d train / %d val pairs, %d pairs per epoch", profile.name,
