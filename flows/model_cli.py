@@ -48,7 +48,7 @@ def _cmd_evaluate(a) -> int:
         models = {"ms3dqe": str(DEFAULT_MODEL)}
     logging.getLogger("ms3d").setLevel(logging.INFO)
     name, wd = held_out_campus(a.seed, a.work_dir, a.campus, a.data)
-    res = evaluate(models, name, wd, data=a.data, train_seeds=a.train_seeds, out=a.out)
+    res = evaluate(models, name, wd, data=a.data, out=a.out, threads=a.threads)
     print(res["text"])
     return 0
 
@@ -73,7 +73,7 @@ def add_commands(sub: argparse._SubParsersAction) -> None:
     e.add_argument("--seed", type=int, default=42, help="held-out synth demo campus (never trained on)")
     e.add_argument("--work-dir", help="score a processed labelled campus instead")
     e.add_argument("--campus", help="score a campus config (YAML with inputs.labels) instead")
-    e.add_argument("--train-seeds", type=int, nargs="*", default=[7, 11], help="campuses the GBM baseline is fitted on")
+    e.add_argument("--threads", type=int, default=1, help="torch threads (1 is fastest on a busy 2-core machine)")
     e.add_argument("--data", default="ms3d-work")
     e.add_argument("--out", help="write the results as JSON here")
     e.set_defaults(func=_cmd_evaluate)

@@ -50,7 +50,8 @@ def suite() -> dict[str, dict]:
     from ms3d_model.cues import N_CUES
     from ms3d_model.net import ABLATIONS, MESHNET
 
-    s = {"ms3dqe": {}, "ms3dqe_plus": {"n_cues": N_CUES}, "pointnet": {"arch": "pointnet"}, "meshnet": MESHNET}
+    s = {"ms3dqe": {}, "ms3dqe_plus": {"n_cues": N_CUES}, "pointnet": {"arch": "pointnet"}, "meshnet": MESHNET,
+         "gbm": {"arch": "gbm", "n_cues": N_CUES}}
     s.update({f"ablation{k.strip('()')}": v for k, v in ABLATIONS.items()})  # ablationFull: Table 4's budget
     return s
 
@@ -93,14 +94,37 @@ def train_one(name: str, switches: dict, spec: TrainSpec, pairs, train_mask, val
     import numpy as np
 
     tr, va = pairs.take(np.flatnonzero(train_mask)), pairs.take(np.flatnonzero(val_mask))
+    if prof.net.arch == "gbm":
+        return fit_tree_model(prof, tr, va, Path(spec.out) / name) | {"name": name}
     res = train_model(prof, tr, va, Path(spec.out) / name, progress=spec.progress)
     res["name"] = name
     return res
 
 
+def fit_tree_model(prof, tr, va, out: Path) -> dict:
+    """The gradient-boosting baseline on the training pairs' cues, saved as a TreeNet checkpoint."""
+    import torch
+
+    from ms3d_model.gbm import fit_gbm, tree_arrays, tree_depth
+    from ms3d_model.metrics import classification_report
+    from ms3d_model.net import build_net
+    from ms3d_model.train import predict, save_checkpoint
+
+    t0, c0 = time.perf_counter(), time.process_time()
+    clf = fit_gbm(tr.cues, tr.labels, seed=prof.seed)
+    arrays = tree_arrays(clf)
+    prof = replace(prof, net=replace(prof.net, tree_depth=tree_depth(arrays)))
+    net = build_net(prof.net, {k: torch.from_numpy(v) for k, v in arrays.items()})
+    rep = classification_report(va.labels, predict(net, va, 1024)) | {"epoch": int(clf.n_iter_)}
+    secs, cpu = time.perf_counter() - t0, time.process_time() - c0
+    h = save_checkpoint(out / "best.pt", net, prof, rep, [])
+    log.info("gbm: %d trees, val acc %.4f mAP %.4f, %.0f s", clf.n_iter_, rep["acc"], rep["map"], secs)
+    return {"best": rep, "history": [], "parameters": int(arrays["feature"].size), "train_seconds": secs,
+            "train_cpu_seconds": cpu, "best_path": str(out / "best.pt"), "model_hash": h, "kernel_stats_init": {}}
+
+
 def run_training(spec: TrainSpec, step=None) -> dict:
     """The whole training run; ``step(fn, *args)`` runs each step (a Prefect task's ``.fn`` or a submit)."""
-    import numpy as np
 
     from ms3d_model.dataset import area_split
     from ms3d_model.profiles import get_profile

@@ -82,13 +82,15 @@ def _compact(name: str, a: np.ndarray) -> np.ndarray:
     return a
 
 
-def to_batch(feats: PairFeatures, cues: np.ndarray | None = None, noise_m: float = 0.0,
+def to_batch(feats: PairFeatures | None, cues: np.ndarray | None = None, noise_m: float = 0.0,
              rng: np.random.Generator | None = None) -> dict[str, torch.Tensor]:
-    """Network input tensors of the pairs in ``feats`` (float32, int64).
+    """Network input tensors of the pairs in ``feats`` (float32, int64); only ``cues`` when feats is None.
 
     noise_m: standard deviation (metres) of Gaussian noise added to the points (§4.1.2's augmentation;
     converted to pair units by each pair's scale, clipped at 3 sigma); 0 for evaluation.
     """
+    if feats is None:
+        return {"cues": torch.from_numpy(np.asarray(cues, np.float32))}
     pts = feats.points.astype(np.float32)
     if noise_m > 0:
         rng = rng or np.random.default_rng()

@@ -36,7 +36,7 @@ def classification_report(labels: np.ndarray, p_bad: np.ndarray, threshold: floa
     pred = (p >= threshold).astype(np.int64)
     cm = np.zeros((2, 2), np.int64)
     np.add.at(cm, (y, pred), 1)
-    out = {"n": int(len(y)), "acc": float((pred == y).mean()) if len(y) else float("nan"),
+    out = {"n": len(y), "acc": float((pred == y).mean()) if len(y) else float("nan"),
            "ap_good": average_precision(y == 0, 1 - p), "ap_bad": average_precision(y == 1, p),
            "confusion": cm.tolist()}
     out["map"] = float(np.nanmean([out["ap_good"], out["ap_bad"]]))

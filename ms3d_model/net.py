@@ -49,6 +49,7 @@ from __future__ import annotations
 
 from dataclasses import asdict, dataclass, replace
 
+import numpy as np
 import torch
 from torch import nn
 
@@ -69,7 +70,7 @@ PAPER_PARAMETERS = 4_541_057
 class NetConfig:
     """Architecture of a network (defaults: the paper's MS3DQE-Net widths)."""
 
-    arch: str = "ms3dqe"  # "ms3dqe" (MS3DQE-Net and its ablations, MeshNet-style, MS3DQE-Net+) | "pointnet"
+    arch: str = "ms3dqe"  # "ms3dqe" (MS3DQE-Net, its ablations, MeshNet-style, MS3DQE-Net+) | "pointnet" | "gbm"
     points: bool = True
     face: bool = True
     centre_global: bool = True
@@ -98,9 +99,10 @@ class NetConfig:
     dropout: float = 0.5
     cue_dim: int = 64
     pointnet_mlp: tuple[int, ...] = (64, 64, 64, 128, 1024)
+    tree_depth: int = 0  # arch "gbm": levels walked by TreeNet
 
     def __post_init__(self):
-        if self.arch not in ("ms3dqe", "pointnet"):
+        if self.arch not in ("ms3dqe", "pointnet", "gbm"):
             raise ValueError(f"unknown arch {self.arch!r}")
         if self.arch == "ms3dqe" and not (self.face or self.centre_global):
             raise ValueError("MS3DQE-Net needs the face or the face-centre global subbranch (a mesh feature)")
@@ -117,15 +119,15 @@ class NetConfig:
 
 # Table 4's ablations (1)-(6) and the full network, as switch settings.
 ABLATIONS: dict[str, dict] = {
-    "(1)": dict(points=False, centre_local=False, point_aggregation=False),
-    "(2)": dict(centre_global=False),
-    "(3)": dict(face=False),
-    "(4)": dict(kernel_correlation=False),
-    "(5)": dict(point_aggregation=False),
-    "(6)": dict(centre_local=False),
-    "Full": dict(),
+    "(1)": {"points": False, "centre_local": False, "point_aggregation": False},
+    "(2)": {"centre_global": False},
+    "(3)": {"face": False},
+    "(4)": {"kernel_correlation": False},
+    "(5)": {"point_aggregation": False},
+    "(6)": {"centre_local": False},
+    "Full": {},
 }
-MESHNET = dict(points=False, centre_local=False, point_aggregation=False, corners="meshnet")
+MESHNET = {"points": False, "centre_local": False, "point_aggregation": False, "corners": "meshnet"}
 
 
 def meshnet_corners(corners: torch.Tensor) -> torch.Tensor:
@@ -268,8 +270,10 @@ class PointNet(nn.Module):
         return self.head(self.mlp(batch["points"].transpose(1, 2)).max(dim=2).values)
 
 
-def build_net(cfg: NetConfig) -> nn.Module:
-    """The network of a config."""
+def build_net(cfg: NetConfig, state_dict: dict | None = None) -> nn.Module:
+    """The network of a config (a TreeNet takes its array shapes from ``state_dict``)."""
+    if cfg.arch == "gbm":
+        return TreeNet(cfg, None if state_dict is None else {k: v.numpy() for k, v in state_dict.items()})
     return PointNet(cfg) if cfg.arch == "pointnet" else MS3DQENet(cfg)
 
 
@@ -304,3 +308,35 @@ def with_switches(cfg: NetConfig, **switches) -> NetConfig:
 
 __all__ = ["ABLATIONS", "MESHNET", "PAPER_PARAMETERS", "MS3DQENet", "NetConfig", "PointNet", "build_net",
            "kernel_response_stats", "n_parameters", "with_switches"]
+
+
+class TreeNet(nn.Module):
+    """The gradient-boosting baseline as a module, so it ships and loads like the networks (a state dict of
+    tensors, ``weights_only=True``). Input: ``batch["cues"]`` (B, C); output (B, 2) logits [0, raw score],
+    so softmax gives the trees' probability of "bad". Trees are walked level by level, all at once."""
+
+    def __init__(self, cfg: NetConfig, arrays: dict | None = None):
+        super().__init__()
+        self.cfg = cfg
+        a = arrays or {"feature": np.zeros((1, 1), np.int64), "threshold": np.zeros((1, 1), np.float32),
+                       "missing_left": np.zeros((1, 1), bool), "is_leaf": np.ones((1, 1), bool),
+                       "left": np.zeros((1, 1), np.int64), "right": np.zeros((1, 1), np.int64),
+                       "value": np.zeros((1, 1), np.float32), "baseline": np.zeros(1, np.float32)}
+        for k, v in a.items():
+            self.register_buffer(k, torch.from_numpy(np.ascontiguousarray(v)))
+        self.depth = cfg.tree_depth
+
+    def forward(self, batch: dict[str, torch.Tensor], log_kc: bool = False) -> torch.Tensor:
+        x = batch["cues"].double()
+        b = x.shape[0]
+        t = self.feature.shape[0]
+        node = torch.zeros(b, t, dtype=torch.int64)
+        tree = torch.arange(t).expand(b, t)
+        for _ in range(self.depth):
+            f = self.feature[tree, node]
+            v = torch.gather(x, 1, f)
+            go_left = torch.where(torch.isnan(v), self.missing_left[tree, node], v <= self.threshold[tree, node].double())
+            nxt = torch.where(go_left, self.left[tree, node], self.right[tree, node])
+            node = torch.where(self.is_leaf[tree, node], node, nxt)
+        raw = self.value[tree, node].double().sum(1) + self.baseline.double()
+        return torch.stack([torch.zeros_like(raw), raw], dim=1).float()

@@ -116,7 +116,7 @@ def load_checkpoint(path: str | Path) -> tuple[nn.Module, Profile, dict]:
     if not isinstance(obj, dict) or obj.get("format") != FORMAT:
         raise ValueError(f"{path}: not an ms3d model checkpoint (format {obj.get('format') if isinstance(obj, dict) else None!r})")
     profile = Profile.from_json(obj["profile"])
-    net = build_net(profile.net)
+    net = build_net(profile.net, obj["state_dict"])
     net.load_state_dict(obj["state_dict"])
     net.eval()
     return net, profile, {k: v for k, v in obj.items() if k != "state_dict"}

@@ -28,7 +28,14 @@ import numpy as np
 from storage.errors import InputError
 from storage.ids import TileId
 from storage.manifest import combine_fingerprints
-from storage.patch_store import FACES_FILE, PATCHES_FILE, POINTS_FILE, PatchStore, side_table_path, write_side_table
+from storage.patch_store import (
+    FACES_FILE,
+    PATCHES_FILE,
+    POINTS_FILE,
+    PatchStore,
+    side_table_path,
+    write_side_table,
+)
 from storage.workdir import STALE_FILE, WorkDir
 from tasks.units import Done, run_unit
 
@@ -86,7 +93,8 @@ def grade_pairs(model: LoadedModel, tp, batch_size: int, threshold: float) -> tu
     scores = np.empty(len(tp), np.float32)
     with torch.inference_mode():
         for idx, feats, cues in iter_tile_batches(tp, batch_size, prof.max_points, prof.max_faces, prof.k_centre,
-                                                  prof.seed, with_cues=model.uses_cues):
+                                                  prof.seed, with_cues=model.uses_cues,
+                                                  with_feats=prof.net.arch != "gbm"):
             logits = model.net(to_batch(feats, cues if model.uses_cues else None))
             scores[idx] = torch.softmax(logits, dim=1)[:, 1].numpy()
     return scores, (scores >= threshold).astype(np.int8)

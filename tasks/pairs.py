@@ -80,21 +80,23 @@ def read_tile_pairs(tile_dir: str | Path, min_faces: int = 1, min_points: int = 
 
 
 def featurise_tile_pairs(tp: TilePairs, idx: np.ndarray, max_points: int, max_faces: int, k_centre: int,
-                         seed: int, with_cues: bool = True) -> tuple[PairFeatures, np.ndarray]:
-    """Features (and cues, (B, C) float32; zeros when ``with_cues`` is False) of the pairs ``idx`` of a tile."""
+                         seed: int, with_cues: bool = True, with_feats: bool = True) -> tuple[PairFeatures | None, np.ndarray]:
+    """Features (None unless ``with_feats``) and cues ((B, C) float32; zeros unless ``with_cues``) of the
+    pairs ``idx`` of a tile."""
     pts, tris, vids, open_edges = tp.raw(idx)
-    feats = featurise_pairs(pts, tris, vids, tp.keys[idx], max_points, max_faces, k_centre, seed)
+    feats = featurise_pairs(pts, tris, vids, tp.keys[idx], max_points, max_faces, k_centre, seed) if with_feats else None
     cues = (batch_cues(pts, tris, open_edges, tp.keys[idx], seed) if with_cues
             else np.zeros((len(idx), len(CUE_NAMES)), np.float32))
     return feats, cues
 
 
 def iter_tile_batches(tp: TilePairs, batch_size: int, max_points: int, max_faces: int, k_centre: int,
-                      seed: int = 0, with_cues: bool = True) -> Iterator[tuple[np.ndarray, PairFeatures, np.ndarray]]:
+                      seed: int = 0, with_cues: bool = True,
+                      with_feats: bool = True) -> Iterator[tuple[np.ndarray, PairFeatures | None, np.ndarray]]:
     """(pair indices, features, cues) of consecutive batches of a tile's pairs."""
     for s in range(0, len(tp), batch_size):
         idx = np.arange(s, min(s + batch_size, len(tp)))
-        feats, cues = featurise_tile_pairs(tp, idx, max_points, max_faces, k_centre, seed, with_cues)
+        feats, cues = featurise_tile_pairs(tp, idx, max_points, max_faces, k_centre, seed, with_cues, with_feats)
         yield idx, feats, cues
 
 
@@ -117,9 +119,8 @@ def _cache_name(cache_dir, campus_name: str, tile: str, kind: str, spec: dict) -
 
 def _save_npz(path: Path, arrays: dict) -> None:
     path.parent.mkdir(parents=True, exist_ok=True)
-    with atomic_path(path) as tmp:
-        with open(tmp, "wb") as fh:
-            np.savez(fh, **arrays)
+    with atomic_path(path) as tmp, open(tmp, "wb") as fh:
+        np.savez(fh, **arrays)
 
 
 def tile_pair_set(tile_dir: str | Path, campus_name: str, max_points: int, max_faces: int, k_centre: int,

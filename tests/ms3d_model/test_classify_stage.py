@@ -3,26 +3,11 @@
 from __future__ import annotations
 
 import numpy as np
-import pytest
 import torch
 
 from ms3d_model.profiles import PROFILES
 from ms3d_model.train import make_model, save_checkpoint
 from storage.patch_store import PatchStore
-from storage.workdir import WorkDir
-
-
-@pytest.fixture(scope="module")
-def tiny_work(tiny_campus, tmp_path_factory):
-    """The tiny campus processed inline (no Prefect), classify off: (config, work dir)."""
-    from flows.campus import run_campus
-    from tasks.config import CampusConfig
-
-    work = tmp_path_factory.mktemp("classify") / "work"
-    cfg = CampusConfig.from_yaml(tiny_campus / "campus.yaml", {"work_dir": str(work), "runner": "inline",
-                                                              "classify": {"enabled": False}})
-    run_campus(cfg, progress=False)
-    return cfg, WorkDir(work)
 
 
 def _checkpoint(path, seed=0):

@@ -12,13 +12,21 @@ import torch
 from ms3d_model.cues import N_CUES
 from ms3d_model.dataset import PairSet, to_batch
 from ms3d_model.features import featurise_pairs
-from ms3d_model.net import ABLATIONS, MESHNET, PAPER_PARAMETERS, NetConfig, build_net, kernel_response_stats, n_parameters
+from ms3d_model.net import (
+    ABLATIONS,
+    MESHNET,
+    PAPER_PARAMETERS,
+    NetConfig,
+    build_net,
+    kernel_response_stats,
+    n_parameters,
+)
 from ms3d_model.profiles import PROFILES
 from ms3d_model.train import load_checkpoint, predict, save_checkpoint, train_model
 
 TINY = PROFILES["tiny"]
 VARIANTS = {**{f"ablation {k}": v for k, v in ABLATIONS.items()}, "meshnet": MESHNET,
-            "ms3dqe+": dict(n_cues=N_CUES), "pointnet": dict(arch="pointnet")}
+            "ms3dqe+": {"n_cues": N_CUES}, "pointnet": {"arch": "pointnet"}}
 
 
 def _pairs(n: int, seed: int = 0, bad_shift: float = 0.0):
@@ -96,7 +104,7 @@ def test_short_training_lowers_the_loss_and_checkpoints_load_weights_only(tmp_pa
     assert (tmp_path / "curves.png").stat().st_size > 0
     raw = torch.load(tmp_path / "best.pt", weights_only=True)  # plain tensors and containers only
     assert raw["format"] == "ms3d-model/1"
-    net, profile, meta = load_checkpoint(tmp_path / "best.pt")
+    net, profile, _ = load_checkpoint(tmp_path / "best.pt")
     assert profile == prof and not net.training
     p1 = predict(net, val)
     net2, _, _ = load_checkpoint(tmp_path / "best.pt")
