@@ -75,9 +75,11 @@ def held_out_campus(seed: int | None, work_dir: str | None, campus: str | None, 
 
 
 def evaluate(models: dict[str, str], eval_name: str, eval_wd: str, data: str = "ms3d-work", out: str | None = None,
-             threads: int = 1) -> dict:
+             threads: int = 1, max_pairs: int | None = None, previous: dict | None = None) -> dict:
     """Score checkpoints ({suite name: path}, the GBM baseline's TreeNet included) on a campus; returns the
-    results and the printed tables under "text"."""
+    results and the printed tables under "text". ``max_pairs``: score a seeded random subset of the campus's
+    labelled pairs (the same subset for every model); ``previous``: results of models scored before (merged
+    into the tables)."""
     import torch
 
     from ms3d_model.metrics import classification_report
@@ -94,7 +96,10 @@ def evaluate(models: dict[str, str], eval_name: str, eval_wd: str, data: str = "
         net, prof, _ = load_checkpoint(path)
         size = (prof.max_points, prof.max_faces, prof.k_centre, prof.seed)
         if size not in held:
-            held[size] = campus_pair_set(eval_wd, eval_name, *size, cache_dir=cache)
+            ps = campus_pair_set(eval_wd, eval_name, *size, cache_dir=cache)
+            if max_pairs and len(ps) > max_pairs:
+                ps = ps.take(np.sort(np.random.default_rng(0).permutation(len(ps))[:max_pairs]))
+            held[size] = ps
         ps = held[size]
         t = time.perf_counter()
         p = predict(net, ps, prof.eval_batch)
@@ -102,8 +107,9 @@ def evaluate(models: dict[str, str], eval_name: str, eval_wd: str, data: str = "
         rep.update(forward_seconds(net, ps, uses_cues=net_uses_cues(net)))
         rep.update({"parameters": n_parameters(net), "profile": prof.name, "path": str(path),
                     "max_points": prof.max_points, "max_faces": prof.max_faces, "predict_seconds": time.perf_counter() - t})
+        rep["net"] = prof.net.to_json()
         results[name] = rep
-        configs[name] = prof.net.to_json()
+        configs[name] = rep["net"]
         if name == "ms3dqe":
             from ms3d_model.dataset import to_batch
 
@@ -111,6 +117,10 @@ def evaluate(models: dict[str, str], eval_name: str, eval_wd: str, data: str = "
         log.info("%s: acc %.4f mAP %.4f", name, rep["acc"], rep["map"])
     if "gbm" in results:
         results["gbm"]["cue_seconds_per_pair"] = _cue_seconds_per_pair(eval_wd)
+    for name, rep in (previous or {}).items():
+        results.setdefault(name, rep)
+        configs.setdefault(name, rep.get("net", {}))
+    n = max((r["n"] for r in results.values()), default=0)
     full = "ablationFull" if "ablationFull" in results else "ms3dqe"  # the Full row at the ablations' budget
     names = {**SUITE_CASES, full: "Full"}
     cases = {names[k]: v for k, v in results.items() if k in names}
@@ -124,7 +134,6 @@ def evaluate(models: dict[str, str], eval_name: str, eval_wd: str, data: str = "
         text += "\n\nKernel-correlation responses of the trained MS3DQE-Net on held-out pairs:\n" + "\n".join(
             f"  {k:<14} mean {v['mean']:.3g}  median {v['median']:.3g}  >1e-3 {100 * v['frac_gt_1e-3']:.1f} %  "
             f">0.1 {100 * v['frac_gt_0.1']:.1f} %" for k, v in kc.items())
-    n = len(next(iter(held.values()))) if held else 0
     text = f"Held-out campus {eval_name} ({eval_wd}): {n} labelled pairs\n\n" + text
     res = {"campus": eval_name, "work_dir": eval_wd, "results": results, "kernel_stats": kc, "text": text}
     if out:

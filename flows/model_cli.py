@@ -48,7 +48,7 @@ def _cmd_evaluate(a) -> int:
         models = {"ms3dqe": str(DEFAULT_MODEL)}
     logging.getLogger("ms3d").setLevel(logging.INFO)
     name, wd = held_out_campus(a.seed, a.work_dir, a.campus, a.data)
-    res = evaluate(models, name, wd, data=a.data, out=a.out, threads=a.threads)
+    res = evaluate(models, name, wd, data=a.data, out=a.out, threads=a.threads, max_pairs=a.max_pairs)
     print(res["text"])
     return 0
 
@@ -74,6 +74,7 @@ def add_commands(sub: argparse._SubParsersAction) -> None:
     e.add_argument("--work-dir", help="score a processed labelled campus instead")
     e.add_argument("--campus", help="score a campus config (YAML with inputs.labels) instead")
     e.add_argument("--threads", type=int, default=1, help="torch threads (1 is fastest on a busy 2-core machine)")
+    e.add_argument("--max-pairs", type=int, help="score a seeded random subset of this many labelled pairs")
     e.add_argument("--data", default="ms3d-work")
     e.add_argument("--out", help="write the results as JSON here")
     e.set_defaults(func=_cmd_evaluate)

@@ -80,7 +80,7 @@ def load_pairs(campuses: dict[str, str], profile, cache_dir: str):
     from tasks.pairs import campus_pair_set
 
     parts = [campus_pair_set(wd, name, profile.max_points, profile.max_faces, profile.k_centre, profile.seed,
-                             cache_dir) for name, wd in campuses.items()]
+                             cache_dir, max_pairs=profile.max_pairs) for name, wd in campuses.items()]
     return PairSet.concat([p for p in parts if len(p)])
 
 

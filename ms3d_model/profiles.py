@@ -46,6 +46,7 @@ class Profile:
     eval_batch: int = 64
     time_budget_s: float | None = None
     val_pairs: int | None = 1500  # validation pairs scored after each epoch (a fixed random subset; None = all)
+    max_pairs: int | None = None  # pairs featurised per campus (a seeded subset; the paper's sizes need ~350 KB a pair)
 
     def to_json(self) -> dict:
         d = asdict(self)
@@ -72,7 +73,7 @@ PROFILES: dict[str, Profile] = {
     "default": Profile(name="default", max_points=256, max_faces=128, net=SMALL_NET, epochs=12, pairs_per_epoch=2000,
                        milestones=(9, 11), time_budget_s=2400.0),
     "paper": Profile(name="paper", max_points=7500, max_faces=5000, net=NetConfig(), epochs=100, milestones=(60, 90),
-                     eval_batch=8),
+                     eval_batch=8, val_pairs=200, max_pairs=1250),
     "tiny": Profile(name="tiny", max_points=64, max_faces=32, net=replace(SMALL_NET, mesh_dims=(16, 32), mesh_fusion=32,
                     fusion_dim=32, head=(16, 16), face_dim=16, kc_kernels=8, kc_centre_points=4, point_agg=(16, 16), point_dim=8,
                     pointnet_mlp=(16, 32)), epochs=2, milestones=(1,), eval_batch=16, threads=1),

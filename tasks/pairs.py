@@ -125,12 +125,13 @@ def _save_npz(path: Path, arrays: dict) -> None:
 
 def tile_pair_set(tile_dir: str | Path, campus_name: str, max_points: int, max_faces: int, k_centre: int,
                   seed: int, cache_dir: str | Path | None = None, min_faces: int = 1, min_points: int = 1,
-                  chunk: int = 256, labelled_only: bool = True) -> PairSet:
+                  chunk: int = 256, labelled_only: bool = True, max_pairs: int | None = None) -> PairSet:
     """All gradable (labelled) pairs of a tile, featurised. With ``cache_dir``, features (per input size) and
-    cues (per tile) are cached as .npz, keyed by the tile's store fingerprint and the parameters."""
+    cues (per tile) are cached as .npz, keyed by the tile's store fingerprint and the parameters.
+    ``max_pairs``: keep a seeded random subset of at most this many pairs (large input sizes)."""
     tile_dir = Path(tile_dir)
     base = {"v": CACHE_VERSION, "tile": tile_fingerprint(tile_dir), "seed": seed, "min": [min_faces, min_points],
-            "labelled_only": labelled_only}
+            "labelled_only": labelled_only} | ({"max_pairs": max_pairs} if max_pairs else {})
     f_path = _cache_name(cache_dir, campus_name, tile_dir.name, "feats",
                          base | {"max_points": max_points, "max_faces": max_faces, "k": k_centre})
     c_path = _cache_name(cache_dir, campus_name, tile_dir.name, "cues", base | {"cues": list(CUE_NAMES)})
@@ -139,6 +140,8 @@ def tile_pair_set(tile_dir: str | Path, campus_name: str, max_points: int, max_f
             return PairSet.from_arrays({**d, "cues": c["cues"]})
     tp = read_tile_pairs(tile_dir, min_faces, min_points)
     keep = np.flatnonzero(tp.labels >= 0) if labelled_only else np.arange(len(tp))
+    if max_pairs is not None and len(keep) > max_pairs:
+        keep = np.sort(np.random.default_rng(seed).choice(keep, max_pairs, replace=False))
     cues = None
     if c_path is not None and c_path.exists():
         with np.load(c_path) as c:
@@ -167,13 +170,23 @@ def _empty(n: int, f: int, k: int, name: str) -> PairSet:
 
 def campus_pair_set(work_dir: str | Path, campus_name: str, max_points: int, max_faces: int, k_centre: int,
                     seed: int, cache_dir: str | Path | None = None, min_faces: int = 1, min_points: int = 1,
-                    labelled_only: bool = True) -> PairSet:
-    """Every labelled gradable pair of a processed campus (its live tiles), featurised (cached per tile)."""
+                    labelled_only: bool = True, max_pairs: int | None = None) -> PairSet:
+    """Every labelled gradable pair of a processed campus (its live tiles), featurised (cached per tile);
+    ``max_pairs``: at most about this many, drawn from the tiles in proportion to their pairs."""
     from storage.workdir import WorkDir
 
     wd = WorkDir(work_dir)
+    tiles = wd.live_tiles()
+    quota = [None] * len(tiles)
+    if max_pairs:
+        n = []
+        for t in tiles:
+            p = PatchStore(wd.tile_dir(t)).patches()
+            n.append(int(((p["n_faces"] >= max(min_faces, 1)) & (p["n_points"] >= max(min_points, 1))).sum()))
+        quota = [int(np.ceil(max_pairs * k / max(sum(n), 1))) for k in n]
     parts = [tile_pair_set(wd.tile_dir(t), campus_name, max_points, max_faces, k_centre, seed, cache_dir,
-                           min_faces, min_points, labelled_only=labelled_only) for t in wd.live_tiles()]
+                           min_faces, min_points, labelled_only=labelled_only, max_pairs=q)
+             for t, q in zip(tiles, quota)]
     parts = [p for p in parts if len(p)]
     if not parts:
         return _empty(max_points, max_faces, k_centre, campus_name)
