@@ -10,7 +10,6 @@ from __future__ import annotations
 import hashlib
 import json
 import logging
-import math
 import sys
 import time
 from collections.abc import Callable
@@ -154,7 +153,7 @@ def train_model(profile: Profile, train: PairSet, val: PairSet, out_dir: str | P
                 on_epoch: Callable[[dict], None] | None = None) -> dict:
     """Train ``profile``'s network on ``train``, validate on ``val`` each epoch.
 
-    Writes ``out_dir/last.pt``, ``out_dir/best.pt`` (best validation accuracy), ``out_dir/curves.png`` and
+    Writes ``out_dir/last.pt``, ``out_dir/best.pt`` (best validation accuracy, ties broken by mAP), ``out_dir/curves.png`` and
     ``out_dir/history.json``. Returns {"best": metrics of the best epoch, "history": [...], "parameters",
     "train_seconds", "train_cpu_seconds", "best_path", "model_hash"}.
     """
@@ -170,7 +169,7 @@ def train_model(profile: Profile, train: PairSet, val: PairSet, out_dir: str | P
     crit = nn.CrossEntropyLoss()
     rng = np.random.default_rng(profile.seed)
     uses_cues = net_uses_cues(net)
-    history, best, best_acc = [], {}, -1.0
+    history, best, best_acc = [], {}, (-1.0, -1.0)
     t_wall, t_cpu = time.perf_counter(), time.process_time()
     if profile.val_pairs and len(val) > profile.val_pairs:
         val = val.take(np.sort(np.random.default_rng(profile.seed + 1).permutation(len(val))[:profile.val_pairs]))
@@ -213,8 +212,8 @@ def train_model(profile: Profile, train: PairSet, val: PairSet, out_dir: str | P
                  row["train_loss"], row["train_acc"], row["val_loss"], row["val_acc"], row["val_map"],
                  row["epoch_seconds"])
         save_checkpoint(out_dir / "last.pt", net, profile, rep, history)
-        if rep["acc"] > best_acc or math.isnan(best_acc):
-            best_acc, best = rep["acc"], {**rep, "epoch": epoch}
+        if (rep["acc"], rep["map"]) > best_acc or not best:  # ties (e.g. at the majority class) go to mAP
+            best_acc, best = (rep["acc"], rep["map"]), {**rep, "epoch": epoch}
             save_checkpoint(out_dir / "best.pt", net, profile, best, history)
         save_curves(history, out_dir / "curves.png", f"{profile.name}: {profile.net.arch}")
         (out_dir / "history.json").write_text(json.dumps(history, indent=1))
