@@ -4,7 +4,8 @@ shipped model) beside the paper-size profile (max_point 7,500, max_face 5,000, f
 For each profile, on the largest tile of a processed campus (``--work-dir``, default ms3d-work/w42, else
 the demo work dir): featurise (+ cues for a model that uses them) and run the network in batches of
 ``--batch`` pairs, with ``--threads`` torch threads. Prints wall and CPU seconds, the split between
-featurisation and the network, and pairs/s, end to end and network only. The paper-size profile is timed
+featurisation (points, faces, and the hand-made cues for a model that uses them) and the model, and
+pairs/s, end to end and model only. The shipped networks (``ms3dqe_plus.pt``, ``ms3dqe.pt``) are timed too. The paper-size profile is timed
 on fewer pairs (its network is 10x wider and its inputs 20x larger) with a randomly initialised network
 unless ``--paper-model`` gives a checkpoint. The load average is printed: figures taken on a shared machine
 are lower bounds.
@@ -41,18 +42,20 @@ def bench(net, profile, tp, n_pairs: int, batch: int, uses_cues: bool) -> dict:
     from ms3d_model.dataset import to_batch
     from tasks.pairs import featurise_tile_pairs
 
+    feats_needed = profile.net.arch != "gbm"
+
     idx_all = np.arange(min(n_pairs, len(tp)))
     t_feat = t_net = c_feat = c_net = 0.0
     with torch.inference_mode():
         # warm-up batch, not timed
         f, c = featurise_tile_pairs(tp, idx_all[:min(batch, 8)], profile.max_points, profile.max_faces,
-                                    profile.k_centre, profile.seed, uses_cues)
+                                    profile.k_centre, profile.seed, uses_cues, feats_needed)
         net(to_batch(f, c if uses_cues else None))
         for s in range(0, len(idx_all), batch):
             idx = idx_all[s:s + batch]
             w, c0 = time.perf_counter(), time.process_time()
             f, c = featurise_tile_pairs(tp, idx, profile.max_points, profile.max_faces, profile.k_centre,
-                                        profile.seed, uses_cues)
+                                        profile.seed, uses_cues, feats_needed)
             x = to_batch(f, c if uses_cues else None)
             w1, c1 = time.perf_counter(), time.process_time()
             net(x)
@@ -97,7 +100,12 @@ def main(argv=None) -> int:
           f"load average {os.getloadavg()[0]:.2f} on {os.cpu_count()} cores")
     rows = []
     net, prof, _ = load_checkpoint(a.model or DEFAULT_MODEL)
-    rows.append(("default (shipped)", prof, bench(net, prof, tp, a.pairs, a.batch, net_uses_cues(net)), a.batch))
+    rows.append((f"default ({prof.net.arch})", prof, bench(net, prof, tp, a.pairs, a.batch, net_uses_cues(net)), a.batch))
+    for extra in ("ms3dqe_plus.pt", "ms3dqe.pt"):  # the shipped networks of the default profile
+        path = DEFAULT_MODEL.parent / extra
+        if path.exists() and not a.model:
+            enet, eprof, _ = load_checkpoint(path)
+            rows.append((extra[:-3], eprof, bench(enet, eprof, tp, a.pairs, a.batch, net_uses_cues(enet)), a.batch))
     if a.paper_model:
         pnet, pprof, _ = load_checkpoint(a.paper_model)
     else:

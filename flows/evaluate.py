@@ -105,7 +105,8 @@ def evaluate(models: dict[str, str], eval_name: str, eval_wd: str, data: str = "
         p = predict(net, ps, prof.eval_batch)
         rep = classification_report(ps.labels, p)
         rep.update(forward_seconds(net, ps, uses_cues=net_uses_cues(net)))
-        rep.update({"parameters": n_parameters(net), "profile": prof.name, "path": str(path),
+        n_par = int(net.feature.numel()) if prof.net.arch == "gbm" else n_parameters(net)  # trees: node count
+        rep.update({"parameters": n_par, "profile": prof.name, "path": str(path),
                     "max_points": prof.max_points, "max_faces": prof.max_faces, "predict_seconds": time.perf_counter() - t})
         rep["net"] = prof.net.to_json()
         results[name] = rep

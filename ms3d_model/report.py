@@ -26,7 +26,7 @@ _SWITCHES = ("points", "face", "centre_global", "centre_local", "kernel_correlat
 
 # our suite names -> the paper's row name
 OURS_TO_PAPER = {"pointnet": "PointNet", "meshnet": "MeshNet", "ms3dqe": "MS3DQE-Net"}
-EXTRA_ROWS = {"gbm": ("GBM on hand-made cues (ours)", "point clouds, mesh"),
+EXTRA_ROWS = {"gbm": ("GBM on cues (ours; tree nodes)", "point clouds, mesh"),
               "ms3dqe_plus": ("MS3DQE-Net+ (ours)", "point clouds, mesh, cues")}
 
 
