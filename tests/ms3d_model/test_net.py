@@ -111,3 +111,20 @@ def test_short_training_lowers_the_loss_and_checkpoints_load_weights_only(tmp_pa
     np.testing.assert_array_equal(p1, predict(net2, val))
     h = save_checkpoint(tmp_path / "again.pt", net, profile)
     assert len(h) == 64
+
+
+def test_gbm_ships_as_a_tree_net_with_the_same_probabilities(tmp_path):
+    from ms3d_model.gbm import fit_gbm, gbm_p_bad, tree_arrays, tree_depth
+
+    rng = np.random.default_rng(0)
+    x = rng.normal(size=(600, N_CUES)).astype(np.float32)
+    y = (x[:, 0] + x[:, 1] ** 2 > 1).astype(int)
+    x[rng.random(x.shape) < 0.02] = np.nan  # missing values take the trees' learned side
+    clf = fit_gbm(x, y, max_iter=30)
+    arrays = tree_arrays(clf)
+    cfg = replace(TINY.net, arch="gbm", n_cues=N_CUES, tree_depth=tree_depth(arrays))
+    net = build_net(cfg, {k: torch.from_numpy(v) for k, v in arrays.items()})
+    save_checkpoint(tmp_path / "gbm.pt", net, replace(TINY, net=cfg))
+    loaded, _, _ = load_checkpoint(tmp_path / "gbm.pt")
+    p = torch.softmax(loaded({"cues": torch.from_numpy(x)}), 1)[:, 1].numpy()
+    np.testing.assert_allclose(p, gbm_p_bad(clf, x), atol=1e-6)
