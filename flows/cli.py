@@ -7,6 +7,8 @@
     ms3d demo                                       synth demo campus + run + print where things are
     ms3d view WORKDIR                               the campus's 3D Tiles in a browser (localhost)
     ms3d ui WORKDIR                                 show the run history in the Prefect UI
+    ms3d train --profile default --seeds 7 11       train MS3DQE-Net (--suite: and the baselines)
+    ms3d evaluate --suite DIR --seed 42             the paper's Tables 3 and 4 on a held-out campus
 
 Every user error (config, YAML, inputs, CRS, work dir) prints one line ``ms3d: error: ...`` and exits
 with code 2; ``--debug`` shows the traceback. A run with failed tiles or an incomplete campus exits 1.
@@ -164,6 +166,10 @@ def build_parser() -> argparse.ArgumentParser:
     u = sub.add_parser("ui", help="start a Prefect server on the work dir's run history")
     u.add_argument("work_dir")
     u.set_defaults(func=_cmd_ui)
+
+    from flows.model_cli import add_commands
+
+    add_commands(sub)  # ms3d train, ms3d evaluate
     return p
 
 

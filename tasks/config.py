@@ -13,6 +13,7 @@ from pydantic import BaseModel, ConfigDict, Field, ValidationError, field_valida
 
 from storage.errors import InputError
 from storage.grid import PatchGrid
+from tasks.classify_config import ClassifyConfig
 
 
 class _Model(BaseModel):
@@ -108,6 +109,7 @@ class CampusConfig(_Model):
     cluster: ClusterConfig = Field(default_factory=ClusterConfig)
     report: ReportConfig = Field(default_factory=ReportConfig)
     export: ExportConfig = Field(default_factory=lambda: ExportConfig(), description="3D Tiles output (merge has no parameters of its own)")
+    classify: ClassifyConfig = Field(default_factory=ClassifyConfig, description="grading of patch pairs (MS3DQE-Net)")
     runner: Literal["dask", "local", "inline"] = Field(
         "dask", description="'local': Prefect tasks in the flow process; 'inline': no Prefect at all, one process (debugging, tests)")
 

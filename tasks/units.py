@@ -31,6 +31,7 @@ STAGE_VERSIONS = {
     "labels": 1,
     "outliers": 2,   # v2: flags in outliers.parquet, not in patches.parquet
     "merge": 1,
+    "classify": 1,
 }
 
 

@@ -1,0 +1,80 @@
+"""The ``ms3d train`` and ``ms3d evaluate`` commands (added to the ``ms3d`` parser by ``add_commands``)."""
+
+from __future__ import annotations
+
+import argparse
+import json
+import logging
+import sys
+
+
+def _cmd_train(a) -> int:
+    from flows.train import TrainSpec, suite, train
+
+    overrides = {}
+    for kv in a.set or []:
+        k, _, v = kv.partition("=")
+        try:
+            overrides[k] = json.loads(v)
+        except json.JSONDecodeError:
+            overrides[k] = v
+    if "milestones" in overrides:
+        overrides["milestones"] = tuple(overrides["milestones"])
+    models = list(suite()) if a.suite else (a.models or ["ms3dqe"])
+    spec = TrainSpec(out=a.out, data=a.data, seeds=a.seeds, work_dirs=a.work_dir or [], profile=a.profile,
+                     overrides=overrides, models=models, progress=sys.stderr.isatty())
+    logging.getLogger("ms3d").setLevel(logging.INFO)
+    summary = train(spec, use_prefect=not a.no_prefect)
+    for name, m in summary["models"].items():
+        b = m["best"]
+        print(f"{name:<12} val acc {100 * b['acc']:.1f} %  mAP {100 * b['map']:.1f} %  epoch {b['epoch']}  "
+              f"{m['parameters']:,} parameters  {m['train_seconds']:.0f} s wall / {m['train_cpu_seconds']:.0f} s CPU  "
+              f"-> {m['best_path']}")
+    print(f"{summary['n_pairs']} pairs ({summary['n_train']} train, {summary['n_val']} validation); "
+          f"summary in {a.out}/summary_*.json")
+    return 0
+
+
+def _cmd_evaluate(a) -> int:
+    from flows.evaluate import evaluate, held_out_campus, suite_models
+
+    models = suite_models(a.suite) if a.suite else {}
+    for kv in a.model or []:
+        name, _, path = kv.partition("=")
+        models[name if path else "ms3dqe"] = path or name
+    if not models:
+        from tasks.classify import DEFAULT_MODEL
+
+        models = {"ms3dqe": str(DEFAULT_MODEL)}
+    logging.getLogger("ms3d").setLevel(logging.INFO)
+    name, wd = held_out_campus(a.seed, a.work_dir, a.campus, a.data)
+    res = evaluate(models, name, wd, data=a.data, out=a.out, threads=a.threads, max_pairs=a.max_pairs)
+    print(res["text"])
+    return 0
+
+
+def add_commands(sub: argparse._SubParsersAction) -> None:
+    """Add ``train`` and ``evaluate`` to the ``ms3d`` subcommands."""
+    t = sub.add_parser("train", help="train MS3DQE-Net (and the baselines) on synth campuses")
+    t.add_argument("--profile", default="default", help="default | paper | tiny (ms3d_model.profiles)")
+    t.add_argument("--seeds", type=int, nargs="*", default=[7, 11], help="synth demo campuses to train on")
+    t.add_argument("--work-dir", action="append", help="a processed, labelled campus to train on as well")
+    t.add_argument("--data", default="ms3d-work", help="where synth campuses, their work dirs and caches live")
+    t.add_argument("--out", default="ms3d-work/train")
+    t.add_argument("--models", nargs="*", help="networks to train (ms3dqe, ms3dqe_plus, pointnet, meshnet, ablation1..6)")
+    t.add_argument("--suite", action="store_true", help="train every network of Tables 3 and 4")
+    t.add_argument("--set", action="append", metavar="KEY=VALUE", help="override a profile field, e.g. epochs=3")
+    t.add_argument("--no-prefect", action="store_true", help="run without a Prefect server")
+    t.set_defaults(func=_cmd_train)
+
+    e = sub.add_parser("evaluate", help="Tables 3 and 4 on a held-out campus")
+    e.add_argument("--suite", help="a `ms3d train --suite` output folder")
+    e.add_argument("--model", action="append", metavar="NAME=PATH", help="a checkpoint to score (repeatable)")
+    e.add_argument("--seed", type=int, default=42, help="held-out synth demo campus (never trained on)")
+    e.add_argument("--work-dir", help="score a processed labelled campus instead")
+    e.add_argument("--campus", help="score a campus config (YAML with inputs.labels) instead")
+    e.add_argument("--threads", type=int, default=1, help="torch threads (1 is fastest on a busy 2-core machine)")
+    e.add_argument("--max-pairs", type=int, help="score a seeded random subset of this many labelled pairs")
+    e.add_argument("--data", default="ms3d-work")
+    e.add_argument("--out", help="write the results as JSON here")
+    e.set_defaults(func=_cmd_evaluate)

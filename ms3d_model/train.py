@@ -1,0 +1,228 @@
+"""Training and inference of a network on :class:`~ms3d_model.dataset.PairSet` s: the paper's optimiser
+(§4.4), per-epoch metrics, PNG curves, checkpoints that load with ``torch.load(weights_only=True)``.
+
+A checkpoint is a plain dict: ``{"format": "ms3d-model/1", "profile": Profile.to_json(), "state_dict": ...,
+"metrics": {...}, "history": [...]}`` (tensors, strings, numbers, lists and dicts only).
+"""
+
+from __future__ import annotations
+
+import hashlib
+import json
+import logging
+import sys
+import time
+from collections.abc import Callable
+from pathlib import Path
+
+import numpy as np
+import torch
+from torch import nn
+
+from .cues import N_CUES
+from .dataset import PairSet, batches, to_batch
+from .metrics import classification_report
+from .net import build_net, kernel_response_stats, n_parameters
+from .profiles import Profile
+
+log = logging.getLogger("ms3d.model")
+FORMAT = "ms3d-model/1"
+
+
+def set_seeds(seed: int) -> None:
+    torch.manual_seed(seed)
+    np.random.seed(seed % (2**32))
+
+
+def make_model(profile: Profile, cues: np.ndarray | None = None) -> nn.Module:
+    """A fresh network of ``profile``; for MS3DQE-Net+ the cue standardisation comes from ``cues`` (B, C)."""
+    net = build_net(profile.net)
+    if profile.net.n_cues and cues is not None and len(cues):
+        mean = np.nanmean(cues, axis=0)
+        std = np.maximum(np.nanstd(cues, axis=0), 1e-6)
+        net.cue_mean.copy_(torch.from_numpy(mean.astype(np.float32)))
+        net.cue_std.copy_(torch.from_numpy(std.astype(np.float32)))
+    return net
+
+
+def predict(net: nn.Module, ps: PairSet, batch_size: int = 64) -> np.ndarray:
+    """(B,) float32 probability of "bad" for each pair (eval mode, no gradients)."""
+    net.eval()
+    out = np.empty(len(ps), np.float32)
+    with torch.inference_mode():
+        for idx in batches(len(ps), batch_size, shuffle=False):
+            logits = net(to_batch(ps.feats.take(idx), ps.cues[idx] if net_uses_cues(net) else None))
+            out[idx] = torch.softmax(logits, dim=1)[:, 1].numpy()
+    return out
+
+
+def net_uses_cues(net: nn.Module) -> bool:
+    return bool(getattr(net, "cfg", None) is not None and net.cfg.n_cues)
+
+
+class _Bar:
+    """A one-line progress bar on stderr (a terminal), or a log line every ~10 % elsewhere."""
+
+    def __init__(self, total: int, label: str, enabled: bool):
+        self.total, self.label, self.enabled = total, label, enabled
+        self.tty = enabled and sys.stderr.isatty()
+        self.done, self.t0, self.next_log = 0, time.perf_counter(), 0.1
+
+    def update(self, n: int, loss: float) -> None:
+        self.done += n
+        if not self.enabled:
+            return
+        frac = self.done / max(self.total, 1)
+        rate = self.done / max(time.perf_counter() - self.t0, 1e-9)
+        text = f"{self.label} {self.done}/{self.total} pairs {rate:.1f}/s loss {loss:.4f}"
+        if self.tty:
+            bar = "#" * int(30 * frac)
+            sys.stderr.write(f"\r[{bar:<30}] {text}")
+            if self.done >= self.total:
+                sys.stderr.write("\n")
+            sys.stderr.flush()
+        elif frac >= self.next_log:
+            log.info(text)
+            self.next_log += 0.1
+
+
+def save_checkpoint(path: str | Path, net: nn.Module, profile: Profile, metrics: dict | None = None,
+                    history: list | None = None) -> str:
+    """Write a checkpoint atomically; returns its sha256 (the model hash)."""
+    path = Path(path)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    state = {k: v.detach().clone() for k, v in net.state_dict().items()}
+    obj = {"format": FORMAT, "profile": profile.to_json(), "state_dict": state,
+           "metrics": json.loads(json.dumps(metrics or {})), "history": json.loads(json.dumps(history or []))}
+    tmp = path.with_name(f".{path.name}.tmp")
+    torch.save(obj, tmp)
+    tmp.replace(path)
+    return model_hash(path)
+
+
+def model_hash(path: str | Path) -> str:
+    """sha256 of a checkpoint file (the identity classify records and fingerprints)."""
+    h = hashlib.sha256()
+    with open(path, "rb") as f:
+        for chunk in iter(lambda: f.read(1 << 20), b""):
+            h.update(chunk)
+    return h.hexdigest()
+
+
+def load_checkpoint(path: str | Path) -> tuple[nn.Module, Profile, dict]:
+    """(network in eval mode, profile, the checkpoint dict without the weights); ``weights_only=True``."""
+    obj = torch.load(path, map_location="cpu", weights_only=True)
+    if not isinstance(obj, dict) or obj.get("format") != FORMAT:
+        raise ValueError(f"{path}: not an ms3d model checkpoint (format {obj.get('format') if isinstance(obj, dict) else None!r})")
+    profile = Profile.from_json(obj["profile"])
+    net = build_net(profile.net, obj["state_dict"])
+    net.load_state_dict(obj["state_dict"])
+    net.eval()
+    return net, profile, {k: v for k, v in obj.items() if k != "state_dict"}
+
+
+def save_curves(history: list[dict], path: str | Path, title: str = "") -> None:
+    """Loss and accuracy per epoch (train and validation) as a PNG."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    ep = [h["epoch"] for h in history]
+    fig, ax = plt.subplots(1, 2, figsize=(10, 4))
+    ax[0].plot(ep, [h["train_loss"] for h in history], "o-", label="train")
+    ax[0].plot(ep, [h["val_loss"] for h in history], "o-", label="validation")
+    ax[0].set_xlabel("epoch"), ax[0].set_ylabel("cross-entropy"), ax[0].legend()
+    ax[1].plot(ep, [h["train_acc"] for h in history], "o-", label="train")
+    ax[1].plot(ep, [h["val_acc"] for h in history], "o-", label="validation")
+    ax[1].plot(ep, [h["val_map"] for h in history], "s--", label="validation mAP")
+    ax[1].set_xlabel("epoch"), ax[1].set_ylabel("accuracy"), ax[1].legend()
+    fig.suptitle(title)
+    fig.tight_layout()
+    Path(path).parent.mkdir(parents=True, exist_ok=True)
+    fig.savefig(path, dpi=100)
+    plt.close(fig)
+
+
+def _loss_on(net: nn.Module, ps: PairSet, p_bad: np.ndarray) -> float:
+    p = np.clip(np.where(ps.labels == 1, p_bad, 1 - p_bad), 1e-7, 1.0)
+    return float(-np.log(p).mean()) if len(p) else float("nan")
+
+
+def train_model(profile: Profile, train: PairSet, val: PairSet, out_dir: str | Path, progress: bool = True,
+                on_epoch: Callable[[dict], None] | None = None) -> dict:
+    """Train ``profile``'s network on ``train``, validate on ``val`` each epoch.
+
+    Writes ``out_dir/last.pt``, ``out_dir/best.pt`` (best validation accuracy, ties broken by mAP), ``out_dir/curves.png`` and
+    ``out_dir/history.json``. Returns {"best": metrics of the best epoch, "history": [...], "parameters",
+    "train_seconds", "train_cpu_seconds", "best_path", "model_hash"}.
+    """
+    out_dir = Path(out_dir)
+    out_dir.mkdir(parents=True, exist_ok=True)
+    torch.set_num_threads(profile.threads)
+    set_seeds(profile.seed)
+    if profile.net.n_cues and profile.net.n_cues != N_CUES:
+        raise ValueError(f"profile expects {profile.net.n_cues} cues, the featuriser makes {N_CUES}")
+    net = make_model(profile, train.cues)
+    opt = torch.optim.SGD(net.parameters(), lr=profile.lr, momentum=profile.momentum, weight_decay=profile.weight_decay)
+    sched = torch.optim.lr_scheduler.MultiStepLR(opt, milestones=list(profile.milestones), gamma=profile.gamma)
+    crit = nn.CrossEntropyLoss()
+    rng = np.random.default_rng(profile.seed)
+    uses_cues = net_uses_cues(net)
+    history, best, best_acc = [], {}, (-1.0, -1.0)
+    t_wall, t_cpu = time.perf_counter(), time.process_time()
+    if profile.val_pairs and len(val) > profile.val_pairs:
+        val = val.take(np.sort(np.random.default_rng(profile.seed + 1).permutation(len(val))[:profile.val_pairs]))
+    n_per_epoch = min(profile.pairs_per_epoch or len(train), len(train))
+    n_per_epoch -= n_per_epoch % profile.batch_size  # BatchNorm needs > 1 sample: whole batches only
+    log.info("training %s: %d parameters, %d train / %d val pairs, %d pairs per epoch", profile.name,
+             n_parameters(net), len(train), len(val), n_per_epoch)
+    kc = kernel_response_stats(net, to_batch(train.feats.take(np.arange(min(64, len(train))))),
+                               sigmas=(0.005, None)) if len(train) else {}
+    for name, st in kc.items():
+        log.info("kernel correlation %s at init: mean %.3g, median %.3g, %.1f%% > 1e-3", name, st["mean"],
+                 st["median"], 100 * st["frac_gt_1e-3"])
+    for epoch in range(1, profile.epochs + 1):
+        net.train()
+        pick = rng.permutation(len(train))[:n_per_epoch]
+        bar = _Bar(n_per_epoch, f"epoch {epoch}/{profile.epochs}", progress)
+        loss_sum, correct, seen, t_ep = 0.0, 0, 0, time.perf_counter()
+        for idx in batches(len(pick), profile.batch_size, shuffle=False):
+            sel = pick[idx]
+            batch = to_batch(train.feats.take(sel), train.cues[sel] if uses_cues else None, profile.noise_m, rng)
+            y = torch.from_numpy(train.labels[sel].astype(np.int64))
+            logits = net(batch)
+            loss = crit(logits, y)
+            opt.zero_grad(set_to_none=True)
+            loss.backward()
+            opt.step()
+            loss_sum += float(loss.detach()) * len(sel)
+            correct += int((logits.argmax(1) == y).sum())
+            seen += len(sel)
+            bar.update(len(sel), loss_sum / seen)
+        sched.step()
+        p_val = predict(net, val, profile.eval_batch)
+        rep = classification_report(val.labels, p_val)
+        row = {"epoch": epoch, "train_loss": loss_sum / max(seen, 1), "train_acc": correct / max(seen, 1),
+               "val_loss": _loss_on(net, val, p_val), "val_acc": rep["acc"], "val_map": rep["map"],
+               "lr": opt.param_groups[0]["lr"], "epoch_seconds": time.perf_counter() - t_ep,
+               "pairs_per_s": seen / max(time.perf_counter() - t_ep, 1e-9)}
+        history.append(row)
+        log.info("epoch %d: train loss %.4f acc %.4f | val loss %.4f acc %.4f mAP %.4f | %.0f s", epoch,
+                 row["train_loss"], row["train_acc"], row["val_loss"], row["val_acc"], row["val_map"],
+                 row["epoch_seconds"])
+        save_checkpoint(out_dir / "last.pt", net, profile, rep, history)
+        if (rep["acc"], rep["map"]) > best_acc or not best:  # ties (e.g. at the majority class) go to mAP
+            best_acc, best = (rep["acc"], rep["map"]), {**rep, "epoch": epoch}
+            save_checkpoint(out_dir / "best.pt", net, profile, best, history)
+        save_curves(history, out_dir / "curves.png", f"{profile.name}: {profile.net.arch}")
+        (out_dir / "history.json").write_text(json.dumps(history, indent=1))
+        if on_epoch is not None:
+            on_epoch(row)
+        if profile.time_budget_s and time.perf_counter() - t_wall > profile.time_budget_s:
+            log.info("time budget of %.0f s reached after epoch %d", profile.time_budget_s, epoch)
+            break
+    return {"best": best, "history": history, "parameters": n_parameters(net),
+            "train_seconds": time.perf_counter() - t_wall, "train_cpu_seconds": time.process_time() - t_cpu,
+            "best_path": str(out_dir / "best.pt"), "model_hash": model_hash(out_dir / "best.pt"),
+            "kernel_stats_init": kc}
