@@ -13,6 +13,7 @@ from pydantic import BaseModel, ConfigDict, Field, ValidationError, field_valida
 
 from storage.errors import InputError
 from storage.grid import PatchGrid
+from tasks.repair_config import RepairConfig
 
 
 class _Model(BaseModel):
@@ -100,6 +101,7 @@ class CampusConfig(_Model):
     tiling: TilingConfig = Field(default_factory=TilingConfig)
     partition: PartitionConfig = Field(default_factory=PartitionConfig)
     cluster: ClusterConfig = Field(default_factory=ClusterConfig)
+    repair: RepairConfig = Field(default_factory=RepairConfig)
     runner: Literal["dask", "local", "inline"] = Field(
         "dask", description="'local': Prefect tasks in the flow process; 'inline': no Prefect at all, one process (debugging, tests)")
 
