@@ -95,13 +95,16 @@ class RepairPlan:
 
 
 def repair_plan(evidence: DefectEvidence, covered: np.ndarray, offset: np.ndarray, *, typed: bool,
-                offset_m: float) -> RepairPlan:
+                offset_m: float, conflict: np.ndarray | None = None) -> RepairPlan:
     """Typed repair: uncovered regions keep the mesh; covered vertices off the MLS surface by more than
-    ``offset_m`` are forced out (cut back to the MLS). Untyped (the paper): rebuild, force nothing."""
+    ``offset_m``, and vertices in conflict with the scan (``conflict``: an MLS point near, none similar),
+    are forced out (cut back to the MLS). Untyped (the paper): rebuild, force nothing."""
     nv = len(covered)
     if not typed:
         return RepairPlan(True, np.zeros(nv, bool), "untyped")
     if evidence.type == "uncovered":
         return RepairPlan(False, np.zeros(nv, bool), "no MLS coverage: left to the mesh")
     forced = covered & (np.abs(np.nan_to_num(offset)) > offset_m)
+    if conflict is not None:
+        forced |= conflict
     return RepairPlan(True, forced, f"{evidence.type}: {int(forced.sum())} vertices cut back to the MLS surface")

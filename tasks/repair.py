@@ -113,7 +113,15 @@ def repair_region_geometry(data: RegionInput, cfg) -> RegionGeometry:
     topo = zone_charts(data.xyz, data.zone_faces, data.context_faces, data.near_zone, mc.max_hole_loop_m)
     ev = classify_evidence(covered, offset, offset_m=tc.offset_m, hole_area_m2=hole_area,
                            open_loop_m=topo.hole_length_m, zone_area_m2=zone_area, min_coverage=tc.min_coverage)
-    plan = repair_plan(ev, covered, offset, typed=tc.enabled, offset_m=tc.offset_m)
+    conflict = None
+    if tc.enabled and tc.conflict_radius_m > 0 and len(mls):
+        from tasks.fuse import best_similarity
+
+        dn = cKDTree(mls).query(data.xyz[zone_v], distance_upper_bound=tc.conflict_radius_m)[0]
+        sim = best_similarity(data.xyz[zone_v], vn[zone_v], mls, mls_n, cKDTree(mls), params)
+        conflict = np.isfinite(dn) & (sim < params.similarity_threshold)
+        stats["conflict"] = int(conflict.sum())
+    plan = repair_plan(ev, covered, offset, typed=tc.enabled, offset_m=tc.offset_m, conflict=conflict)
     stats["plan"] = plan.reason
     stats["charts"] = len(topo.charts)
     stats["non_disc_faces"] = int(len(topo.rejected))
