@@ -152,19 +152,25 @@ def poisson_depth_for(extent_m: float, spacing_m: float, lo: int = 5, hi: int = 
 # ------------------------------------------------------------------------------------- chart triangulation
 
 def triangulate_in_chart(chart: Chart, pts: np.ndarray, *, max_map_distance_m: float, border_margin_m: float,
-                         max_edge_m: float, located: tuple | None = None) -> tuple[np.ndarray, np.ndarray, np.ndarray, dict]:
+                         max_edge_m: float, located: tuple | None = None,
+                         vertex_xyz: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray, np.ndarray, dict]:
     """Delaunay triangulation of points in a chart, with the chart's boundary vertices fixed.
 
     chart: a disc of the zone (boundary = retained border + mesh edge); pts: (k, 3) float64 candidate
     points (fused points, or Poisson vertices). Points farther than max_map_distance_m from the chart
     surface, or whose closest point lies within border_margin_m of the chart boundary, are dropped.
-    located: the chart's ``ClosestPoint.query(pts)`` when already computed.
+    located: the chart's ``ClosestPoint.query(pts)`` when already computed. vertex_xyz: output positions
+    of the region's vertices (chart.vertex indexes it; default: the chart's own positions), e.g. seam
+    vertices moved onto the MLS surface.
     Returns (xyz (q, 3) of the triangulated points = boundary vertices first, then kept points;
     index (q,) int64: the chart vertex (>= 0, boundary) or -(1 + point index) for a point;
     faces (t, 3) int64 into xyz, counter-clockwise in the disc = oriented like the zone; stats).
     """
     loop = chart.loop
-    bxyz = chart.xyz[loop]
+    bxyz = chart.xyz[loop].copy()
+    if vertex_xyz is not None:
+        own = chart.vertex[loop] >= 0
+        bxyz[own] = vertex_xyz[chart.vertex[loop][own]]
     stats = {"candidates": int(len(pts))}
     keep = np.zeros(len(pts), bool)
     puv = np.zeros((len(pts), 2))
@@ -203,6 +209,15 @@ def triangulate_in_chart(chart: Chart, pts: np.ndarray, *, max_map_distance_m: f
     longest = np.max(np.linalg.norm(e - np.roll(e, -1, axis=1), axis=2), axis=1)
     on_border = (tri < len(loop)).sum(1) >= 2  # a face on the border keeps the weld whatever its shape
     drop = (longest > max_edge_m) & ~on_border
+    if drop.any():  # a long face is a fold only when it stands across the chart surface under it
+        n = np.cross(e[drop, 1] - e[drop, 0], e[drop, 2] - e[drop, 0])
+        n /= np.maximum(np.linalg.norm(n, axis=1), 1e-18)[:, None]
+        fid, _, _ = ClosestPoint(chart.xyz, chart.faces).query(e[drop].mean(axis=1))
+        cf = chart.xyz[chart.faces[np.maximum(fid, 0)]]
+        cn = np.cross(cf[:, 1] - cf[:, 0], cf[:, 2] - cf[:, 0])
+        cn /= np.maximum(np.linalg.norm(cn, axis=1), 1e-18)[:, None]
+        idx = np.flatnonzero(drop)
+        drop[idx[np.einsum("ij,ij->i", n, cn) > 0.5]] = False
     stats["dropped_long"] = int(drop.sum())
     stats["used_points"] = int(len(kidx))
     return xyz_all, index, tri[~drop], stats
@@ -210,12 +225,13 @@ def triangulate_in_chart(chart: Chart, pts: np.ndarray, *, max_map_distance_m: f
 
 def rebuild_charts(charts: list[Chart], vertex_ids: np.ndarray, pts: np.ndarray, pts_source: np.ndarray,
                    pts_vertex: np.ndarray, *, max_map_distance_m: float, border_margin_m: float,
-                   max_edge_m: float) -> RebuiltMesh:
+                   max_edge_m: float, vertex_xyz: np.ndarray | None = None) -> RebuiltMesh:
     """Triangulate the points in every chart and join the charts into one mesh, welded by vertex id.
 
     vertex_ids: (n,) int64 ids of the region's vertex table (chart.vertex indexes it);
     pts: (k, 3) points to triangulate; pts_source: (k,) int8 (0 mesh vertex, 1 MLS, 2 Poisson);
-    pts_vertex: (k,) int64 region vertex index of a point that is an original mesh vertex, else -1.
+    pts_vertex: (k,) int64 region vertex index of a point that is an original mesh vertex, else -1;
+    vertex_xyz: (n, 3) output positions of the region's vertices (default: as in the charts).
     """
     xs, ids, fs, srcs, chs = [], [], [], [], []
     stats = {"charts": len(charts), "dropped_long": 0, "at_border": 0, "too_far": 0}
@@ -227,7 +243,7 @@ def rebuild_charts(charts: list[Chart], vertex_ids: np.ndarray, pts: np.ndarray,
         q = tuple(a[mine] for a in located[ci])
         xyz, index, tri, st = triangulate_in_chart(ch, pts[mine], max_map_distance_m=max_map_distance_m,
                                                    border_margin_m=border_margin_m, max_edge_m=max_edge_m,
-                                                   located=q)
+                                                   located=q, vertex_xyz=vertex_xyz)
         index = np.where(index >= 0, index, -1 - mine[np.maximum(-1 - index, 0)])
         for k in ("dropped_long", "at_border", "too_far"):
             stats[k] += st.get(k, 0)

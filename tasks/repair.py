@@ -150,8 +150,10 @@ def repair_region_geometry(data: RegionInput, cfg) -> RegionGeometry:
         stats["poisson"] = {"depth": depth, "vertices": int(len(pv)), "kept": int(near.sum())}
     else:
         pts, src, pvert = fused_xyz, fused_src, fused_vertex
-    mesh = rebuild_charts(topo.charts, data.vertex_id, pts, src, pvert, max_map_distance_m=mc.max_map_distance_m,
-                          border_margin_m=0.5 * fc.mls_spacing_m, max_edge_m=mc.max_edge_m)
+    vxyz, vids = seam_positions(data, zone_v, fr.replaced, acc, acc_n, topo)
+    stats["seam_vertices_moved"] = int((vids != data.vertex_id).sum())
+    mesh = rebuild_charts(topo.charts, vids, pts, src, pvert, max_map_distance_m=mc.max_map_distance_m,
+                          border_margin_m=0.5 * fc.mls_spacing_m, max_edge_m=mc.max_edge_m, vertex_xyz=vxyz)
     t4 = time.perf_counter()
     replaced = np.ones(mz, bool)
     replaced[topo.rejected] = False
@@ -167,3 +169,33 @@ def repair_region_geometry(data: RegionInput, cfg) -> RegionGeometry:
     stats["seconds"] = {"normals": t1 - t0, "evidence": t2 - t1, "fusion": t3 - t2, "mesh": t4 - t3,
                         "total": time.perf_counter() - t0}
     return RegionGeometry(mesh, replaced, ev, fused_xyz, fused_src, stats)
+
+
+def seam_positions(data: RegionInput, zone_v: np.ndarray, replaced: np.ndarray, acc: np.ndarray, acc_n: np.ndarray,
+                   topo) -> tuple[np.ndarray, np.ndarray]:
+    """Output positions and ids of the region's vertices: chart boundary vertices that are neither on the
+    retained border nor on the mesh's own edge (seams cut to make a disc) and that the fusion replaced
+    are projected onto the plane of the nearest accepted MLS point and get a new id (-(2**40) - index)."""
+    from tasks.mesh_chart import boundary_edges as open_edges
+
+    xyz, ids = data.xyz.copy(), data.vertex_id.copy()
+    if not len(acc) or not topo.charts:
+        return xyz, ids
+    on_loop = np.zeros(len(xyz), bool)
+    for ch in topo.charts:
+        v = ch.vertex[ch.loop]
+        on_loop[v[v >= 0]] = True
+    fixed = np.zeros(len(xyz), bool)
+    fixed[border_edges(data.zone_faces, data.context_faces, len(xyz)).ravel()] = True
+    fixed[open_edges(np.concatenate([data.zone_faces, data.context_faces]), len(xyz)).ravel()] = True
+    rep = np.zeros(len(xyz), bool)
+    rep[zone_v[replaced]] = True
+    move = np.flatnonzero(on_loop & ~fixed & rep)
+    if len(move):
+        d, j = cKDTree(acc).query(xyz[move], distance_upper_bound=1.0)
+        ok = np.isfinite(d)
+        m, j = move[ok], j[ok]
+        off = np.einsum("ij,ij->i", xyz[m] - acc[j], acc_n[j])
+        xyz[m] -= off[:, None] * acc_n[j]
+        ids[m] = -(1 << 40) - m
+    return xyz, ids
