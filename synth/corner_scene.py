@@ -29,7 +29,7 @@ def _perimeter(step: float) -> tuple[np.ndarray, np.ndarray]:
     """Points every ``step`` around the footprint (counter-clockwise seen from above) and outward normals."""
     c = [CENTRE + HALF * np.array(s) for s in ((-1, -1), (1, -1), (1, 1), (-1, 1))]
     pts, nrm = [], []
-    n_side = int(round(2 * HALF / step))
+    n_side = round(2 * HALF / step)
     outward = [np.array([0, -1.0]), np.array([1.0, 0]), np.array([0, 1.0]), np.array([-1.0, 0])]
     for k in range(4):
         a, b = c[k], c[(k + 1) % 4]

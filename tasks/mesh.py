@@ -171,7 +171,7 @@ def triangulate_in_chart(chart: Chart, pts: np.ndarray, *, max_map_distance_m: f
     if vertex_xyz is not None:
         own = chart.vertex[loop] >= 0
         bxyz[own] = vertex_xyz[chart.vertex[loop][own]]
-    stats = {"candidates": int(len(pts))}
+    stats = {"candidates": len(pts)}
     keep = np.zeros(len(pts), bool)
     puv = np.zeros((len(pts), 2))
     if len(pts):
@@ -219,7 +219,7 @@ def triangulate_in_chart(chart: Chart, pts: np.ndarray, *, max_map_distance_m: f
         idx = np.flatnonzero(drop)
         drop[idx[np.einsum("ij,ij->i", n, cn) > 0.5]] = False
     stats["dropped_long"] = int(drop.sum())
-    stats["used_points"] = int(len(kidx))
+    stats["used_points"] = len(kidx)
     return xyz_all, index, tri[~drop], stats
 
 
@@ -249,12 +249,13 @@ def rebuild_charts(charts: list[Chart], vertex_ids: np.ndarray, pts: np.ndarray,
             stats[k] += st.get(k, 0)
         is_b = index >= 0
         pidx = np.where(is_b, 0, -1 - index)
-        vtab = np.where(is_b, ch.vertex[np.where(is_b, index, 0)], pts_vertex[pidx])
+        pv, ps = np.r_[pts_vertex, -1], np.r_[pts_source, 0].astype(np.int8)  # pidx 0 is valid when pts is empty
+        vtab = np.where(is_b, ch.vertex[np.where(is_b, index, 0)], pv[pidx])
         vid = np.where(vtab >= 0, vertex_ids[np.maximum(vtab, 0)], -(2 + pidx))  # new: -(2 + point index)
         xs.append(xyz)
         ids.append(vid)
         fs.append(tri + base)
-        srcs.append(np.where(is_b, 0, pts_source[pidx]).astype(np.int8))
+        srcs.append(np.where(is_b, 0, ps[pidx]).astype(np.int8))
         chs.append(np.full(len(tri), ci, np.int32))
         base += len(xyz)
     if not xs:
@@ -286,7 +287,7 @@ def border_gap(border_xyz: np.ndarray, border_ids: np.ndarray, rebuilt: RebuiltM
     "max_gap_m" (largest distance from a point of a border edge to the rebuilt surface: 0 when all are
     welded), "open_edges" (rebuilt boundary edges that are not border edges: holes left inside)}.
     """
-    out = {"border_edges": int(len(border_ids)), "welded": 0, "max_gap_m": 0.0, "open_edges": 0}
+    out = {"border_edges": len(border_ids), "welded": 0, "max_gap_m": 0.0, "open_edges": 0}
     if rebuilt.n_faces == 0:
         out["max_gap_m"] = float("inf") if len(border_ids) else 0.0
         return out

@@ -172,7 +172,7 @@ def seam_edges(xyz: np.ndarray, faces: np.ndarray, loops: list[np.ndarray]) -> n
     g = coo_matrix((np.r_[w, w], (np.r_[a, b], np.r_[b, a])), shape=(n, n)).tocsr()
     while len(joined) < len(loops):
         src = np.concatenate([loops[i] for i in sorted(joined)])
-        dist, pred, source = dijkstra(g, indices=src, return_predecessors=True, min_only=True)
+        dist, pred, _source = dijkstra(g, indices=src, return_predecessors=True, min_only=True)
         best, target = np.inf, None
         for li in set(range(len(loops))) - joined:
             v = loops[li][np.argmin(dist[loops[li]])]

@@ -98,8 +98,8 @@ def repair_region_geometry(data: RegionInput, cfg) -> RegionGeometry:
     else:
         nrm = np.zeros((len(both), 3))
     mls_n = nrm[: len(mls)]
-    stats["mls_points"] = int(len(data.mls_xyz))
-    stats["mls_thinned"] = int(len(mls))
+    stats["mls_points"] = len(data.mls_xyz)
+    stats["mls_thinned"] = len(mls)
     t1 = time.perf_counter()
     # evidence (typed repair) from the MLS surface over zone + context
     tree = cKDTree(both) if len(both) else None
@@ -124,13 +124,13 @@ def repair_region_geometry(data: RegionInput, cfg) -> RegionGeometry:
     plan = repair_plan(ev, covered, offset, typed=tc.enabled, offset_m=tc.offset_m, conflict=conflict)
     stats["plan"] = plan.reason
     stats["charts"] = len(topo.charts)
-    stats["non_disc_faces"] = int(len(topo.rejected))
+    stats["non_disc_faces"] = len(topo.rejected)
     t2 = time.perf_counter()
     if not plan.rebuild or not topo.charts:
         stats["seconds"] = {"total": time.perf_counter() - t0}
         return RegionGeometry(empty_mesh(), np.zeros(mz, bool), ev, np.zeros((0, 3)), np.zeros(0, np.int8), stats)
     fr = graph_cut_fuse(data.xyz[zone_v], vn[zone_v], mls, mls_n, params, forced=plan.forced & ~locked, locked=locked)
-    stats["fusion"] = {"vertices": int(len(zone_v)), "replaced": int(fr.replaced.sum()),
+    stats["fusion"] = {"vertices": len(zone_v), "replaced": int(fr.replaced.sum()),
                        "accepted": int(fr.accepted.sum()), "rejected": int((~fr.accepted).sum()),
                        "forced": int((plan.forced & ~locked).sum()), "energy": fr.energy}
     kept_v = zone_v[~fr.replaced & ~locked]
@@ -147,7 +147,7 @@ def repair_region_geometry(data: RegionInput, cfg) -> RegionGeometry:
         pv, _, _ = poisson_surface(fused_xyz, fused_n, depth, mc.poisson_trim_quantile)
         near = cKDTree(fused_xyz).query(pv, distance_upper_bound=3 * fc.mls_spacing_m)[0] < np.inf
         pts, src, pvert = pv[near], np.full(int(near.sum()), 2, np.int8), np.full(int(near.sum()), -1)
-        stats["poisson"] = {"depth": depth, "vertices": int(len(pv)), "kept": int(near.sum())}
+        stats["poisson"] = {"depth": depth, "vertices": len(pv), "kept": int(near.sum())}
     else:
         pts, src, pvert = fused_xyz, fused_src, fused_vertex
     vxyz, vids = seam_positions(data, zone_v, fr.replaced, acc, acc_n, topo)

@@ -380,7 +380,7 @@ def texture_mesh(xyz: np.ndarray, faces: np.ndarray, cams: list[CameraView], loa
     q = view_quality(xyz, faces, cams, max_angle_deg=cfg.max_view_angle_deg, max_distance_m=cfg.max_distance_m,
                      normals=nrm)
     fi, ci = np.nonzero(q > 0)
-    stats["candidates"] = int(len(fi))
+    stats["candidates"] = len(fi)
     cen, _, _ = face_geometry(xyz, faces)
     centre = cen.mean(axis=0)
     scene = o3d.t.geometry.RaycastingScene()
@@ -404,12 +404,13 @@ def texture_mesh(xyz: np.ndarray, faces: np.ndarray, cams: list[CameraView], loa
     cost[:, -1] = np.where(seen, np.inf, 0.0)  # 'no view' only for faces no camera sees
     # resolution independent: data cost per unit area, seam cost per unit length (both relative to the mean)
     _, _, area = face_geometry(xyz, faces)
-    cost = cost * (area / max(area.mean(), 1e-12))[:, None]
+    wa = np.maximum(area / max(area.mean(), 1e-12), 1e-6)[:, None]
+    cost = np.where(np.isfinite(cost), cost * wa, np.inf)
     shared = _shared_edge_length(xyz, faces, adj)
     lab = select_views(cost, adj, cfg.seam_weight * shared / max(shared.mean(), 1e-12) if len(adj) else 0.0)
     lab = np.where(lab == len(cams), NO_VIEW, lab)
     stats["seen_faces"] = int(seen.sum())
-    stats["views_used"] = int(len(np.unique(lab[lab != NO_VIEW])))
+    stats["views_used"] = len(np.unique(lab[lab != NO_VIEW]))
     stats["seams"] = int((lab[adj[:, 0]] != lab[adj[:, 1]]).sum())
     atlas = build_atlas(xyz, faces, lab, cams, load_image, adj, cfg.max_atlas_px)
     stats["charts"] = atlas.charts

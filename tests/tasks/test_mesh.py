@@ -104,7 +104,7 @@ def test_band_with_two_loops_is_cut_into_one_disc():
 def test_pinched_fans_are_split():
     # two triangles touching at vertex 0 only
     f = np.array([[0, 1, 2], [0, 3, 4]])
-    g, orig = split_fans(f, 5)
+    _g, orig = split_fans(f, 5)
     assert len(orig) == 6 and (orig == 0).sum() == 2
 
 

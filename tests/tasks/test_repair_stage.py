@@ -7,12 +7,11 @@ import pytest
 
 from storage.patch_store import PatchStore, write_side_table
 from storage.workdir import read_campus
+from synth.corner_scene import CENTRE, HALF, building_mesh, write_campus_workdir
 from tasks.config import CampusConfig
 from tasks.mesh_chart import boundary_edges
 from tasks.regions import patch_grades
 from tasks.repair_stage import region_meshes_for_tile, run_region, run_regions
-
-from synth.corner_scene import CENTRE, HALF, building_mesh, write_campus_workdir
 
 TILES = ["0_0", "0_1", "1_0", "1_1"]
 
@@ -53,12 +52,12 @@ def _assemble(wd):
         tris.append(tri[keep])
         vids.append(vid[keep])
     tri, vid = np.concatenate(tris), np.concatenate(vids)
-    uid, first, inv = np.unique(vid.ravel(), return_index=True, return_inverse=True)
+    _uid, first, inv = np.unique(vid.ravel(), return_index=True, return_inverse=True)
     return tri.reshape(-1, 3)[first], inv.reshape(-1, 3)
 
 
 def test_region_spanning_a_tile_corner_is_repaired_as_one_piece(corner):
-    wd, cfg, bad, plan, results = corner
+    wd, _, bad, plan, results = corner
     assert plan["n_regions"] == 1 and plan["n_bad"] == len(bad)
     (r,) = results
     assert r["status"] == "done" and r["result"] == "rebuilt" and sorted(r["tiles"]) == TILES

@@ -52,7 +52,7 @@ def test_face_hidden_behind_an_occluder_takes_no_view():
     g = np.arange(-0.9, 0.91, 0.2)
     centres = np.array([[x, y, z] for x in (0.6, 0.8) for y in 3 + g for z in 1.5 + g])
     ov, of = voxel_boxes(centres, 0.2)
-    atlas, st = texture_mesh(v, f, cams, images((255, 0, 0), (0, 0, 255)), (ov, of), TextureConfig(),
+    atlas, _st = texture_mesh(v, f, cams, images((255, 0, 0), (0, 0, 255)), (ov, of), TextureConfig(),
                              np.zeros((4, 3), np.uint8))
     assert (atlas.view[:2] != NO_VIEW).all() and (atlas.view[2:] == NO_VIEW).all()
     assert np.isnan(atlas.uv[2:]).all() and np.isfinite(atlas.uv[:2]).all()
