@@ -244,7 +244,7 @@ def rebuild_charts(charts: list[Chart], vertex_ids: np.ndarray, pts: np.ndarray,
         xyz, index, tri, st = triangulate_in_chart(ch, pts[mine], max_map_distance_m=max_map_distance_m,
                                                    border_margin_m=border_margin_m, max_edge_m=max_edge_m,
                                                    located=q, vertex_xyz=vertex_xyz)
-        index = np.where(index >= 0, index, -1 - mine[np.maximum(-1 - index, 0)])
+        index = np.where(index >= 0, index, -1 - np.r_[mine, 0][np.maximum(-1 - index, 0)])
         for k in ("dropped_long", "at_border", "too_far"):
             stats[k] += st.get(k, 0)
         is_b = index >= 0

@@ -190,6 +190,27 @@ def seam_edges(xyz: np.ndarray, faces: np.ndarray, loops: list[np.ndarray]) -> n
     return np.concatenate(cut) if cut else np.zeros(0, np.int64)
 
 
+def opening_cut(xyz: np.ndarray, faces: np.ndarray) -> np.ndarray:
+    """Undirected keys of a shortest edge path between two far-apart vertices of a closed surface: cut
+    along it (:func:`split_fans`), a sphere-like surface becomes a disc whose boundary is the path twice."""
+    from scipy.sparse.csgraph import dijkstra
+
+    n = len(xyz)
+    key = np.unique(undirected_key(edges_of(faces), n))
+    a, b = key // n, key % n
+    w = np.linalg.norm(xyz[a] - xyz[b], axis=1) + 1e-9
+    g = coo_matrix((np.r_[w, w], (np.r_[a, b], np.r_[b, a])), shape=(n, n)).tocsr()
+    d0 = dijkstra(g, indices=int(faces[0, 0]))
+    far = int(np.argmax(np.where(np.isfinite(d0), d0, -1)))
+    dist, pred = dijkstra(g, indices=far, return_predecessors=True)
+    end = int(np.argmax(np.where(np.isfinite(dist), dist, -1)))
+    path = [end]
+    while pred[path[-1]] >= 0:
+        path.append(int(pred[path[-1]]))
+    p = np.asarray(path)
+    return undirected_key(np.c_[p[:-1], p[1:]], n)
+
+
 def mean_value_weights(xyz: np.ndarray, faces: np.ndarray) -> csr_matrix:
     """Floater's mean-value weights w_ij = (tan(a/2) + tan(b/2)) / |x_i - x_j| (always positive)."""
     n = len(xyz)
@@ -320,6 +341,13 @@ def zone_charts(xyz: np.ndarray, zone_faces: np.ndarray, context_faces: np.ndarr
         fl = inv.reshape(-1, 3)
         vo = orig[used]
         lps, clean = trace_loops(boundary_edges(fl, len(used)))
+        if clean and len(lps) == 0 and len(fl) >= 4:  # a closed surface: cut it open along a path
+            cut = opening_cut(vx[vo], fl)
+            fl2, o2 = split_fans(fl, len(used), cut)
+            lps2, clean2 = trace_loops(boundary_edges(fl2, len(o2)))
+            if clean2 and len(lps2) == 1:
+                fl, vo, lps, clean = fl2, vo[o2], lps2, clean2
+                n_seams += 1
         if clean and len(lps) > 1:
             cut = seam_edges(vx[vo], fl, lps)
             fl2, o2 = split_fans(fl, len(used), cut)

@@ -123,3 +123,15 @@ def test_border_gap_is_zero_when_welded_and_measured_otherwise():
     assert gap["border_edges"] == 8 and gap["welded"] == 8 and gap["max_gap_m"] == 0.0 and gap["open_edges"] == 0
     lifted = type(m)(m.xyz + [0, 0, 0.03], m.vertex_id + 100, m.faces, m.source, m.chart)
     assert border_gap(v[be], be, lifted)["max_gap_m"] == pytest.approx(0.03, abs=1e-3)
+
+
+def test_closed_surface_is_cut_open_and_rebuilt():
+    v, f = _grid_box(3, closed=True)
+    assert len(boundary_edges(f, len(v))) == 0
+    topo = zone_charts(v, f, np.zeros((0, 3), int), np.zeros(len(v), bool), max_hole_loop_m=1.0)
+    assert len(topo.charts) == 1 and topo.seams == 1 and len(topo.rejected) == 0
+    pts, _ = _box_samples(0.04, bottom=True)
+    m = rebuild_charts(topo.charts, np.arange(len(v)), pts, np.ones(len(pts), np.int8), np.full(len(pts), -1),
+                       max_map_distance_m=0.5, border_margin_m=0.01, max_edge_m=0.3)
+    assert len(boundary_edges(m.faces, len(m.xyz))) == 0  # closed again once the cut is welded back
+    assert triangle_areas(m.xyz, m.faces).sum() == pytest.approx(6.0, rel=0.03)
