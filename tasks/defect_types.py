@@ -92,10 +92,11 @@ class RepairPlan:
     rebuild: bool
     forced: np.ndarray  # (nv,) bool
     reason: str
+    mesh_only: bool = False  # triangulate the mesh vertices alone (no MLS)
 
 
 def repair_plan(evidence: DefectEvidence, covered: np.ndarray, offset: np.ndarray, *, typed: bool,
-                offset_m: float, conflict: np.ndarray | None = None) -> RepairPlan:
+                offset_m: float, conflict: np.ndarray | None = None, uncovered: str = "keep") -> RepairPlan:
     """Typed repair: uncovered regions keep the mesh; covered vertices off the MLS surface by more than
     ``offset_m``, and vertices in conflict with the scan (``conflict``: an MLS point near, none similar),
     are forced out (cut back to the MLS). Untyped (the paper): rebuild, force nothing."""
@@ -103,6 +104,9 @@ def repair_plan(evidence: DefectEvidence, covered: np.ndarray, offset: np.ndarra
     if not typed:
         return RepairPlan(True, np.zeros(nv, bool), "untyped")
     if evidence.type == "uncovered":
+        if uncovered == "fill":
+            return RepairPlan(True, np.zeros(nv, bool), "no MLS coverage: mesh vertices re-triangulated, holes closed",
+                              mesh_only=True)
         return RepairPlan(False, np.zeros(nv, bool), "no MLS coverage: left to the mesh")
     forced = covered & (np.abs(np.nan_to_num(offset)) > offset_m)
     if conflict is not None:

@@ -33,10 +33,19 @@ from scipy.sparse.csgraph import connected_components as _cc
 
 from storage.grid import PatchGrid
 
-# bytes of working set per MLS point / mesh face in a region (fusion graph, normals, k-NN, Delaunay),
-# measured with tracemalloc on demo regions (see docs/repair.md)
-BYTES_PER_POINT = 260
-BYTES_PER_FACE = 900
+# working set of a region per thinned MLS point / mesh face / raw MLS point (fusion graph, normals,
+# k-NN, charts, Delaunay): least squares over 79 demo regions' tracemalloc peaks (numpy and Python
+# allocations; open3d's own buffers are not traced). MLS points beyond ~8 per face are thinned away.
+BYTES_PER_POINT = 4000
+BYTES_PER_FACE = 6600
+BYTES_PER_RAW_POINT = 50
+THINNED_POINTS_PER_FACE = 8
+
+
+def patch_cost_bytes(n_points: np.ndarray, n_faces: np.ndarray) -> np.ndarray:
+    """Estimated working set of each patch in a region: (u,) int counts -> (u,) float64 bytes."""
+    p, f = np.asarray(n_points, np.float64), np.asarray(n_faces, np.float64)
+    return BYTES_PER_POINT * np.minimum(p, THINNED_POINTS_PER_FACE * f) + BYTES_PER_FACE * f + BYTES_PER_RAW_POINT * p
 
 _OFFSETS_26 = np.array([(a, b, c) for a in (-1, 0, 1) for b in (-1, 0, 1) for c in (-1, 0, 1)
                         if (a, b, c) != (0, 0, 0)], dtype=np.int64)

@@ -121,7 +121,10 @@ def repair_region_geometry(data: RegionInput, cfg) -> RegionGeometry:
         sim = best_similarity(data.xyz[zone_v], vn[zone_v], mls, mls_n, cKDTree(mls), params)
         conflict = np.isfinite(dn) & (sim < params.similarity_threshold)
         stats["conflict"] = int(conflict.sum())
-    plan = repair_plan(ev, covered, offset, typed=tc.enabled, offset_m=tc.offset_m, conflict=conflict)
+    plan = repair_plan(ev, covered, offset, typed=tc.enabled, offset_m=tc.offset_m, conflict=conflict,
+                       uncovered=tc.uncovered)
+    if plan.mesh_only:
+        mls, mls_n = mls[:0], mls_n[:0]
     stats["plan"] = plan.reason
     stats["charts"] = len(topo.charts)
     stats["non_disc_faces"] = len(topo.rejected)

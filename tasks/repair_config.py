@@ -60,6 +60,9 @@ class TypedRepairConfig(_Section):
     conflict_radius_m: float = Field(0.5, ge=0, description="a mesh vertex with an accepted MLS point this close but no "
                                      "similar one contradicts the scan and is cut (measured: such vertices lie "
                                      "within 5 cm of the truth in 0-23 % of cases); 0 disables")
+    uncovered: Literal["keep", "fill"] = Field("keep", description="a region the MLS does not cover: keep its "
+                                                "faces as they are, or re-triangulate its own vertices in its "
+                                                "chart, which closes its holes from the mesh alone")
     min_coverage: float = Field(0.15, ge=0, le=1, description="regions whose surface the MLS covers less than this "
                                 "are left to the mesh (a hole no scanner saw)")
 

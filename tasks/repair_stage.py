@@ -38,10 +38,9 @@ from tasks.region_io import (  # noqa: F401 - RegionMesh and region_meshes_for_t
     write_region_mesh,
 )
 from tasks.regions import (
-    BYTES_PER_FACE,
-    BYTES_PER_POINT,
     REGIONS_DIR,
     Region,
+    patch_cost_bytes,
     patch_grades,
     plan_path,
     plan_regions,
@@ -73,7 +72,7 @@ def run_regions(cfg: CampusConfig, wd: WorkDir) -> dict:
         p = store.patches()
         keys.append(k)
         bad.append(k[g == 1])
-        cost.append(p["n_points"].astype(np.float64) * BYTES_PER_POINT + p["n_faces"] * BYTES_PER_FACE)
+        cost.append(patch_cost_bytes(p["n_points"], p["n_faces"]))
         sources[t.key] = src
         tile_fp[t.key] = tile_fingerprint(wd.tile_dir(t))
     all_keys = np.concatenate(keys) if keys else np.zeros(0, np.int64)
