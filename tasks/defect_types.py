@@ -55,10 +55,12 @@ def classify_evidence(covered: np.ndarray, offset: np.ndarray, *, offset_m: floa
 
     covered: (nv,) bool and offset: (nv,) float (NaN where uncovered) from
     :func:`tasks.fuse.coverage_offsets`; zone_area_m2: area of the zone's faces.
-    Rule (in this order): coverage below min_coverage -> uncovered; a hole (open loops or MLS-only
-    surface above 15 % of the zone area, or 0.5 m²) -> hole; more than 20 % of covered vertices in
-    front -> protrusion, behind -> recess; |median offset| > offset_m / 2 with a spread below it ->
-    misalignment; otherwise the strongest of protrusion / recess (or hole when neither shows).
+    Rule (in this order): coverage below min_coverage -> uncovered; MLS-only surface above 0.5 m² and
+    15 % of the zone area -> hole; covered vertices off the surface on both sides (each side over
+    15 %, the smaller at least 40 % of the larger: the mesh bends across the surface) -> misalignment;
+    more than 20 % in front -> protrusion, behind -> recess; |median offset| > offset_m / 2 with a
+    spread below offset_m -> misalignment (a shift); otherwise hole when the zone has open loops, else
+    the stronger side.
     """
     nv = len(covered)
     cov = float(covered.mean()) if nv else 0.0
@@ -67,18 +69,19 @@ def classify_evidence(covered: np.ndarray, offset: np.ndarray, *, offset_m: floa
     back = float((off < -offset_m).mean()) if len(off) else 0.0
     med = float(np.median(off)) if len(off) else float("nan")
     spread = float(np.median(np.abs(off - med))) if len(off) else float("nan")
-    holey = open_loop_m > 0 or hole_area_m2 > max(0.15 * zone_area_m2, 0.5)
     if cov < min_coverage:
         t = "uncovered"
-    elif holey and hole_area_m2 > 0.5:
+    elif hole_area_m2 > max(0.15 * zone_area_m2, 0.5):
         t = "hole"
+    elif min(front, back) > 0.15 and min(front, back) >= 0.4 * max(front, back):
+        t = "misalignment"
     elif front > 0.2 and front >= back:
         t = "protrusion"
     elif back > 0.2:
         t = "recess"
     elif np.isfinite(med) and abs(med) > offset_m / 2 and spread < offset_m:
         t = "misalignment"
-    elif holey:
+    elif open_loop_m > 0:
         t = "hole"
     else:
         t = "protrusion" if front >= back and front > 0 else ("recess" if back > 0 else "misalignment")

@@ -105,9 +105,11 @@ def repair_region_geometry(data: RegionInput, cfg) -> RegionGeometry:
     tree = cKDTree(both) if len(both) else None
     covered, offset = coverage_offsets(data.xyz[zone_v], both, nrm, tree, fc.point_depth_m, 1.5 * fc.mls_spacing_m)
     zone_area = float(triangle_areas(data.xyz, data.zone_faces).sum())
-    if len(mls) and len(zone_v):
-        dmesh = cKDTree(data.xyz[zone_v]).query(mls, distance_upper_bound=0.3)[0]
-        hole_area = float(np.isinf(dmesh).sum()) * fc.mls_spacing_m**2
+    if len(mls) and len(zone_v):  # MLS surface with no mesh near it, nor straight in front / behind it
+        dmesh, j = cKDTree(data.xyz[zone_v]).query(mls)
+        delta = data.xyz[zone_v][j] - mls
+        lateral = np.linalg.norm(delta - np.einsum("ij,ij->i", delta, mls_n)[:, None] * mls_n, axis=1)
+        hole_area = float(((dmesh > 0.2) & (lateral > 0.2)).sum()) * fc.mls_spacing_m**2
     else:
         hole_area = 0.0
     topo = zone_charts(data.xyz, data.zone_faces, data.context_faces, data.near_zone, mc.max_hole_loop_m)
