@@ -292,35 +292,73 @@ def mls_seen(tv, tf, tc, work: Path, radius_m: float = 0.10) -> np.ndarray:
     return np.isfinite(d) & np.isin(tc, FACADE)
 
 
+def _combine(reports: list) -> dict:
+    """Figures of a union of classes from their per-class reports (area-weighted sums, exact)."""
+    reports = [r for r in reports if r is not None]
+    if not reports:
+        return {"F5": float("nan"), "F10": float("nan"), "acc_m": float("nan"), "comp_m": float("nan"),
+                "uncovered": float("nan"), "area_m2": 0.0}
+    aa = sum(r.accuracy.area_m2 for r in reports)
+    ca = sum(r.completeness.area_m2 for r in reports)
+    out = {}
+    for i, name in enumerate(("F5", "F10")):
+        p = sum(r.accuracy.within[i] * r.accuracy.area_m2 for r in reports if r.accuracy.area_m2) / aa if aa else 0.0
+        rc = sum(r.completeness.within[i] * r.completeness.area_m2 for r in reports if r.completeness.area_m2) / ca
+        out[name] = 2 * p * rc / (p + rc) if p + rc else 0.0
+    out["acc_m"] = sum(r.accuracy.mean_m * r.accuracy.area_m2 for r in reports if r.accuracy.area_m2) / aa if aa else float("nan")
+    out["comp_m"] = sum(r.completeness.mean_m * r.completeness.area_m2 for r in reports if r.completeness.area_m2) / ca
+    ev = sum(r.evaluated_area_m2 for r in reports)
+    out["uncovered"] = sum(r.uncovered_area_m2 for r in reports) / ev if ev else float("nan")
+    out["area_m2"] = ca
+    return out
+
+
 def evaluate(v, f, truth, seen, spacing_m: float = 0.05) -> dict:
-    """Whole-campus figures (tasks.quality.evaluate_mesh, 5 cm samples like ``make demo``) over all
-    facades and over the MLS-seen facades."""
+    """Whole-campus figures (``tasks.quality.evaluate_mesh``, 5 cm samples like ``make demo``).
+
+    One pass with every truth class split into a seen and an unseen copy (a predicted sample takes the
+    class of its nearest truth face): "all" is over every facade, "seen" over the facade faces the MLS
+    saw (precision from the predicted samples nearest to them, recall and holes over them).
+    """
     from tasks.quality import evaluate_mesh
 
     tv, tf, tc = truth
-    out = {}
-    for name, mask in (("all", np.isin(tc, FACADE)), ("seen", seen)):
-        r = evaluate_mesh(v, f, tv, tf, spacing_m=spacing_m, taus=(0.05, 0.10), true_face_mask=mask,
-                          true_face_class=np.where(mask, tc, -1) if name == "seen" else tc,
-                          class_names=CLASS_NAMES)
-        out[name] = {"F5": r.fscore[0], "F10": r.fscore[1], "acc_m": r.accuracy.mean_m,
-                     "comp_m": r.completeness.mean_m, "uncovered": r.uncovered_fraction,
-                     "per_class": {k: {"F5": c.fscore[0], "F10": c.fscore[1], "uncovered": c.uncovered_fraction,
-                                       "comp_m": c.completeness.mean_m}
-                                   for k, c in r.per_class.items() if k in ("wall", "glass", "frame", "balcony", "eave")}}
+    names = CLASS_NAMES + tuple(f"unseen_{n}" for n in CLASS_NAMES)
+    cls = np.where(seen, tc, tc + len(CLASS_NAMES))
+    r = evaluate_mesh(v, f, tv, tf, spacing_m=spacing_m, taus=(0.05, 0.10), true_face_mask=np.isin(tc, FACADE),
+                      true_face_class=cls, class_names=names)
+    pc = r.per_class
+    facade = [CLASS_NAMES[c] for c in FACADE]
+    out = {"all": {**_combine([pc.get(n) for n in facade] + [pc.get(f"unseen_{n}") for n in facade]),
+                   "per_class": {n: _combine([pc.get(n), pc.get(f"unseen_{n}")]) for n in facade}},
+           "seen": {**_combine([pc.get(n) for n in facade]), "per_class": {n: _combine([pc.get(n)]) for n in facade}},
+           "campus": {"F5": r.fscore[0], "F10": r.fscore[1], "acc_m": r.accuracy.mean_m,
+                      "comp_m": r.completeness.mean_m, "uncovered": r.uncovered_fraction}}
     return out
 
 
 def table(results: dict) -> str:
-    rows = [("| variant | F@5cm | F@10cm | acc (cm) | comp (cm) | uncovered facade | F@5 seen | uncovered seen | "
-            "wall | glass | frame | balcony | eave |"), "|---" * 13 + "|"]
-    for name, r in results.items():
-        a, s = r["all"], r["seen"]
-        pc = a["per_class"]
-        cls = " | ".join(f"{pc[c]['F5']:.3f}" if c in pc else "-" for c in ("wall", "glass", "frame", "balcony", "eave"))
-        rows.append(f"| {name} | {a['F5']:.3f} | {a['F10']:.3f} | {100 * a['acc_m']:.1f} | {100 * a['comp_m']:.1f} | "
-                    f"{100 * a['uncovered']:.1f} % | {s['F5']:.3f} | {100 * s['uncovered']:.1f} % | {cls} |")
-    return "\n".join(rows)
+    """Markdown tables: overall figures over all facades and over the MLS-seen ones, then per class."""
+    classes = ("wall", "glass", "frame", "balcony", "eave")
+    out = []
+    for scope, title in (("campus", "whole campus (every class; uncovered: facades)"), ("all", "all facades"),
+                         ("seen", "facades the MLS saw")):
+        out += [f"\n{title}:", "| variant | F@5cm | F@10cm | accuracy (cm) | completeness (cm) | uncovered |",
+                "|---|---|---|---|---|---|"]
+        for name, r in results.items():
+            a = r[scope]
+            out.append(f"| {name} | {a['F5']:.3f} | {a['F10']:.3f} | {100 * a['acc_m']:.2f} | {100 * a['comp_m']:.2f} | "
+                       f"{100 * a['uncovered']:.1f} % |")
+        if scope == "campus":
+            continue
+        out += [f"\nper class, {title}: F@5cm / F@10cm / uncovered",
+                "| variant | " + " | ".join(classes) + " |", "|---" * (len(classes) + 1) + "|"]
+        for name, r in results.items():
+            pc = r[scope]["per_class"]
+            cells = [f"{pc[c]['F5']:.3f} / {pc[c]['F10']:.3f} / {100 * (pc[c]['uncovered'] or 0):.1f} %" if c in pc else "-"
+                     for c in classes]
+            out.append(f"| {name} | " + " | ".join(cells) + " |")
+    return "\n".join(out)
 
 
 def region_figures(rows: list[dict]) -> dict:
