@@ -66,7 +66,8 @@ def load_cameras(cfg: CampusConfig, doc: dict, frame) -> list:
         m[:3, 3] = reg[:3, :3] @ (fo - oc) + reg[:3, 3]
     else:
         m[:3, 3] = fo - oc
-    return cameras_to_frame(entries, m, str(images or path.parent))
+    cams = cameras_to_frame(entries, m, str(images or path.parent))
+    return [c for c in cams if Path(c.image).is_file()]  # a camera whose image is missing is no candidate
 
 
 def occupancy(wd: WorkDir, tile: TileId, voxel_m: float) -> np.ndarray:
