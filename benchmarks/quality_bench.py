@@ -361,6 +361,18 @@ def table(results: dict) -> str:
     return "\n".join(out)
 
 
+def region_lines(var: str, rows: list[dict]) -> list[str]:
+    """One line per region: key, result, defect type, patches, rebuilt faces, wall / CPU seconds, peak RSS."""
+    out = [f"({var}) {'region':18} {'result':8} {'type':13} {'patches':>7} {'faces':>8} {'wall s':>7} {'CPU s':>7} "
+           f"{'RSS MB':>7} {'gap m':>6}"]
+    for r in rows:
+        out.append(f"({var}) {r.get('unit', ''):18} {r.get('result', r.get('status', '')):8} "
+                   f"{str(r.get('defect_type', '')):13} {r.get('n_patches', 0):7d} {r.get('rebuilt_faces', 0):8d} "
+                   f"{r.get('seconds', 0.0):7.1f} {r.get('cpu_seconds', 0.0):7.1f} {r.get('peak_rss_mb', 0.0):7.0f} "
+                   f"{(r.get('max_border_gap_m') or 0.0):6.3f}")
+    return out
+
+
 def region_figures(rows: list[dict]) -> dict:
     done = [r for r in rows if r.get("status") == "done"]
     sec = np.array([r.get("seconds", 0.0) for r in done])
@@ -408,7 +420,10 @@ def main(argv=None) -> dict:
     ap.add_argument("--grade-noise", type=float, default=0.12)
     ap.add_argument("--max-regions", type=int, default=None)
     ap.add_argument("--set", action="append", default=[], help="repair.* override for c/d/e, e.g. mesh.method=poisson")
+    ap.add_argument("--report", type=Path, default=None, help="reprint the tables of an earlier run's OUT_DIR")
     a = ap.parse_args(argv)
+    if a.report is not None:
+        return print_report(a.report)
     from storage.workdir import WorkDir, campus_frame, read_campus
 
     out = a.out or (a.work.parent / f"{a.work.name}-quality")
@@ -449,9 +464,22 @@ def main(argv=None) -> dict:
         print(f"({var}) built in {wall:.0f} s wall / {cpu:.0f} s CPU; F@5 {results[var]['all']['F5']:.3f}", flush=True)
     report = {"synth": str(a.synth), "work": str(a.work), "notes": notes, "results": results, "regions": regions}
     (out / "quality.json").write_text(json.dumps(report, indent=1, default=float))
-    print(table(results))
-    for var, r in regions.items():
-        print(f"({var}) regions: {json.dumps(r)}")
+    return print_report(out)
+
+
+def print_report(out: Path) -> dict:
+    """Print the tables, the per-region lines and the region summaries of a finished run."""
+    report = json.loads((out / "quality.json").read_text())
+    for var, note in report.get("notes", {}).items():
+        print(f"({var}) grades: {note}")
+    print(table(report["results"]))
+    for var in report["results"]:
+        r = report["results"][var]
+        print(f"({var}) built in {r.get('build_seconds', 0):.0f} s wall / {r.get('build_cpu_seconds', 0):.0f} s CPU")
+    for var, summary in report.get("regions", {}).items():
+        rows = json.loads((out / f"regions-{var}.json").read_text()) if (out / f"regions-{var}.json").exists() else []
+        print("\n".join(region_lines(var, rows)))
+        print(f"({var}) regions: {json.dumps(summary)}")
     return report
 
 
