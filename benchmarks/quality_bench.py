@@ -363,8 +363,9 @@ def table(results: dict) -> str:
 
 def region_lines(var: str, rows: list[dict]) -> list[str]:
     """One line per region: key, result, defect type, patches, rebuilt faces, wall / CPU seconds, peak RSS."""
-    out = [f"({var}) {'region':18} {'result':8} {'type':13} {'patches':>7} {'faces':>8} {'wall s':>7} {'CPU s':>7} "
-           f"{'RSS MB':>7} {'gap m':>6}"]
+    head = (f"({var}) {'region':18} {'result':8} {'type':13} {'patches':>7} {'faces':>8} {'wall s':>7} {'CPU s':>7} "
+            f"{'RSS MB':>7} {'gap m':>6}")
+    out = [head]
     for r in rows:
         out.append(f"({var}) {r.get('unit', ''):18} {r.get('result', r.get('status', '')):8} "
                    f"{str(r.get('defect_type', '')):13} {r.get('n_patches', 0):7d} {r.get('rebuilt_faces', 0):8d} "
