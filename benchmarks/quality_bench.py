@@ -368,7 +368,7 @@ def region_lines(var: str, rows: list[dict]) -> list[str]:
     out = [head]
     for r in rows:
         out.append(f"({var}) {r.get('unit', ''):18} {r.get('result', r.get('status', '')):8} "
-                   f"{str(r.get('defect_type', '')):13} {r.get('n_patches', 0):7d} {r.get('rebuilt_faces', 0):8d} "
+                   f"{r.get('defect_type', '')!s:13} {r.get('n_patches', 0):7d} {r.get('rebuilt_faces', 0):8d} "
                    f"{r.get('seconds', 0.0):7.1f} {r.get('cpu_seconds', 0.0):7.1f} {r.get('peak_rss_mb', 0.0):7.0f} "
                    f"{(r.get('max_border_gap_m') or 0.0):6.3f}")
     return out
