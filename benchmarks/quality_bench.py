@@ -171,7 +171,18 @@ def assemble(work: Path, with_regions: bool = True) -> tuple[np.ndarray, np.ndar
     wd = WorkDir(work)
     tris, vids, n_rep, n_new = [], [], 0, 0
     cols = [f"{a}{v}" for v in range(3) for a in "xyz"] + ["vid0", "vid1", "vid2"]
-    region_base = {}
+    # negative ids are local to a region (shared by its pieces in different tiles): number them densely,
+    # region after region, below every original id
+    local: dict[str, np.ndarray] = {}
+    if with_regions:
+        for t in wd.live_tiles():
+            for rm in region_meshes_for_tile(wd, TileId(t.ix, t.iy)):
+                local[rm.region_id] = np.union1d(local.get(rm.region_id, np.zeros(0, np.int64)),
+                                                 rm.vertex_ids[rm.vertex_ids < 0])
+    base, offset = {}, 0
+    for k in sorted(local):
+        base[k] = offset
+        offset += len(local[k])
     for t in wd.live_tiles():
         _, f = PatchStore(wd.tile_dir(t)).read_all(point_columns=["x"], face_columns=cols)
         keep = np.ones(len(f["x0"]), bool)
@@ -184,8 +195,8 @@ def assemble(work: Path, with_regions: bool = True) -> tuple[np.ndarray, np.ndar
         vids.append(vid)
         n_rep += int((~keep).sum())
         for rm in parts:
-            base = region_base.setdefault(rm.region_id, -(len(region_base) + 1) << 40)
-            vid_r = np.where(rm.vertex_ids >= 0, rm.vertex_ids, base + rm.vertex_ids)
+            rank = np.searchsorted(local[rm.region_id], rm.vertex_ids)
+            vid_r = np.where(rm.vertex_ids >= 0, rm.vertex_ids, -1 - base[rm.region_id] - rank)
             tris.append(rm.vertices[rm.faces].astype(np.float64))
             vids.append(vid_r[rm.faces])
             n_new += len(rm.faces)

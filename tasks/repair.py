@@ -123,6 +123,16 @@ def repair_region_geometry(data: RegionInput, cfg) -> RegionGeometry:
         sim = best_similarity(data.xyz[zone_v], vn[zone_v], mls, mls_n, cKDTree(mls), params)
         conflict = np.isfinite(dn) & (sim < params.similarity_threshold)
         stats["conflict"] = int(conflict.sum())
+        if tc.front_m > 0:
+            far = ~np.isfinite(dn)
+            d2, j2 = cKDTree(mls).query(data.xyz[zone_v][far], distance_upper_bound=tc.front_reach_m)
+            ok = np.isfinite(d2)
+            jj = np.where(ok, j2, 0)
+            off = np.einsum("ij,ij->i", data.xyz[zone_v][far] - mls[jj], mls_n[jj])
+            front = np.zeros(len(zone_v), bool)
+            front[np.flatnonzero(far)[ok & (off > tc.front_m)]] = True
+            conflict |= front
+            stats["in_front"] = int(front.sum())
     plan = repair_plan(ev, covered, offset, typed=tc.enabled, offset_m=tc.offset_m, conflict=conflict,
                        uncovered=tc.uncovered)
     if plan.mesh_only:

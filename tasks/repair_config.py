@@ -63,6 +63,12 @@ class TypedRepairConfig(_Section):
                                      "similar one contradicts the scan and is cut (measured: such vertices lie "
                                      "within 5 cm of the truth in 0-23 % of cases; F@5cm 0.798 / 0.826 / 0.827 at "
                                      "0.3 / 0.5 / 0.8 m); 0 disables")
+    front_m: float = Field(0.0, ge=0, description="a mesh vertex farther than conflict_radius_m from the MLS but this far "
+                           "in front of the nearest scanned surface (on the scanner's side of it) stands where the "
+                           "laser passed: cut it (melted eaves hanging off a scanned wall); 0 disables (the default: "
+                           "measured at 0.15 / 0.3 m on 29 demo regions, mean F@5cm 0.835 / 0.835 against 0.836, "
+                           "mean accuracy 4.0 cm -> 4.0 cm; gains and losses cancel)")
+    front_reach_m: float = Field(3.0, gt=0, description="scanned surface farther than this from a vertex says nothing of it")
     uncovered: Literal["keep", "fill"] = Field("fill", description="a region the MLS does not cover is left to "
                                                 "the mesh: 'fill' re-triangulates its own vertices in its chart, "
                                                 "closing its holes from the mesh alone (measured: never worse, "

@@ -24,3 +24,41 @@ def test_seen_scope_counts_only_the_seen_facade():
     assert r["all"]["uncovered"] == pytest.approx(0.5, abs=0.01)
     assert r["seen"]["acc_m"] == pytest.approx(0.03, abs=1e-3)
     assert r["all"]["per_class"]["wall"]["F5"] == pytest.approx(r["all"]["F5"])
+
+
+def test_assembly_keeps_region_local_ids_apart(tmp_path):
+    """Two regions whose new vertices carry the same (region-local) negative ids must not be welded."""
+    import json
+
+    from synth.corner_scene import write_campus_workdir
+    from storage.workdir import read_campus
+    from tasks.config import CampusConfig
+    from tasks.repair_stage import run_region, run_regions
+
+    wd, _ = write_campus_workdir(tmp_path / "w")
+    cfg = CampusConfig.model_validate(read_campus(wd)["config"])
+    cfg.repair.texture.enabled = False
+    cfg.repair.fusion.mls_spacing_m = 0.08
+    key = run_regions(cfg, wd)["regions"][0]
+    run_region(key, cfg, wd)
+    # a second region: a copy of the first under another key (same negative ids)
+    import shutil
+
+    plan = json.loads((wd.root / "regions" / "regions.json").read_text())
+    twin = dict(plan["regions"][0], key="rtwin")
+    plan["regions"].append(twin)
+    (wd.root / "regions" / "regions.json").write_text(json.dumps(plan))
+    shutil.copytree(wd.root / "regions" / key, wd.root / "regions" / "rtwin")
+    twin_mesh = wd.root / "regions" / "rtwin" / "mesh.npz"
+    with np.load(twin_mesh) as z:
+        arr = {k: z[k] for k in z.files}
+    arr["vertices"] = arr["vertices"] + np.float32([0.0, 0.0, 100.0])  # the twin floats 100 m up
+    arr["vertex_id"] = np.where(arr["vertex_id"] >= 0, arr["vertex_id"] + (1 << 50), arr["vertex_id"])
+    arr["replaced_row"] = arr["replaced_row"][:0]
+    arr["replaced_tile"] = arr["replaced_tile"][:0]
+    np.savez(twin_mesh, **arr)
+    v, f, info = qb.assemble(wd.root)
+    assert info["rebuilt_faces"] == 2 * len(arr["faces"])
+    e = v[f]
+    longest = np.linalg.norm(e - np.roll(e, -1, axis=1), axis=2).max()
+    assert longest < 5.0  # no vertex of one region welded to the other (100 m away)
