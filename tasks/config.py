@@ -14,6 +14,7 @@ from pydantic import BaseModel, ConfigDict, Field, ValidationError, field_valida
 from storage.errors import InputError
 from storage.grid import PatchGrid
 from tasks.classify_config import ClassifyConfig
+from tasks.repair_config import RepairConfig
 
 
 class _Model(BaseModel):
@@ -110,6 +111,7 @@ class CampusConfig(_Model):
     report: ReportConfig = Field(default_factory=ReportConfig)
     export: ExportConfig = Field(default_factory=lambda: ExportConfig(), description="3D Tiles output (merge has no parameters of its own)")
     classify: ClassifyConfig = Field(default_factory=ClassifyConfig, description="grading of patch pairs (MS3DQE-Net)")
+    repair: RepairConfig = Field(default_factory=RepairConfig)
     runner: Literal["dask", "local", "inline"] = Field(
         "dask", description="'local': Prefect tasks in the flow process; 'inline': no Prefect at all, one process (debugging, tests)")
 

@@ -1,0 +1,85 @@
+"""Projective texture mapping (§5.3): view selection by angle, distance and visibility; seams; atlas."""
+
+import numpy as np
+
+from synth.cameras import look_rotation
+from tasks.repair_config import TextureConfig
+from tasks.texture import NO_VIEW, CameraView, cameras_to_frame, select_views, texture_mesh, voxel_boxes
+
+K = np.array([[500.0, 0, 499.5], [0, 500.0, 499.5], [0, 0, 1]])
+
+
+def camera_at(centre, target, name):
+    d = np.asarray(target, float) - centre
+    r = look_rotation(np.arctan2(d[1], d[0]), np.arctan2(d[2], np.hypot(d[0], d[1])))
+    return CameraView(name, K, r, -r @ np.asarray(centre, float), 1000, 1000)
+
+
+def wall_quads(*centres):
+    """1 x 1 m squares in planes x = const, facing +x, two triangles each."""
+    v, f = [], []
+    for c in centres:
+        c = np.asarray(c, float)
+        b = len(v)
+        v += [c + [0, -0.5, -0.5], c + [0, 0.5, -0.5], c + [0, 0.5, 0.5], c + [0, -0.5, 0.5]]
+        f += [[b, b + 1, b + 2], [b, b + 2, b + 3]]
+    return np.array(v), np.array(f)
+
+
+def images(*colours):
+    return lambda i: np.full((1000, 1000, 3), colours[i], np.uint8)
+
+
+def test_frontal_view_beats_oblique_one():
+    v, f = wall_quads([0, 0, 1.5])
+    frontal = camera_at(np.array([6.0, 0.0, 1.5]), [0, 0, 1.5], "frontal")
+    oblique = camera_at(np.array([3.0, 5.196, 1.5]), [0, 0, 1.5], "oblique")  # 60 deg off the normal, same 6 m
+    atlas, st = texture_mesh(v, f, [oblique, frontal], images((0, 255, 0), (255, 0, 0)), (np.zeros((0, 3)),
+                             np.zeros((0, 3), int)), TextureConfig(), np.zeros((2, 3), np.uint8))
+    assert atlas.view.tolist() == [1, 1] and st["occluded"] == 0
+    # the atlas holds the frontal (red) image where the faces map
+    h, w = atlas.image.shape[:2]
+    uv = atlas.uv.reshape(-1, 2)
+    px = atlas.image[((1 - uv[:, 1]) * h).astype(int).clip(0, h - 1), (uv[:, 0] * w).astype(int).clip(0, w - 1)]
+    assert (px == [255, 0, 0]).all()
+
+
+def test_face_hidden_behind_an_occluder_takes_no_view():
+    v, f = wall_quads([0, 0, 1.5], [0, 3, 1.5])
+    cams = [camera_at(np.array([6.0, 0.0, 1.5]), [0, 0, 1.5], "a"),
+            camera_at(np.array([6.0, 2.0, 1.5]), [0, 3, 1.5], "b")]
+    # a 'car' of voxels right in front of the second square hides it from both cameras
+    g = np.arange(-0.9, 0.91, 0.2)
+    centres = np.array([[x, y, z] for x in (0.6, 0.8) for y in 3 + g for z in 1.5 + g])
+    ov, of = voxel_boxes(centres, 0.2)
+    atlas, _st = texture_mesh(v, f, cams, images((255, 0, 0), (0, 0, 255)), (ov, of), TextureConfig(),
+                             np.zeros((4, 3), np.uint8))
+    assert (atlas.view[:2] != NO_VIEW).all() and (atlas.view[2:] == NO_VIEW).all()
+    assert np.isnan(atlas.uv[2:]).all() and np.isfinite(atlas.uv[:2]).all()
+
+
+def test_seam_term_removes_flicker():
+    rng = np.random.default_rng(0)
+    m = 200
+    cost = np.full((m, 3), np.inf)
+    x = np.arange(m) / m
+    cost[:, 0] = 0.3 + 0.2 * (x > 0.5) + rng.uniform(0, 0.3, m)
+    cost[:, 1] = 0.3 + 0.2 * (x <= 0.5) + rng.uniform(0, 0.3, m)
+    adj = np.c_[np.arange(m - 1), np.arange(1, m)]
+    assert (select_views(cost, adj, 0.0)[:-1] != select_views(cost, adj, 0.0)[1:]).sum() > 20
+    lab = select_views(cost, adj, 0.5)
+    assert (lab[:-1] != lab[1:]).sum() == 1 and lab[0] == 0 and lab[-1] == 1
+
+
+def test_cameras_follow_the_registration():
+    cam = camera_at(np.array([5.0, 1.0, 2.0]), [0, 0, 1], "x")
+    entry = {"image": "x.jpg", "K": K.tolist(), "R": cam.R.tolist(), "t": cam.t.tolist(), "width": 1000, "height": 1000}
+    m = np.eye(4)
+    c, s = np.cos(0.3), np.sin(0.3)
+    m[:3, :3] = 1.01 * np.array([[c, -s, 0], [s, c, 0], [0, 0, 1]])
+    m[:3, 3] = [10.0, -4.0, 0.5]
+    moved = cameras_to_frame([entry], m, "imgs")[0]
+    p = np.array([[0.3, 0.2, 1.1], [-1.0, 0.5, 2.0]])
+    p2 = p @ m[:3, :3].T + m[:3, 3]
+    np.testing.assert_allclose(moved.project(p2)[0], cam.project(p)[0], atol=1e-6)
+    assert moved.image == "imgs/x.jpg"
