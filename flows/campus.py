@@ -1,5 +1,6 @@
 """The campus flow: scan -> register (while meshes ingest) -> ingest points -> prune -> partition +
-labels per tile -> patch outliers.
+labels per tile -> patch outliers -> classify per tile -> plan bad regions -> repair per region ->
+merge per tile -> 3D Tiles export (nodes mapped) beside the quality shares -> run report.
 
 Per-file and per-tile stages are mapped over a Dask cluster with ``prefect_dask.DaskTaskRunner`` (a
 local cluster by default, an existing one by address). Tasks receive ids, paths, small JSON records and
@@ -21,6 +22,7 @@ from pathlib import Path
 from prefect import flow
 from prefect.artifacts import create_table_artifact
 
+from flows.classify import classify_task
 from flows.executors import InlineExecutor, PrefectExecutor
 from flows.stage_tasks import (
     _cfg,
@@ -30,7 +32,9 @@ from flows.stage_tasks import (
     outliers_task,
     partition_task,
     quality_task,
+    regions_task,
     register_task,
+    repair_task,
     report_task,
     scan_task,
 )
@@ -192,6 +196,21 @@ def _reprocess(cfg: CampusConfig, cfg_json: dict, wd: WorkDir, ex) -> dict:
 
     outliers = ex.submit(outliers_task, cfg_json).result()
 
+    # grade every pair (MS3DQE-Net), plan the bad regions over the campus, rebuild each region
+    grades = ex.map(classify_task, tile_batches, "classify", cfg_json=cfg_json).results()
+    for s in grades:
+        if s["status"] == "failed":
+            failed[f"classify {s['unit']}"] = s["error"]
+    drop_unplanned_records(wd, "classify", set(tiles))
+    plan = ex.submit(regions_task, cfg_json).result()
+    if plan["status"] == "failed":
+        failed["regions"] = plan["error"]
+    region_batches = balanced_batches(plan["regions"], plan["weights"], 4 * n_workers)
+    repairs = ex.map(repair_task, region_batches, "repair", cfg_json=cfg_json).results()
+    for s in repairs:
+        if s["status"] == "failed":
+            failed[f"region {s['unit']}"] = s["error"]
+
     # output: one clean mesh per tile, then 3D Tiles and the run report
     merges = ex.map(merge_task, tile_batches, "merge", cfg_json=cfg_json).results()
     for s in merges:
@@ -217,7 +236,8 @@ def _reprocess(cfg: CampusConfig, cfg_json: dict, wd: WorkDir, ex) -> dict:
         failed["report"] = report["error"]
     consolidate(wd)
     summary = summarise(wd, time.perf_counter() - t_wall, failed, outliers, since=t_start,
-                        stages={"scan": scans, "ingest": ingests, "partition": parts, "merge": merges},
+                        stages={"scan": scans, "ingest": ingests, "partition": parts, "classify": grades,
+                                "repair": repairs, "merge": merges},
                         incomplete=incomplete, skipped_files=list(found.skipped),
                         registration=registration)
     summary["task_runs"] = getattr(ex, "task_runs", 0)

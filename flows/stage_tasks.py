@@ -93,6 +93,35 @@ def outliers_task(cfg_json: dict) -> dict:
 
 
 
+@task(name="regions", cache_policy=NO_CACHE)
+def regions_task(cfg_json: dict) -> dict:
+    """Plan the bad regions of the campus (``regions/regions.json``); returns the region keys and a
+    weight (estimated working set, bytes) per key for balancing the repair tasks."""
+    from tasks.regions import read_plan
+    from tasks.repair_stage import run_regions
+    from tasks.units import os_error_message
+
+    cfg = _cfg(cfg_json)
+    wd = WorkDir(cfg.work_dir)
+    try:
+        out = run_regions(cfg, wd)
+    except (InputError, OSError) as e:
+        msg = str(e) if isinstance(e, InputError) else os_error_message(e)
+        return {"status": "failed", "error": f"regions: {msg}", "regions": [], "weights": []}
+    weight = {r.key: float(max(r.est_bytes, 1)) for r in read_plan(wd.root)}
+    return {"status": "done", **out, "weights": [weight.get(k, 1.0) for k in out["regions"]]}
+
+
+@task(name="repair", cache_policy=NO_CACHE)
+def repair_task(region_keys: list[str], cfg_json: dict) -> list[dict]:
+    """Repair a batch of regions (fuse -> mesh -> stitch -> texture), one summary each."""
+    from tasks.repair_stage import run_region
+
+    cfg = _cfg(cfg_json)
+    wd = WorkDir(cfg.work_dir)
+    return [run_region(k, cfg, wd) for k in region_keys]
+
+
 @task(name="merge", cache_policy=NO_CACHE)
 def merge_task(tile_keys: list[str], cfg_json: dict) -> list[dict]:
     """Merge a batch of tiles into one clean mesh each (retained faces + rebuilt regions)."""
@@ -111,12 +140,10 @@ def merge_task(tile_keys: list[str], cfg_json: dict) -> list[dict]:
 
 
 def _region_source():
-    """Repair's ``region_meshes_for_tile`` once the repair stage exists, else None (retained mesh alone)."""
-    try:
-        from tasks.repair import region_meshes_for_tile
-    except ImportError:
-        return None
-    return region_meshes_for_tile
+    """Repair's rebuilt regions of a tile, in the merge's terms."""
+    from tasks.region_io import merge_regions_for_tile
+
+    return merge_regions_for_tile
 
 
 @task(name="export-nodes", cache_policy=NO_CACHE)

@@ -114,6 +114,12 @@ def retained_soup(cols: dict[str, np.ndarray], face_grade: np.ndarray, regions: 
             pairs = np.concatenate(named)
             face_key = (cols["source"].astype(np.int64) << 32) | cols["src_face"]
             replaced |= np.isin(face_key, (pairs[:, 0] << 32) | pairs[:, 1])
+        for r in regions:
+            if r.replaced_rows is not None and len(r.replaced_rows):
+                if r.replaced_rows.min() < 0 or r.replaced_rows.max() >= len(patch):
+                    raise InputError(None, f"rebuilt region {r.region} replaces rows outside the tile's faces "
+                                     "(the region is older than the store: rerun the repair)")
+                replaced[r.replaced_rows] = True
     if not replaced.any():
         return store_soup(cols, face_grade), np.unique(patch), 0
     keep = np.flatnonzero(~replaced)

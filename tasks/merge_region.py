@@ -47,6 +47,10 @@ class RegionMesh:
     ``colors``); None: every face when there is an atlas.
     replaced_faces: (k, 2) int64 (source, src_face) of further original faces the region replaces
     (beyond those of ``replaced_patches``), or None.
+    replaced_rows: (r,) int64 rows of the merged tile's faces table the region replaces, or None
+    (repair names the faces it replaces by row; valid for the store the region was built from).
+    corner_uv: (m, 3, 2) float32 per-corner uv into ``atlas`` (NaN: untextured), instead of ``uv``.
+    face_colors: (m, 3) uint8 per-face sRGB, instead of ``colors``.
     fingerprint: the region's content identity for resume ("" : hashed from the arrays here).
     """
 
@@ -60,6 +64,9 @@ class RegionMesh:
     colors: np.ndarray | None = None
     textured: np.ndarray | None = None
     replaced_faces: np.ndarray | None = None
+    replaced_rows: np.ndarray | None = None
+    corner_uv: np.ndarray | None = None
+    face_colors: np.ndarray | None = None
     fingerprint: str = ""
 
     def __post_init__(self):
@@ -74,7 +81,10 @@ class RegionMesh:
             (self.uv is None or np.shape(self.uv) == (n, 2), "uv must be (n, 2)"),
             (self.colors is None or np.shape(self.colors) == (n, 3), "colors must be (n, 3)"),
             (self.textured is None or np.shape(self.textured) == (m,), "textured must be (m,)"),
-            (self.atlas is None or self.uv is not None, "an atlas needs uv"),
+            (self.atlas is None or self.uv is not None or self.corner_uv is not None, "an atlas needs uv"),
+            (self.corner_uv is None or np.shape(self.corner_uv) == (m, 3, 2), "corner_uv must be (m, 3, 2)"),
+            (self.face_colors is None or np.shape(self.face_colors) == (m, 3), "face_colors must be (m, 3)"),
+            (self.replaced_rows is None or np.ndim(self.replaced_rows) == 1, "replaced_rows must be (r,)"),
             (self.replaced_faces is None or np.shape(self.replaced_faces)[1:] == (2,), "replaced_faces must be (k, 2)"),
         ]  # fmt: skip
         for ok, problem in bad:
@@ -94,6 +104,8 @@ class RegionMesh:
                    vertex_ids=opt("vertex_ids", np.int64), uv=opt("uv", np.float32),
                    atlas=None if atlas is None else str(atlas), colors=opt("colors", np.uint8),
                    textured=opt("textured", bool), replaced_faces=opt("replaced_faces", np.int64),
+                   replaced_rows=opt("replaced_rows", np.int64), corner_uv=opt("corner_uv", np.float32),
+                   face_colors=opt("face_colors", np.uint8),
                    fingerprint=str(getattr(obj, "fingerprint", "") or ""))  # fmt: skip
 
     def content_fingerprint(self) -> str:
@@ -102,7 +114,7 @@ class RegionMesh:
             return self.fingerprint
         h = hashlib.sha256(str(self.region).encode())
         for a in (self.vertices, self.faces, self.replaced_patches, self.vertex_ids, self.uv, self.colors,
-                  self.textured, self.replaced_faces):
+                  self.textured, self.replaced_faces, self.replaced_rows, self.corner_uv, self.face_colors):
             h.update(b"-" if a is None else np.ascontiguousarray(a).tobytes() + str(a.shape).encode())
         if self.atlas is not None:
             h.update(self.atlas.encode())

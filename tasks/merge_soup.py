@@ -93,12 +93,19 @@ def region_soup(r: RegionMesh, texture_index: int) -> FaceSoup:
     own = -1 - ((np.int64(r.region) << 32) | np.arange(len(r.vertices), dtype=np.int64))
     keys = np.where(ids >= 0, ids, own)[f]
     textured = np.full(m, r.atlas is not None) if r.textured is None else (r.textured & (r.atlas is not None))
-    uv = np.zeros((m, 3, 2), np.float32) if r.uv is None else r.uv[f]
+    if r.corner_uv is not None:
+        uv = r.corner_uv
+    else:
+        uv = np.zeros((m, 3, 2), np.float32) if r.uv is None else r.uv[f]
     textured &= np.isfinite(uv).all(axis=(1, 2))
     uv = np.where(textured[:, None, None], uv, np.float32(0)).astype(np.float32, copy=False)
-    colors = np.broadcast_to(REBUILT_GREY, (len(r.vertices), 3)) if r.colors is None else r.colors
+    if r.face_colors is not None:
+        corner_color = np.repeat(np.asarray(r.face_colors, np.uint8)[:, None, :], 3, axis=1)
+    else:
+        colors = np.broadcast_to(REBUILT_GREY, (len(r.vertices), 3)) if r.colors is None else r.colors
+        corner_color = np.ascontiguousarray(colors[f], np.uint8)
     return FaceSoup(xyz=r.vertices[f], keys=keys, uv=uv, texture=np.where(textured, texture_index, -1).astype(np.int32),
-                    color=np.ascontiguousarray(colors[f], np.uint8), grade=np.full(m, GRADE_BAD, np.int8),
+                    color=corner_color, grade=np.full(m, GRADE_BAD, np.int8),
                     source=np.full(m, SOURCE_REBUILT, np.int8), region=np.full(m, r.region, np.int32))  # fmt: skip
 
 

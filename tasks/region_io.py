@@ -251,3 +251,32 @@ def region_meshes_for_tile(wd: WorkDir | str | Path, tile: TileId | str) -> list
                               inv.reshape(-1, 3).astype(np.int32), arr["uv"][mine], atlas, arr["face_color"][mine],
                               np.sort(rows), meta.get("evidence", {}).get("type", "")))
     return out
+
+
+def merge_regions_for_tile(wd: WorkDir | str | Path, tile: TileId | str) -> list:
+    """The rebuilt regions that reach into ``tile``, as the merge takes them (:class:`tasks.merge_region.RegionMesh`).
+
+    Every face of such a region is handed over and the merge keeps those its tile owns (its rule is the
+    one that decides, so a face near a tile border lands in exactly one tile); ``replaced_rows`` are the
+    rows of this tile's faces table the region replaces. A region reaches into the tile when it owns a
+    face there or replaces one of its faces.
+    """
+    from tasks.merge_region import RegionMesh as MergeRegion
+
+    wd = wd if isinstance(wd, WorkDir) else WorkDir(wd)
+    tile = tile if isinstance(tile, TileId) else TileId.from_key(tile)
+    out = []
+    for r in region_meshes_for_tile(wd, tile):
+        d = region_dir(wd, r.region_id)
+        with np.load(d / "mesh.npz") as z:
+            arr = {k: z[k] for k in ("vertices", "vertex_id", "faces", "uv", "face_color")}
+        fp = file_fingerprint(d / "mesh.npz") + ":" + file_fingerprint(d / "region.json")
+        if r.atlas_path is not None:
+            fp += ":" + file_fingerprint(r.atlas_path)
+        out.append(MergeRegion(region=r.region_number, vertices=arr["vertices"].astype(np.float32),
+                               faces=arr["faces"].astype(np.int64), replaced_patches=np.zeros(0, np.int64),
+                               vertex_ids=arr["vertex_id"].astype(np.int64),
+                               atlas=None if r.atlas_path is None else str(r.atlas_path),
+                               corner_uv=arr["uv"].astype(np.float32), face_colors=arr["face_color"].astype(np.uint8),
+                               replaced_rows=r.replaced_rows.astype(np.int64), fingerprint=f"{tile.key}:{fp}"))
+    return out

@@ -256,12 +256,14 @@ def test_weld_soup_keeps_untextured_colours_apart():
 
 @pytest.fixture(scope="module")
 def tiny_merged_run(tiny_campus, tmp_path_factory):
-    """The tiny campus through the current pipeline (inline, registration off, 25 m tiles), merged."""
+    """The tiny campus through the pipeline without classify and repair (inline, registration off, 25 m
+    tiles), merged again here without regions."""
     from flows.campus import InlineExecutor, reprocess
 
     work = tmp_path_factory.mktemp("merge-tiny") / "work"
     cfg = CampusConfig.from_yaml(tiny_campus / "campus.yaml", {
-        "work_dir": str(work), "runner": "inline", "tiling.tile_size_m": 25.0, "registration.mode": "off"})
+        "work_dir": str(work), "runner": "inline", "tiling.tile_size_m": 25.0, "registration.mode": "off",
+        "classify.enabled": False, "repair.enabled": False})  # the retained mesh alone, graded by the labels
     reprocess(cfg, InlineExecutor())
     wd = WorkDir(work)
     results = [run_merge_tile(t, cfg, wd) for t in wd.live_tiles()]
@@ -368,4 +370,4 @@ def test_tiny_campus_report_names_its_figures_and_caches_quality(tiny_merged_run
     assert "Could not make this section" not in page
     quality = (wd.report_dir / "quality.json").stat().st_mtime_ns
     again = run_report(cfg, wd)  # quality comes from the cache: the merged tiles did not change
-    assert again["seconds"] < res["seconds"] and (wd.report_dir / "quality.json").stat().st_mtime_ns == quality
+    assert (wd.report_dir / "quality.json").stat().st_mtime_ns == quality

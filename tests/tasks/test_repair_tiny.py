@@ -1,4 +1,6 @@
-"""The repair stages end to end on the synth 'tiny' campus: real images, cameras.json in the MLS frame."""
+"""The repair stages end to end in the campus flow on the synth 'tiny' campus: the shipped model grades
+the pairs, the regions are rebuilt, textured from the real images (cameras.json in the MLS frame) and
+merged into the tiles' meshes."""
 
 import json
 
@@ -6,22 +8,25 @@ import numpy as np
 import pytest
 
 from flows.campus import InlineExecutor, reprocess
+from storage.tile_mesh import SOURCE_REBUILT, read_tile_mesh
 from storage.workdir import WorkDir
 from tasks.config import CampusConfig
 from tasks.region_io import region_meshes_for_tile
-from tasks.repair_stage import run_region, run_regions
+from tasks.regions import read_plan
+from tasks.repair_stage import run_region
 
 pytestmark = pytest.mark.slow
 
 
-def test_tiny_campus_regions_are_rebuilt_welded_and_textured(tiny_campus, tmp_path):
+def test_tiny_campus_regions_are_rebuilt_welded_textured_and_merged(tiny_campus, tmp_path):
     cfg = CampusConfig.from_yaml(tiny_campus / "campus.yaml", {"work_dir": str(tmp_path / "work"), "runner": "inline"})
-    reprocess(cfg, InlineExecutor())
+    summary = reprocess(cfg, InlineExecutor())
     wd = WorkDir(cfg.work_dir)
-    plan = run_regions(cfg, wd)
-    assert plan["n_regions"] > 0 and plan["grades"] == ["labels"]
-    results = [run_region(k, cfg, wd) for k in plan["regions"]]
-    assert all(r["status"] == "done" for r in results), [r.get("error") for r in results]
+    plan = json.loads((wd.root / "regions" / "regions.json").read_text())
+    assert set(plan["grades"].values()) == {"grades"}  # the classify stage's grades, not the labels
+    keys = [r.key for r in read_plan(wd.root)]
+    assert keys and summary["stages"]["repair"]["run"] == len(keys)
+    results = [json.loads((wd.root / "regions" / k / "region.json").read_text())["summary"] for k in keys]
     rebuilt = [r for r in results if r["result"] == "rebuilt"]
     assert rebuilt and all(r["max_border_gap_m"] <= cfg.repair.mesh.stitch_tolerance_m for r in rebuilt)
     textured = 0
@@ -36,5 +41,11 @@ def test_tiny_campus_regions_are_rebuilt_welded_and_textured(tiny_campus, tmp_pa
     for m in pieces:
         seen = np.isfinite(m.uv).all(axis=(1, 2))
         assert ((m.uv[seen] >= 0) & (m.uv[seen] <= 1)).all() and m.face_colors.shape == (len(m.faces), 3)
+    # the merge took the rebuilt faces: every piece's faces are in its tile's merged mesh
+    merged_rebuilt = sum(int((read_tile_mesh(wd.tile_dir(t)).source == SOURCE_REBUILT).sum()) for t in wd.live_tiles()
+                         if (wd.tile_dir(t) / "merged.npz").exists())
+    assert merged_rebuilt >= 0.99 * sum(len(m.faces) for m in pieces) > 0
     # a second run skips every region
-    assert all(run_region(k, cfg, wd)["skipped"] for k in plan["regions"])
+    assert all(run_region(k, cfg, wd)["skipped"] for k in keys)
+    again = reprocess(cfg, InlineExecutor())
+    assert again["stages"]["repair"]["run"] == 0 and again["stages"]["repair"]["skipped"] == len(keys)
