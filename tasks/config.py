@@ -29,6 +29,8 @@ class InputsConfig(_Model):
     units_scale: float = Field(1.0, description="multiplies input coordinates into metres (e.g. 0.3048 for US feet)")
     labels: str | None = Field(None, description="patch labels: a synth defects.json or a CSV of bad patch ids (i,j,k[,label]); ids are world-anchored, so a CSV stays valid when the campus grows")
     origin: tuple[float, float, float] | None = Field(None, description="campus origin (world metres) of the float32 offsets; default: the inputs' minimum x/y corner snapped to 1 km, z = 0")
+    images: str | None = Field(None, description="folder of the vehicle camera images that texture rebuilt regions; default: an 'images' folder beside the first mesh input when it holds a cameras.json")
+    cameras: str | None = Field(None, description="cameras.json: OpenCV pinhole poses per image {'frame': 'MLS' | 'mesh', 'frame_origin': [x, y, z], 'cameras': [{'image', 'K', 'R', 't', 'width', 'height'}]}, X_cam = R (X_world - frame_origin) + t; default: images/cameras.json")
 
 
 class RegistrationConfig(_Model):
@@ -151,8 +153,9 @@ class CampusConfig(_Model):
         inputs = data.get("inputs", {})
         for key in ("mesh", "points"):  # relative input paths are relative to the config file
             inputs[key] = [str((base / p) if not Path(p).is_absolute() else p) for p in inputs.get(key, [])]
-        if inputs.get("labels") and not Path(inputs["labels"]).is_absolute():
-            inputs["labels"] = str(base / inputs["labels"])
+        for key in ("labels", "images", "cameras"):
+            if inputs.get(key) and not Path(inputs[key]).is_absolute():
+                inputs[key] = str(base / inputs[key])
         data["inputs"] = inputs
         if "work_dir" in data and not Path(data["work_dir"]).is_absolute():
             data["work_dir"] = str(base / data["work_dir"])
