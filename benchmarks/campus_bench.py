@@ -33,7 +33,8 @@ sys.path.insert(0, str(REPO))
 sys.path.insert(0, str(REPO / "benchmarks"))
 
 MS3D = [sys.executable, "-m", "flows.cli"]
-STAGES = ("scan", "register", "ingest", "partition", "labels", "outliers")
+STAGES = ("scan", "register", "ingest", "partition", "labels", "outliers", "classify", "regions", "region", "merge",
+          "export", "quality", "report")
 
 
 def _du(path: Path, pattern: str = "*") -> int:

@@ -23,8 +23,13 @@ from .conftest import ORIGIN, build_campus, region_mesh
 TILE = 20.0
 
 
-def _cfg(path: Path, work: Path, **over) -> CampusConfig:
-    return CampusConfig.from_yaml(path, {"work_dir": str(work), "runner": "inline", **over})
+# the stages these tests are about end with partition; the later ones (on their own inputs) are covered by
+# test_removed_input_through_the_whole_pipeline and the stages' own tests
+EARLY = {"classify.enabled": False, "repair.enabled": False, "report.enabled": False}
+
+
+def _cfg(path: Path, work: Path, full: bool = False, **over) -> CampusConfig:
+    return CampusConfig.from_yaml(path, {"work_dir": str(work), "runner": "inline", **({} if full else EARLY), **over})
 
 
 def _run(cfg: CampusConfig) -> dict:
@@ -52,10 +57,10 @@ def _assert_same_stores(a: Path, b: Path) -> None:
     assert not list((a / "staging").rglob(".*")), "temporary staging files left behind"
 
 
-def _clean_run(config: Path, tmp: Path) -> Path:
+def _clean_run(config: Path, tmp: Path, full: bool = False) -> Path:
     work = tmp / "clean"
     shutil.rmtree(work, ignore_errors=True)
-    _run(_cfg(config, work))
+    _run(_cfg(config, work, full))
     return work
 
 
@@ -91,6 +96,28 @@ def test_removed_input(campus, tmp_path):
     _assert_same_stores(work, _clean_run(config, tmp_path))
     n_east = sum(PatchStore(work / "tiles" / t).n_points for t in s["tiles_done"] if _region_of(t) == "east")
     assert n_east == 0  # the points of the deleted strip are gone
+
+
+def test_removed_input_through_the_whole_pipeline(tmp_path):
+    """Grades, the region plan and the merged tile meshes after a removed strip equal a clean run's."""
+    import json
+
+    config = build_campus(tmp_path / "in", tile_size_m=TILE)
+    work = tmp_path / "work"
+    _run(_cfg(config, work, full=True))
+    (config.parent / "mls" / "east.laz").unlink()
+    s = _run(_cfg(config, work, full=True))
+    assert _redone_regions(s) == {"east"} and {_region_of(t) for t in s["stages"]["classify"]["units_run"]} == {"east"}
+    clean = _clean_run(config, tmp_path, full=True)
+    _assert_same_stores(work, clean)  # incl. grades.parquet
+    plan = lambda w: [r["key"] for r in json.loads((w / "regions" / "regions.json").read_text())["regions"]]
+    assert plan(work) == plan(clean)
+    for t in sorted((clean / "tiles").iterdir()):
+        if (t / "merged.npz").exists():
+            a, b = np.load(t / "merged.npz"), np.load(work / "tiles" / t.name / "merged.npz")
+            assert sorted(a.files) == sorted(b.files)
+            for k in a.files:
+                assert np.asarray(a[k]).tobytes() == np.asarray(b[k]).tobytes(), f"{t.name} merged {k}"
 
 
 def test_added_input(campus, tmp_path):
