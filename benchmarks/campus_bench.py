@@ -53,10 +53,13 @@ def generate(out: Path, scale: float, density: float, seed: int) -> dict:
     return {"seconds": time.perf_counter() - t0, "reused": False}
 
 
-def run_flow(config: Path, work: Path, workers: int = 2) -> dict:
+EARLY_ONLY = ["--set", "classify.enabled=false", "--set", "repair.enabled=false", "--set", "report.enabled=false"]
+
+
+def run_flow(config: Path, work: Path, workers: int = 2, extra: list[str] | None = None) -> dict:
     shutil.rmtree(work, ignore_errors=True)
     t0 = time.perf_counter()
-    proc = subprocess.run(MS3D + ["run", str(config), "--work-dir", str(work), "--workers", str(workers)],
+    proc = subprocess.run(MS3D + ["run", str(config), "--work-dir", str(work), "--workers", str(workers)] + (extra or []),
                           cwd=REPO, capture_output=True, text=True, check=False)
     wall = time.perf_counter() - t0
     if proc.returncode not in (0, 1):
@@ -88,6 +91,8 @@ def main(argv=None) -> dict:
     ap.add_argument("--demo-only", action="store_true")
     ap.add_argument("--skip-demo", action="store_true")
     ap.add_argument("--keep", action="store_true", help="keep the work dir of the dense run")
+    ap.add_argument("--early-only", action="store_true", help="dense run without classify, repair and the report "
+                    "(scan -> partition -> merge -> export: what scales with points)")
     a = ap.parse_args(argv)
     out = {}
     print(f"machine: {os.cpu_count()} cores; load average {os.getloadavg()[0]:.2f} at start")
@@ -96,8 +101,10 @@ def main(argv=None) -> dict:
         gen = generate(inputs, a.scale, a.mls_density, a.seed)
         n = n_points(inputs)
         laz = _du(inputs / "mls")
-        r = run_flow(inputs / "campus.yaml", work, a.workers)
-        st = r["stages"]
+        r = run_flow(inputs / "campus.yaml", work, a.workers, EARLY_ONLY if a.early_only else None)
+        if a.early_only:
+            print("(dense run without classify, repair and the report: --early-only)")
+        st = {k: v for k, v in r["stages"].items() if v["units"]}
         task = sum(s["task_s"] for s in st.values())
         staging, stores = _du(work / "staging"), _du(work / "tiles")
         print(f"\ncampus preset scale {a.scale}, MLS density {a.mls_density} (1.0 = real), seed {a.seed}: "
@@ -111,8 +118,8 @@ def main(argv=None) -> dict:
             print(f"{s:<11}{v['units']:>7}{v['task_s']:>9.0f}{v['peak_rss_mb']:>17.0f} MB")
         print(f"\ndisk per input point: LAZ {laz / n:.1f} B, staging runs {staging / n:.1f} B, patch stores "
               f"{stores / n:.1f} B (work dir total {(staging + stores) / n:.1f} B)")
-        per_core = n / max(task - st["register"]["task_s"], 1e-9)  # what scales with points
-        serial = st["register"]["task_s"]
+        serial = st.get("register", {}).get("task_s", 0.0)
+        per_core = n / max(task - serial, 1e-9)  # what scales with points
         print("\nprojection to a 2 km² campus (registration is serial on a bounded sample; the rest scales "
               "with points at the measured per-core rate and this run's efficiency):")
         eff = task / r["flow_wall"] / a.workers
