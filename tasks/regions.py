@@ -219,9 +219,12 @@ def patch_grades(store, mode: str = "auto") -> tuple[np.ndarray, np.ndarray, str
     """Grades of a tile's patches: ((u,) int64 keys, (u,) int8 grade -1 unknown / 0 good / 1 bad, source).
 
     mode "auto": the classify stage's ``grades`` side table when present, else ``labels``; "model" /
-    "labels": only that table. source is "grades", "labels" or "none" (all unknown).
+    "labels": only that table; "all": every patch is bad (fusion everywhere the MLS reaches, the
+    quality benchmark's variant (c)). source is "grades", "labels", "all" or "none" (all unknown).
     """
     keys = store.patches()["patch"]
+    if mode == "all":
+        return keys, np.ones(len(keys), np.int8), "all"
     order = {"auto": ("grades", "labels"), "model": ("grades",), "labels": ("labels",)}[mode]
     for name in order:
         side = store.side(name)

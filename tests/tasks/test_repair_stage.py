@@ -123,3 +123,5 @@ def test_grades_are_preferred_to_labels(corner, tmp_path):
     s = PatchStore(tmp_path / "t")
     assert patch_grades(s, "auto")[2] == "grades" and patch_grades(s, "auto")[1].sum() == 0
     assert patch_grades(s, "labels")[1].sum() == g.sum()
+    keys_all, g_all, src_all = patch_grades(s, "all")  # fusion everywhere
+    assert src_all == "all" and np.array_equal(keys_all, keys) and (g_all == 1).all()
