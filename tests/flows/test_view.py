@@ -18,20 +18,22 @@ DOCS_PNG = Path(__file__).resolve().parents[2] / "docs" / "viewer.png"
 BACKGROUND = np.array([0xDD, 0xE4, 0xEA])  # the page's clear colour
 
 
-def _tools_or_skip():
+def _tools_or_fail():
+    """make test installs node, chromium and the viewer's npm packages: a missing one is a broken set-up,
+    never a reason for the viewer tests to pass unseen."""
     if shutil.which("node") is None:
-        pytest.skip("node is not installed (apt-get install -y nodejs npm)")
+        pytest.fail("node is not installed (apt-get install -y nodejs npm)")
     if not CHROMIUM.exists():
-        pytest.skip("Debian chromium is not installed (apt-get install -y chromium)")
+        pytest.fail("Debian chromium is not installed (apt-get install -y chromium)")
     for pkg in ("playwright-core", "three", "3d-tiles-renderer"):
         if not (VIEWER_DIR / "node_modules" / pkg).is_dir():
-            pytest.skip(f"viewer/node_modules/{pkg} missing (npm ci --prefix viewer)")
+            pytest.fail(f"viewer/node_modules/{pkg} missing (npm ci --prefix viewer)")
 
 
 def test_server_serves_viewer_output_and_nothing_else(tiny_export):
     work, _ = tiny_export
     if not (VIEWER_DIR / "node_modules" / "three").is_dir():
-        pytest.skip("viewer/node_modules missing (npm ci --prefix viewer)")
+        pytest.fail("viewer/node_modules missing (npm ci --prefix viewer)")
     server = start_viewer(work)
     try:
         base = server.url.split("/viewer/")[0]
@@ -47,7 +49,7 @@ def test_server_serves_viewer_output_and_nothing_else(tiny_export):
 
 
 def test_headless_screenshot_shows_the_buildings(tiny_export, tmp_path):
-    _tools_or_skip()
+    _tools_or_fail()
     from PIL import Image
 
     work, _ = tiny_export
