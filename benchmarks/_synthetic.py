@@ -117,7 +117,7 @@ def write_big_tile_runs(staging: Path, n_points: int, run_points: int = 2_000_00
     number of runs."""
     from storage.columns import write_run
     from storage.grid import PatchGrid
-    from tasks.partition import partition_cells
+    from tasks.partition.kernels import partition_cells
 
     params = {"n_points": n_points, "run_points": run_points, "seed": seed, "tile": list(tile), "version": 2}
     stamp = staging / "params.json"

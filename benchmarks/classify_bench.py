@@ -40,7 +40,7 @@ def bench(net, profile, tp, n_pairs: int, batch: int, uses_cues: bool) -> dict:
     import torch
 
     from ms3d_model.dataset import to_batch
-    from tasks.pairs import featurise_tile_pairs
+    from tasks.classify.pairs import featurise_tile_pairs
 
     feats_needed = profile.net.arch != "gbm"
 
@@ -84,8 +84,8 @@ def main(argv=None) -> int:
 
     from ms3d_model.profiles import get_profile
     from ms3d_model.train import load_checkpoint, make_model, net_uses_cues
-    from tasks.classify import DEFAULT_MODEL
-    from tasks.pairs import read_tile_pairs
+    from tasks.classify.stage import DEFAULT_MODEL
+    from tasks.classify.pairs import read_tile_pairs
 
     torch.set_num_threads(a.threads)
     wd = a.work_dir or next((str(p) for p in (ROOT / "ms3d-work" / "w42", ROOT / "ms3d-work" / "demo") if p.exists()), None)

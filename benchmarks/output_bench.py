@@ -4,7 +4,7 @@ Input: a work dir the campus flow has processed (tile stores, labels; default ``
 ``make demo`` writes). It is only read: the benchmark links (or copies) its stores into ``--bench``.
 Each step runs in a fresh process, so its peak RSS (VmHWM) is its own:
 
-1. merge every live tile (``tasks.merge.run_merge_tile``, one after the other, as one Dask worker would);
+1. merge every live tile (``tasks.merge.stage.run_merge_tile``, one after the other, as one Dask worker would);
 2. ``run_export`` on the merged tiles (uncompressed, one process);
 3. the same two on a campus ``--replicate`` times larger: the stores copied side by side along y
    (re-partitioned at the shifted place, vertex ids kept unique, labels carried over), so the
@@ -59,7 +59,7 @@ def _merge_one(work: str, key: str) -> tuple[dict | None, float]:
     """Merge one tile (in a pool worker); returns its summary and the worker's peak RSS so far."""
     from storage.ids import TileId
     from storage.workdir import WorkDir
-    from tasks.merge import run_merge_tile
+    from tasks.merge.stage import run_merge_tile
 
     return run_merge_tile(TileId.from_key(key), _config(Path(work)), WorkDir(work)), _vm_hwm_mb()
 
@@ -96,7 +96,7 @@ def _child_merge(work: str, processes: int = 1) -> dict:
 
 def _child_export(work: str, processes: int = 1) -> dict:
     from tasks.config import ExportConfig
-    from tasks.export import run_export
+    from tasks.export.build import run_export
 
     t0, c0 = time.perf_counter(), time.process_time()
     s = run_export(work, ExportConfig(compression="none"), workers=processes)
@@ -140,7 +140,7 @@ def replicate_stores(src: Path, dst: Path, times: int) -> Path:
 
     from storage.patch_store import FACE_DTYPES, PatchStore, TileMeta, write_side_table, write_tile_tables
     from storage.workdir import WorkDir, campus_frame, read_campus
-    from tasks.partition import build_tile_tables
+    from tasks.partition.kernels import build_tile_tables
 
     link_stores(src, dst)
     cfg = _config(dst)

@@ -120,7 +120,7 @@ def job_ingest(units: list[dict], cfg: dict, wd: str, frame: dict, matrix) -> di
     from storage.frame import CampusFrame
     from storage.workdir import WorkDir
     from tasks.config import CampusConfig
-    from tasks.ingest import IngestUnit, run_ingest_unit
+    from tasks.ingest.stage import IngestUnit, run_ingest_unit
 
     cfg_m, w, fr = CampusConfig.model_validate(cfg), WorkDir(wd), CampusFrame.from_json(frame)
     m = np.asarray(matrix, np.float64)
@@ -136,7 +136,7 @@ def job_partition_points(tiles: list[str], wd: str, out: str, cfg: dict, frame: 
     from storage.frame import CampusFrame
     from storage.patch_store import TileMeta
     from tasks.config import CampusConfig
-    from tasks.patches import write_tile_store
+    from tasks.partition.stage import write_tile_store
 
     cfg_m, fr = CampusConfig.model_validate(cfg), CampusFrame.from_json(frame)
     n = 0
@@ -194,9 +194,9 @@ def job_tile_rss(wd: str, tile: str, origin: list, budget_mb: int, force_stream:
     from storage.ids import TileId
     from storage.workdir import WorkDir
     from tasks.config import CampusConfig
-    from tasks.patches import run_partition_tile
+    from tasks.partition.stage import run_partition_tile
 
-    for lazy in ("storage.patch_store", "tasks.partition_stream", "pyarrow.parquet"):
+    for lazy in ("storage.patch_store", "tasks.partition.stream", "pyarrow.parquet"):
         importlib.import_module(lazy)
     cfg = CampusConfig.model_validate({"work_dir": wd, "partition": {"memory_budget_mb": budget_mb}})
     w = WorkDir(wd)
@@ -245,7 +245,7 @@ def stage(cfg, work: Path) -> dict:
     """Scan the campus (registration off: MATRIX stands in for a registration) and plan its units."""
     from flows.campus import InlineExecutor, scan_inputs
     from storage.workdir import WorkDir
-    from tasks.ingest import plan_units
+    from tasks.ingest.stage import plan_units
 
     wd = WorkDir(cfg.work_dir)
     shutil.rmtree(wd.root, ignore_errors=True)

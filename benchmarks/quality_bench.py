@@ -129,7 +129,7 @@ def run_repair(sandbox: Path, max_regions: int | None = None, log=print) -> list
     """run_regions then run_region for every region, one after the other, with time and peak RSS."""
     from storage.workdir import WorkDir, read_campus
     from tasks.config import CampusConfig
-    from tasks.repair_stage import run_region, run_regions
+    from tasks.repair.stage import run_region, run_regions
 
     wd = WorkDir(sandbox)
     cfg = CampusConfig.model_validate(read_campus(wd)["config"])
@@ -166,7 +166,7 @@ def assemble(work: Path, with_regions: bool = True) -> tuple[np.ndarray, np.ndar
     from storage.ids import TileId
     from storage.patch_store import PatchStore
     from storage.workdir import WorkDir
-    from tasks.repair_stage import region_meshes_for_tile
+    from tasks.repair.stage import region_meshes_for_tile
 
     wd = WorkDir(work)
     tris, vids, n_rep, n_new = [], [], 0, 0
@@ -214,7 +214,7 @@ def poisson_from_mls(work: Path, cams_centres: np.ndarray, spacing_m: float = 0.
 
     from storage.patch_store import PatchStore
     from storage.workdir import WorkDir
-    from tasks.fuse import thin_points
+    from tasks.repair.fuse import thin_points
 
     wd = WorkDir(work)
     pts = []
@@ -261,7 +261,7 @@ def poisson_from_mls(work: Path, cams_centres: np.ndarray, spacing_m: float = 0.
 def subdivided_truth(synth: Path, origin: np.ndarray, max_edge_m: float = 0.3):
     """Truth (vertices campus-local, faces, classes) with facade faces split until every edge is <=
     max_edge_m, so per-face masks (MLS-seen) resolve the facade finely; geometry is unchanged."""
-    from tasks.quality_io import load_truth
+    from tasks.quality.truth import load_truth
 
     tv, tf, tc, _ = load_truth(synth)
     v = tv - origin
@@ -289,7 +289,7 @@ def mls_seen(tv, tf, tc, work: Path, radius_m: float = 0.10) -> np.ndarray:
 
     from storage.patch_store import PatchStore
     from storage.workdir import WorkDir
-    from tasks.fuse import thin_points
+    from tasks.repair.fuse import thin_points
 
     wd = WorkDir(work)
     pts = []
@@ -325,13 +325,13 @@ def _combine(reports: list) -> dict:
 
 
 def evaluate(v, f, truth, seen, spacing_m: float = 0.05) -> dict:
-    """Whole-campus figures (``tasks.quality.evaluate_mesh``, 5 cm samples like ``make demo``).
+    """Whole-campus figures (``tasks.quality.metrics.evaluate_mesh``, 5 cm samples like ``make demo``).
 
     One pass with every truth class split into a seen and an unseen copy (a predicted sample takes the
     class of its nearest truth face): "all" is over every facade, "seen" over the facade faces the MLS
     saw (precision from the predicted samples nearest to them, recall and holes over them).
     """
-    from tasks.quality import evaluate_mesh
+    from tasks.quality.metrics import evaluate_mesh
 
     tv, tf, tc = truth
     names = CLASS_NAMES + tuple(f"unseen_{n}" for n in CLASS_NAMES)
@@ -453,7 +453,7 @@ def main(argv=None) -> dict:
             v, f, _ = assemble(a.work, with_regions=False)
         elif var == "b":
             from tasks.config import CampusConfig
-            from tasks.repair_stage import load_cameras
+            from tasks.repair.stage import load_cameras
 
             cfg = CampusConfig.model_validate(doc["config"])
             cams = load_cameras(cfg, doc, campus_frame(doc))

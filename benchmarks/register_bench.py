@@ -27,8 +27,8 @@ def main(argv=None) -> dict:
     from flows.campus import InlineExecutor, scan_inputs
     from storage.workdir import WorkDir
     from tasks.config import CampusConfig
-    from tasks.register import apply_similarity, compare_transforms
-    from tasks.register_stage import run_register
+    from tasks.register.align import apply_similarity, compare_transforms
+    from tasks.register.stage import run_register
 
     with tempfile.TemporaryDirectory() as tmp:
         cfg = CampusConfig.from_yaml(src / "campus.yaml", {"work_dir": tmp, "registration.mode": "auto"})

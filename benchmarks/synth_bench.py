@@ -129,7 +129,7 @@ def demo_and_realism(a) -> None:
               f"{100 * r['bad_fraction']:.0f} %   (paper: 425 of 1000 pairs bad)\n")
 
         print("== baseline quality of the demo MVS mesh against the truth (what later stages must beat) ==")
-        from tasks.quality_io import quality_of_campus
+        from tasks.quality.truth import quality_of_campus
 
         t0 = time.perf_counter()
         q = quality_of_campus(demo_dir)

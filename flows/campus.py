@@ -84,7 +84,7 @@ def reprocess_campus(cfg_json: dict, progress: bool = True) -> dict:
 def reprocess(cfg: CampusConfig, ex, publish=None) -> dict:
     """The campus run on an executor (:class:`PrefectExecutor` inside the flow, :class:`InlineExecutor`
     for a run without Prefect). Raises CampusRunFailed when units failed or the campus is incomplete."""
-    from tasks.plan import work_dir_lock
+    from storage.housekeeping import work_dir_lock
 
     wd = WorkDir(cfg.work_dir)
     with work_dir_lock(wd):
@@ -102,7 +102,7 @@ def scan_inputs(cfg: CampusConfig, wd: WorkDir, ex) -> tuple:
     Returns (records: list[InputFile], frame: CampusFrame, discovery, {path: source id}, scan summaries).
     """
     from storage.inputs import InputFile, assign_source_ids, discover
-    from tasks.scan import campus_frame
+    from tasks.scan.stage import campus_frame
 
     cfg_json = cfg.model_dump(mode="json")
     n_workers = max(cfg.cluster.n_workers, 1)
@@ -126,9 +126,9 @@ def _reprocess(cfg: CampusConfig, cfg_json: dict, wd: WorkDir, ex) -> dict:
     import numpy as np
 
     from storage.workdir import write_campus
-    from tasks.export_stage import run_export_stage
-    from tasks.ingest import plan_units, prune_staging, tiles_hint
-    from tasks.plan import drop_unplanned_records, sweep_temporary_files
+    from tasks.export.stage import run_export_stage
+    from tasks.ingest.stage import plan_units, prune_staging, tiles_hint
+    from storage.housekeeping import drop_unplanned_records, sweep_temporary_files
 
     t_wall, t_start = time.perf_counter(), time.time()
     n_workers = max(cfg.cluster.n_workers, 1)
@@ -217,7 +217,7 @@ def _reprocess(cfg: CampusConfig, cfg_json: dict, wd: WorkDir, ex) -> dict:
         if s["status"] == "failed":
             failed[f"merge {s['unit']}"] = s["error"]
     drop_unplanned_records(wd, "merge", set(tiles))
-    from tasks.report import quality_plan, write_quality
+    from tasks.report.stage import quality_plan, write_quality
 
     qplan = quality_plan(cfg, wd) if cfg.report.enabled and cfg.report.quality else None
     shares = [ex.submit(quality_task, cfg_json, qplan, (k, n_workers)) for k in range(n_workers)] if qplan else []
@@ -294,7 +294,7 @@ def make_task_runner(cfg: CampusConfig):
 def run_campus(cfg: CampusConfig, progress: bool = True) -> dict:
     """Run the campus flow with one embedded Prefect API (unless one is configured) and a Dask cluster."""
     from flows.runtime import embedded_prefect
-    from tasks.plan import check_work_dir_writable
+    from storage.housekeeping import check_work_dir_writable
 
     wd = WorkDir(cfg.work_dir)
     check_work_dir_writable(wd)

@@ -11,7 +11,7 @@ Wiring in ``flows/campus.py`` (done by whoever owns that file)::
     drop_unplanned_records(wd, "classify", set(tiles))
 
 (after ``outliers``; pass ``stages={..., "classify": grades}`` to ``summarise``). The network is loaded
-once per worker process (``tasks.classify.load_model`` caches it).
+once per worker process (``tasks.classify.stage.load_model`` caches it).
 """
 
 from __future__ import annotations
@@ -25,7 +25,7 @@ def classify_task(tile_keys: list[str], cfg_json: dict) -> list[dict]:
     """Grade the pairs of a batch of tiles; one summary per tile that has a live store."""
     from storage.ids import TileId
     from storage.workdir import WorkDir
-    from tasks.classify import run_classify_tile
+    from tasks.classify.stage import run_classify_tile
     from tasks.config import CampusConfig
 
     cfg = CampusConfig.model_validate(cfg_json)

@@ -32,7 +32,7 @@ def serve_campus(config_path: Path, cfg: CampusConfig, cron: str, name: str | No
     """Serve the campus deployment until interrupted. Returns the exit code."""
     from flows.campus import reprocess_from_config
     from flows.runtime import embedded_prefect
-    from tasks.plan import check_work_dir_writable
+    from storage.housekeeping import check_work_dir_writable
 
     check_cron(cron)
     wd = WorkDir(cfg.work_dir)

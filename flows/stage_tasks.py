@@ -24,7 +24,7 @@ def _cfg(cfg_json: dict) -> CampusConfig:
 @task(name="scan", cache_policy=NO_CACHE)
 def scan_task(files: list[dict], cfg_json: dict) -> list[dict]:
     """Scan a batch of input files ({"path", "kind", "source"})."""
-    from tasks.scan import run_scan_file
+    from tasks.scan.stage import run_scan_file
 
     cfg = _cfg(cfg_json)
     wd = WorkDir(cfg.work_dir)
@@ -35,7 +35,7 @@ def scan_task(files: list[dict], cfg_json: dict) -> list[dict]:
 def register_task(records: list[dict], frame_json: dict, cfg_json: dict) -> dict:
     from storage.frame import CampusFrame
     from storage.inputs import InputFile
-    from tasks.register_stage import run_register
+    from tasks.register.stage import run_register
 
     cfg = _cfg(cfg_json)
     try:
@@ -51,7 +51,7 @@ def ingest_task(units: list[dict], cfg_json: dict, frame_json: dict, matrix: lis
     import numpy as np
 
     from storage.frame import CampusFrame
-    from tasks.ingest import IngestUnit, run_ingest_unit
+    from tasks.ingest.stage import IngestUnit, run_ingest_unit
 
     cfg = _cfg(cfg_json)
     wd, frame = WorkDir(cfg.work_dir), CampusFrame.from_json(frame_json)
@@ -64,7 +64,7 @@ def partition_task(tile_keys: list[str], cfg_json: dict, frame_json: dict, block
     """Partition a batch of tiles into patch stores, then label them."""
     from storage.frame import CampusFrame
     from storage.ids import TileId
-    from tasks.patches import run_labels_tile, run_partition_tile
+    from tasks.partition.stage import run_labels_tile, run_partition_tile
 
     delay = float(os.environ.get("MS3D_FAULT_PARTITION_DELAY_S", "0") or 0)  # fault-injection hook for tests
     cfg = _cfg(cfg_json)
@@ -85,7 +85,7 @@ def partition_task(tile_keys: list[str], cfg_json: dict, frame_json: dict, block
 
 @task(name="outliers", cache_policy=NO_CACHE)
 def outliers_task(cfg_json: dict) -> dict:
-    from tasks.patches import run_outliers
+    from tasks.partition.stage import run_outliers
 
     cfg = _cfg(cfg_json)
     return run_outliers(cfg, WorkDir(cfg.work_dir))
@@ -97,8 +97,8 @@ def outliers_task(cfg_json: dict) -> dict:
 def regions_task(cfg_json: dict) -> dict:
     """Plan the bad regions of the campus (``regions/regions.json``); returns the region keys and a
     weight (estimated working set, bytes) per key for balancing the repair tasks."""
-    from tasks.regions import read_plan
-    from tasks.repair_stage import run_regions
+    from tasks.regions.plan import read_plan
+    from tasks.repair.stage import run_regions
     from tasks.units import os_error_message
 
     cfg = _cfg(cfg_json)
@@ -115,7 +115,7 @@ def regions_task(cfg_json: dict) -> dict:
 @task(name="repair", cache_policy=NO_CACHE)
 def repair_task(region_keys: list[str], cfg_json: dict) -> list[dict]:
     """Repair a batch of regions (fuse -> mesh -> stitch -> texture), one summary each."""
-    from tasks.repair_stage import run_region
+    from tasks.repair.stage import run_region
 
     cfg = _cfg(cfg_json)
     wd = WorkDir(cfg.work_dir)
@@ -126,7 +126,7 @@ def repair_task(region_keys: list[str], cfg_json: dict) -> list[dict]:
 def merge_task(tile_keys: list[str], cfg_json: dict) -> list[dict]:
     """Merge a batch of tiles into one clean mesh each (retained faces + rebuilt regions)."""
     from storage.ids import TileId
-    from tasks.merge import run_merge_tile
+    from tasks.merge.stage import run_merge_tile
 
     cfg = _cfg(cfg_json)
     wd = WorkDir(cfg.work_dir)
@@ -141,16 +141,16 @@ def merge_task(tile_keys: list[str], cfg_json: dict) -> list[dict]:
 
 def _region_source():
     """Repair's rebuilt regions of a tile, in the merge's terms."""
-    from tasks.region_io import merge_regions_for_tile
+    from tasks.repair.region_io import merge_regions_for_tile
 
     return merge_regions_for_tile
 
 
 @task(name="export-nodes", cache_policy=NO_CACHE)
 def export_nodes_task(jobs: list) -> list[dict]:
-    """Build a batch of 3D Tiles nodes ((index, job) pairs of ``tasks.export``); returns their records."""
+    """Build a batch of 3D Tiles nodes ((index, job) pairs of ``tasks.export.build``); returns their records."""
     from storage.manifest import ManifestRecord, write_record
-    from tasks.export import build_node
+    from tasks.export.build import build_node
     from tasks.units import peak_rss_mb, reset_peak_rss
 
     out = []
@@ -173,7 +173,7 @@ def export_nodes_task(jobs: list) -> list[dict]:
 @task(name="quality", cache_policy=NO_CACHE)
 def quality_task(cfg_json: dict, plan: dict, part: tuple[int, int]) -> dict:
     """One share of the model's quality against the truth: {"status", "sums": {model: QualityPartial}}."""
-    from tasks.report import run_quality_share
+    from tasks.report.stage import run_quality_share
 
     cfg = _cfg(cfg_json)
     return _recorded("quality", WorkDir(cfg.work_dir), lambda: {"sums": run_quality_share(
@@ -201,7 +201,7 @@ def _recorded(stage: str, wd: WorkDir, fn, unit: str = "campus") -> dict:
 
 @task(name="report", cache_policy=NO_CACHE)
 def report_task(cfg_json: dict) -> dict:
-    from tasks.report import run_report
+    from tasks.report.stage import run_report
 
     cfg = _cfg(cfg_json)
     return _recorded("report", WorkDir(cfg.work_dir),

@@ -323,7 +323,7 @@ class TableWriter:
 def write_tile_tables(tile_dir: str | Path, points_cols: dict | None, faces_cols: dict | None,
                       patches_cols: dict, meta: TileMeta, *, row_group_size: int = DEFAULT_ROW_GROUP_SIZE,
                       compression: str | dict = "auto") -> TileStoreSummary:
-    """Write one tile's three tables (already sorted by patch, e.g. by ``tasks.partition.build_tile_tables``).
+    """Write one tile's three tables (already sorted by patch, e.g. by ``tasks.partition.kernels.build_tile_tables``).
 
     Args:
         tile_dir: the tile folder (``WorkDir.tile_dir(tile)``); created if missing.

@@ -16,7 +16,7 @@ from storage.frame import CampusFrame
 from storage.mesh_io import MeshData
 from storage.tile_mesh import GRADE_BAD, GRADE_GOOD, GRADE_UNKNOWN, SOURCE_REBUILT, TileMesh, write_tile_mesh
 from storage.workdir import WorkDir, write_campus
-from tasks.tiling import group_by_tile
+from tasks.geometry.tiling import group_by_tile
 
 
 def per_vertex_uv(faces: np.ndarray, corner_uv: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:

@@ -76,7 +76,7 @@ def test_serve_and_view_errors_are_one_line(tmp_path, capsys):
 
 def test_a_second_run_on_a_busy_work_dir_is_refused(tmp_path):
     from storage.workdir import WorkDir
-    from tasks.plan import work_dir_lock
+    from storage.housekeeping import work_dir_lock
 
     wd = WorkDir(tmp_path / "w")
     with work_dir_lock(wd):

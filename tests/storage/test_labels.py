@@ -14,7 +14,7 @@ from storage.labels import (
     load_defect_samples,
     read_labels_csv,
 )
-from tasks.partition import point_cells
+from tasks.partition.kernels import point_cells
 
 SIZE = (2.3, 1.0, 0.7)
 GRID = PatchGrid(SIZE, 100.0)

@@ -17,7 +17,7 @@ from storage.patch_store import (
     write_side_table,
     write_tile_tables,
 )
-from tasks.partition import build_tile_tables
+from tasks.partition.kernels import build_tile_tables
 
 SIZE = (2.3, 1.0, 0.7)
 GRID = PatchGrid(SIZE, 100.0)

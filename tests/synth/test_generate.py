@@ -10,8 +10,8 @@ import pytest
 from storage.mesh_io import read_mesh
 from storage.pointcloud_io import read_header, read_points
 from synth.generate import generate
-from tasks.quality import point_to_mesh_distance
-from tasks.quality_io import load_truth
+from tasks.quality.metrics import point_to_mesh_distance
+from tasks.quality.truth import load_truth
 
 
 def _checksums(out):

@@ -2,7 +2,7 @@
 
 import numpy as np
 
-from tasks.defect_types import classify_evidence, repair_plan
+from tasks.repair.defect_types import classify_evidence, repair_plan
 
 
 def _ev(offsets, covered=None, **kw):

@@ -11,10 +11,10 @@ import pytest
 from storage.errors import InputError
 from storage.tile_mesh import read_tile_mesh, write_tile_mesh
 from tasks.config import ExportConfig
-from tasks.export import plan_quadtree, run_export
-from tasks.export_check import check_mesh_features, check_tileset, node_tools, validate_glbs
-from tasks.export_georef import EnuProjector, enu_to_gltf, gltf_to_enu, make_georef
-from tasks.export_gltf import GltfMesh, build_glb, glb_primitives, read_glb, split_by_feature
+from tasks.export.build import plan_quadtree, run_export
+from tasks.export.check import check_mesh_features, check_tileset, node_tools, validate_glbs
+from tasks.export.georef import EnuProjector, enu_to_gltf, gltf_to_enu, make_georef
+from tasks.export.gltf import GltfMesh, build_glb, glb_primitives, read_glb, split_by_feature
 
 
 def _ecef_direct(crs: str, world: np.ndarray) -> np.ndarray:
@@ -228,7 +228,7 @@ def test_process_pool_gives_the_same_tileset(tiny_merged, tmp_path):
 def test_decimate_measures_its_deviation_and_keeps_borders(backend):
     if backend == "fqmr":
         pytest.importorskip("pyfqmr", reason="pyfqmr not installed (pip install pyfqmr)")
-    from tasks.export_lod import LodMesh, decimate
+    from tasks.export.lod import LodMesh, decimate
 
     n = 61  # a 60 x 60 grid of 1 m cells with a 2 m bump: 7,200 faces
     x, y = np.meshgrid(np.arange(n, dtype=np.float32), np.arange(n, dtype=np.float32))

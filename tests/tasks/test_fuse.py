@@ -2,7 +2,7 @@
 
 import numpy as np
 
-from tasks.fuse import FusionParams, graph_cut_fuse, pca_normals, thin_points
+from tasks.repair.fuse import FusionParams, graph_cut_fuse, pca_normals, thin_points
 
 
 def _planes():

@@ -16,9 +16,9 @@ from storage.patch_store import TileMeta, write_side_table, write_tile_tables
 from storage.tile_mesh import GRADE_BAD, GRADE_GOOD, SOURCE_MESH, SOURCE_REBUILT, read_tile_mesh
 from storage.workdir import WorkDir, write_campus
 from tasks.config import CampusConfig
-from tasks.merge import RebuiltRegion, RegionMesh, run_merge_tile, weld_soup
-from tasks.merge_weld import face_keep_mask, weld_corners, weld_keys
-from tasks.partition import build_tile_tables
+from tasks.merge.stage import RebuiltRegion, RegionMesh, run_merge_tile, weld_soup
+from tasks.merge.weld import face_keep_mask, weld_corners, weld_keys
+from tasks.partition.kernels import build_tile_tables
 
 ORIGIN = (500_000.0, 4_000_000.0, 0.0)
 SOURCE = 7
@@ -237,7 +237,7 @@ def test_tile_without_store_loses_its_merged_mesh_and_bad_textures_fail(handmade
 
 
 def test_weld_soup_keeps_untextured_colours_apart():
-    from tasks.merge import FaceSoup
+    from tasks.merge.stage import FaceSoup
 
     xyz = np.array([[[0, 0, 0], [1, 0, 0], [0, 1, 0]], [[1, 0, 0], [1, 1, 0], [0, 1, 0]]], np.float32)
     keys = np.array([[1, 2, 3], [2, 4, 3]])
@@ -286,8 +286,8 @@ def test_tiny_campus_merges_every_face_once(tiny_merged_run):
 
 
 def test_tiny_campus_merge_feeds_export_and_passes_its_checks(tiny_merged_run, tmp_path):
-    from tasks.export import run_export
-    from tasks.export_check import (
+    from tasks.export.build import run_export
+    from tasks.export.check import (
         check_mesh_features,
         check_tileset,
         ecef_round_trip_error_m,
@@ -336,7 +336,7 @@ def test_tiny_campus_rerun_skips_and_a_relabelled_tile_is_redone(tiny_merged_run
 
 
 def test_report_renders_rebuilt_regions_before_and_after(handmade):
-    from tasks.report import run_report
+    from tasks.report.stage import run_report
 
     cfg, wd, tmp = handmade
     for t in TILES:
@@ -352,8 +352,8 @@ def test_report_renders_rebuilt_regions_before_and_after(handmade):
 
 
 def test_tiny_campus_report_names_its_figures_and_caches_quality(tiny_merged_run, tmp_path):
-    from tasks.export import run_export
-    from tasks.report import run_report
+    from tasks.export.build import run_export
+    from tasks.report.stage import run_report
 
     cfg0, wd0, _ = tiny_merged_run
     work = tmp_path / "work"

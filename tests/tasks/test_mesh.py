@@ -3,8 +3,8 @@
 import numpy as np
 import pytest
 
-from tasks.mesh import border_gap, poisson_surface, rebuild_charts, triangle_areas
-from tasks.mesh_chart import boundary_edges, disc_parameterisation, split_fans, trace_loops, zone_charts
+from tasks.repair.mesh import border_gap, poisson_surface, rebuild_charts, triangle_areas
+from tasks.repair.chart import boundary_edges, disc_parameterisation, split_fans, trace_loops, zone_charts
 
 
 def _grid_box(n: int = 4, closed: bool = False):
@@ -116,7 +116,7 @@ def test_border_gap_is_zero_when_welded_and_measured_otherwise():
     pts = np.c_[np.random.default_rng(0).uniform(0.05, 0.95, (200, 2)), np.ones(200)]
     m = rebuild_charts(topo.charts, np.arange(len(v)), pts, np.ones(200, np.int8), np.full(200, -1),
                        max_map_distance_m=0.5, border_margin_m=0.01, max_edge_m=0.5)
-    from tasks.mesh import border_edges
+    from tasks.repair.mesh import border_edges
 
     be = border_edges(zone, ctx, len(v))
     gap = border_gap(v[be], be, m)

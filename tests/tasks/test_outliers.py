@@ -1,7 +1,7 @@
 import numpy as np
 import pytest
 
-from tasks.outliers import fit_count_outliers, flag_patch_count_outliers, save_histogram_png
+from tasks.outliers.fit import fit_count_outliers, flag_patch_count_outliers, save_histogram_png
 
 
 def _sample(seed=0, n=4000):

@@ -2,7 +2,7 @@ import numpy as np
 import pytest
 
 from storage.grid import BITS, GridRangeError, PatchGrid
-from tasks.partition import (
+from tasks.partition.kernels import (
     Partition,
     build_tile_tables,
     face_cells,

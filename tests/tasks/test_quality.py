@@ -1,4 +1,4 @@
-"""tasks.quality: measured accuracy of a mesh against the truth, on hand-built planes and boxes."""
+"""tasks.quality.metrics: measured accuracy of a mesh against the truth, on hand-built planes and boxes."""
 
 import json
 import math
@@ -9,7 +9,7 @@ import pytest
 from storage.errors import InputError
 from storage.ids import TileId
 from synth.scene import FaceClass
-from tasks.quality import (
+from tasks.quality.metrics import (
     evaluate_by_tile,
     evaluate_mesh,
     facade_mask,

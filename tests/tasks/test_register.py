@@ -1,4 +1,4 @@
-"""tasks.register: SAC-IA + Scale-ICP recover a known similarity on a synthetic street.
+"""tasks.register.align: SAC-IA + Scale-ICP recover a known similarity on a synthetic street.
 
 The scene is built here: box buildings (walls + flat roofs) on both sides of a road along x, and a
 ground plane. The mesh (target) is a dense, noisy photogrammetric stand-in: every surface is a
@@ -17,7 +17,7 @@ import pytest
 from storage.errors import InputError
 from synth.generate import similarity
 from tasks.config import RegistrationConfig
-from tasks.register import (
+from tasks.register.align import (
     RegistrationResult,
     apply_similarity,
     check_coregistered,

@@ -17,8 +17,8 @@ import trimesh
 from storage.errors import InputError
 from synth.generate import similarity
 from tasks.config import RegistrationConfig
-from tasks.quality_distance import point_to_mesh_distance
-from tasks.register import (
+from tasks.geometry.distance import point_to_mesh_distance
+from tasks.register.align import (
     CoregistrationCheck,
     apply_similarity,
     check_coregistered,
@@ -27,7 +27,7 @@ from tasks.register import (
     mesh_registration_target,
     register_clouds,
 )
-from tasks.register_target import faces_in_box, mesh_arrays
+from tasks.register.target import faces_in_box, mesh_arrays
 
 # (x0, x1, y0, y1, height), metres; the road is y in (-8, 8)
 BUILDINGS = [

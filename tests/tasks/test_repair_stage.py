@@ -9,9 +9,9 @@ from storage.patch_store import PatchStore, write_side_table
 from storage.workdir import read_campus
 from synth.corner_scene import CENTRE, HALF, building_mesh, write_campus_workdir
 from tasks.config import CampusConfig
-from tasks.mesh_chart import boundary_edges
-from tasks.regions import patch_grades
-from tasks.repair_stage import region_meshes_for_tile, run_region, run_regions
+from tasks.repair.chart import boundary_edges
+from tasks.regions.plan import patch_grades
+from tasks.repair.stage import region_meshes_for_tile, run_region, run_regions
 
 TILES = ["0_0", "0_1", "1_0", "1_1"]
 

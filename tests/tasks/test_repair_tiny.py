@@ -11,9 +11,9 @@ from flows.campus import InlineExecutor, reprocess
 from storage.tile_mesh import SOURCE_REBUILT, read_tile_mesh
 from storage.workdir import WorkDir
 from tasks.config import CampusConfig
-from tasks.region_io import region_meshes_for_tile
-from tasks.regions import read_plan
-from tasks.repair_stage import run_region
+from tasks.repair.region_io import region_meshes_for_tile
+from tasks.regions.plan import read_plan
+from tasks.repair.stage import run_region
 
 pytestmark = pytest.mark.slow
 

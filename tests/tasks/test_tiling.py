@@ -1,7 +1,7 @@
 import numpy as np
 
 from storage.grid import PatchGrid
-from tasks.tiling import group_by_tile, transform_bounds
+from tasks.geometry.tiling import group_by_tile, transform_bounds
 
 
 def test_tiles_for_bounds_covers_box():

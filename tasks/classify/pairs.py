@@ -1,0 +1,193 @@
+"""Pairs straight from the patch store: read a tile once, cut it into (mesh patch, point patch) pairs,
+featurise them in batches (``ms3d_model.features``, ``ms3d_model.cues``), and cache featurised tiles for
+training.
+
+A pair is *gradable* when its patch holds at least ``min_faces`` faces and ``min_points`` points
+(``partition.min_faces`` / ``min_points``, default 1): a patch with faces but no points, or points but no
+faces, is not a pair the network can grade (see ``tasks.classify.stage`` for the grade it gets).
+"""
+
+from __future__ import annotations
+
+import hashlib
+import json
+from collections.abc import Iterator
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+
+from ms3d_model.cues import CUE_NAMES, batch_cues, open_edge_flags
+from ms3d_model.dataset import PairSet
+from ms3d_model.features import PairFeatures, featurise_pairs
+from storage.atomic import atomic_path
+from storage.patch_store import PATCHES_FILE, PatchStore
+
+FACE_COLUMNS = [f"{a}{v}" for v in range(3) for a in "xyz"] + ["vid0", "vid1", "vid2"]
+CACHE_VERSION = 1
+
+
+@dataclass
+class TilePairs:
+    """A tile's gradable pairs as views into its tables (metres, campus-local).
+
+    keys (P,) int64; ijk (P, 3) int64; rows (P,) int64 row of each pair in the patches table; labels (P,)
+    int8 (-1 when the tile has no labels); gradable (U,) bool over all U patches of the tile.
+    """
+
+    tile: str
+    keys: np.ndarray
+    ijk: np.ndarray
+    rows: np.ndarray
+    labels: np.ndarray
+    gradable: np.ndarray
+    patch_size_m: tuple[float, float, float]
+    _pts: np.ndarray
+    _tris: np.ndarray
+    _vids: np.ndarray
+    _open: np.ndarray
+    _pr: np.ndarray
+    _fr: np.ndarray
+
+    def __len__(self) -> int:
+        return len(self.keys)
+
+    def raw(self, idx) -> tuple[list, list, list, list]:
+        """(points, tris, vids, open_edges) lists of the pairs ``idx``."""
+        pts = [self._pts[self._pr[i, 0]:self._pr[i, 1]] for i in idx]
+        sl = [slice(self._fr[i, 0], self._fr[i, 1]) for i in idx]
+        return pts, [self._tris[s] for s in sl], [self._vids[s] for s in sl], [self._open[s] for s in sl]
+
+
+def read_tile_pairs(tile_dir: str | Path, min_faces: int = 1, min_points: int = 1) -> TilePairs:
+    """Read a tile's points and faces once and index its gradable pairs."""
+    store = PatchStore(tile_dir)
+    p = store.patches()
+    gradable = (p["n_faces"] >= max(min_faces, 1)) & (p["n_points"] >= max(min_points, 1))
+    rows = np.flatnonzero(gradable)
+    lab = store.side("labels")
+    labels = (lab["label"][rows].astype(np.int8) if lab is not None else np.full(len(rows), -1, np.int8))
+    pts_cols, face_cols = store.read_all(point_columns=["x", "y", "z"], face_columns=FACE_COLUMNS)
+    pts = np.stack([pts_cols[c] for c in "xyz"], axis=1)
+    tris = np.stack([np.stack([face_cols[f"{a}{v}"] for a in "xyz"], axis=1) for v in range(3)], axis=1)
+    vids = np.stack([face_cols[f"vid{v}"] for v in range(3)], axis=1)
+    open_edges = open_edge_flags(vids) if len(vids) else np.zeros((0, 3), bool)
+    pr = np.stack([p["point_start"][rows], p["point_stop"][rows]], axis=1)
+    fr = np.stack([p["face_start"][rows], p["face_stop"][rows]], axis=1)
+    ijk = np.stack([p["i"][rows], p["j"][rows], p["k"][rows]], axis=1)
+    return TilePairs(store.meta.tile, p["patch"][rows], ijk, rows, labels, gradable, store.meta.patch_size_m,
+                     pts, tris, vids, open_edges, pr, fr)
+
+
+def featurise_tile_pairs(tp: TilePairs, idx: np.ndarray, max_points: int, max_faces: int, k_centre: int,
+                         seed: int, with_cues: bool = True, with_feats: bool = True) -> tuple[PairFeatures | None, np.ndarray]:
+    """Features (None unless ``with_feats``) and cues ((B, C) float32; zeros unless ``with_cues``) of the
+    pairs ``idx`` of a tile."""
+    pts, tris, vids, open_edges = tp.raw(idx)
+    feats = featurise_pairs(pts, tris, vids, tp.keys[idx], max_points, max_faces, k_centre, seed) if with_feats else None
+    cues = (batch_cues(pts, tris, open_edges, tp.keys[idx], seed) if with_cues
+            else np.zeros((len(idx), len(CUE_NAMES)), np.float32))
+    return feats, cues
+
+
+def iter_tile_batches(tp: TilePairs, batch_size: int, max_points: int, max_faces: int, k_centre: int,
+                      seed: int = 0, with_cues: bool = True,
+                      with_feats: bool = True) -> Iterator[tuple[np.ndarray, PairFeatures | None, np.ndarray]]:
+    """(pair indices, features, cues) of consecutive batches of a tile's pairs."""
+    for s in range(0, len(tp), batch_size):
+        idx = np.arange(s, min(s + batch_size, len(tp)))
+        feats, cues = featurise_tile_pairs(tp, idx, max_points, max_faces, k_centre, seed, with_cues, with_feats)
+        yield idx, feats, cues
+
+
+def tile_fingerprint(tile_dir: Path) -> str:
+    """Identity of a tile's store and labels (sizes and modification times: a rewrite changes them)."""
+    parts = []
+    for name in (PATCHES_FILE, "points.parquet", "faces.parquet", "labels.parquet"):
+        f = tile_dir / name
+        st = f.stat() if f.exists() else None
+        parts.append(f"{name}:{st.st_size}:{st.st_mtime_ns}" if st else f"{name}:-")
+    return hashlib.sha256("|".join(parts).encode()).hexdigest()[:16]
+
+
+def _cache_name(cache_dir, campus_name: str, tile: str, kind: str, spec: dict) -> Path | None:
+    if not cache_dir:
+        return None
+    h = hashlib.sha256(json.dumps(spec, sort_keys=True).encode()).hexdigest()[:16]
+    return Path(cache_dir) / f"{campus_name}_{tile}_{kind}_{h}.npz"
+
+
+def _save_npz(path: Path, arrays: dict) -> None:
+    path.parent.mkdir(parents=True, exist_ok=True)
+    with atomic_path(path) as tmp, open(tmp, "wb") as fh:
+        np.savez(fh, **arrays)
+
+
+def tile_pair_set(tile_dir: str | Path, campus_name: str, max_points: int, max_faces: int, k_centre: int,
+                  seed: int, cache_dir: str | Path | None = None, min_faces: int = 1, min_points: int = 1,
+                  chunk: int = 256, labelled_only: bool = True, max_pairs: int | None = None) -> PairSet:
+    """All gradable (labelled) pairs of a tile, featurised. With ``cache_dir``, features (per input size) and
+    cues (per tile) are cached as .npz, keyed by the tile's store fingerprint and the parameters.
+    ``max_pairs``: keep a seeded random subset of at most this many pairs (large input sizes)."""
+    tile_dir = Path(tile_dir)
+    base = {"v": CACHE_VERSION, "tile": tile_fingerprint(tile_dir), "seed": seed, "min": [min_faces, min_points],
+            "labelled_only": labelled_only} | ({"max_pairs": max_pairs} if max_pairs else {})
+    f_path = _cache_name(cache_dir, campus_name, tile_dir.name, "feats",
+                         base | {"max_points": max_points, "max_faces": max_faces, "k": k_centre})
+    c_path = _cache_name(cache_dir, campus_name, tile_dir.name, "cues", base | {"cues": list(CUE_NAMES)})
+    if f_path is not None and f_path.exists() and c_path.exists():
+        with np.load(f_path) as d, np.load(c_path) as c:
+            return PairSet.from_arrays({**d, "cues": c["cues"]})
+    tp = read_tile_pairs(tile_dir, min_faces, min_points)
+    keep = np.flatnonzero(tp.labels >= 0) if labelled_only else np.arange(len(tp))
+    if max_pairs is not None and len(keep) > max_pairs:
+        keep = np.sort(np.random.default_rng(seed).choice(keep, max_pairs, replace=False))
+    cues = None
+    if c_path is not None and c_path.exists():
+        with np.load(c_path) as c:
+            cues = c["cues"]
+    parts = []
+    for s in range(0, len(keep), chunk):
+        idx = keep[s:s + chunk]
+        f, c = featurise_tile_pairs(tp, idx, max_points, max_faces, k_centre, seed, with_cues=cues is None)
+        c = c if cues is None else cues[s:s + chunk]
+        parts.append(PairSet(f, c, tp.labels[idx], tp.ijk[idx], np.zeros(len(idx), np.int16), (campus_name,)).compact())
+    ps = PairSet.concat(parts) if parts else _empty(max_points, max_faces, k_centre, campus_name)
+    if f_path is not None:
+        arrays = ps.to_arrays()
+        _save_npz(c_path, {"cues": arrays.pop("cues")})
+        _save_npz(f_path, arrays | {"cues": np.zeros((len(ps), 0), np.float32)})
+    return ps
+
+
+def _empty(n: int, f: int, k: int, name: str) -> PairSet:
+    z = np.zeros
+    feats = PairFeatures(z((0, n, 3), np.float16), z((0, f, 3), np.float16), z((0, f, 3), np.float16),
+                         z((0, f, 18), np.float16), z((0, f, 3), np.int16), z((0, f, k), np.int16),
+                         z(0, np.int64), z(0, np.int64), z(0, np.float32), z(0, np.int64))
+    return PairSet(feats, z((0, len(CUE_NAMES)), np.float32), z(0, np.int8), z((0, 3), np.int64), z(0, np.int16), (name,))
+
+
+def campus_pair_set(work_dir: str | Path, campus_name: str, max_points: int, max_faces: int, k_centre: int,
+                    seed: int, cache_dir: str | Path | None = None, min_faces: int = 1, min_points: int = 1,
+                    labelled_only: bool = True, max_pairs: int | None = None) -> PairSet:
+    """Every labelled gradable pair of a processed campus (its live tiles), featurised (cached per tile);
+    ``max_pairs``: at most about this many, drawn from the tiles in proportion to their pairs."""
+    from storage.workdir import WorkDir
+
+    wd = WorkDir(work_dir)
+    tiles = wd.live_tiles()
+    quota = [None] * len(tiles)
+    if max_pairs:
+        n = []
+        for t in tiles:
+            p = PatchStore(wd.tile_dir(t)).patches()
+            n.append(int(((p["n_faces"] >= max(min_faces, 1)) & (p["n_points"] >= max(min_points, 1))).sum()))
+        quota = [int(np.ceil(max_pairs * k / max(sum(n), 1))) for k in n]
+    parts = [tile_pair_set(wd.tile_dir(t), campus_name, max_points, max_faces, k_centre, seed, cache_dir,
+                           min_faces, min_points, labelled_only=labelled_only, max_pairs=q)
+             for t, q in zip(tiles, quota)]
+    parts = [p for p in parts if len(p)]
+    if not parts:
+        return _empty(max_points, max_faces, k_centre, campus_name)
+    return PairSet.concat(parts)

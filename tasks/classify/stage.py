@@ -1,0 +1,161 @@
+"""The classify stage: grade every (mesh patch, point patch) pair of a tile good or bad with MS3DQE-Net
+(or the model a config names), writing ``grades.parquet`` beside the tile's store.
+
+- **Grades**: ``score`` = the network's probability of "bad" (float32), ``grade`` = 1 when the score reaches
+  ``classify.threshold`` (0.5), else 0.
+- **Patches that are not pairs** get ``grade = -1`` (unknown) and ``score = NaN``:
+  faces but no points (roofs, courtyards, anything the street scanner cannot see) have no MLS evidence to
+  grade against, and the fusion stage could not rebuild them from points anyway; points but no faces
+  (a hole the mesh lost entirely, or cars, people and vegetation the mesh never had) cannot be fed to a
+  mesh network. Both kinds are kept visible as unknown for the regions stage to decide (for example, to
+  join a points-only patch to a neighbouring bad region). A patch with fewer than
+  ``partition.min_faces`` faces or ``partition.min_points`` points counts the same way.
+- **Resumable**: a tile is skipped when its manifest record matches the store's fingerprint (sizes and
+  modification times of its three tables) and the parameters, which include the model's sha256: a new model
+  or a re-partitioned tile grades again.
+- **One model per worker process**: :func:`load_model` caches networks by (path, size, mtime).
+"""
+
+from __future__ import annotations
+
+import logging
+import time
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+
+from storage.errors import InputError
+from storage.ids import TileId
+from storage.manifest import combine_fingerprints
+from storage.patch_store import (
+    FACES_FILE,
+    PATCHES_FILE,
+    POINTS_FILE,
+    PatchStore,
+    side_table_path,
+    write_side_table,
+)
+from storage.workdir import STALE_FILE, WorkDir
+from tasks.units import Done, run_unit
+
+log = logging.getLogger("ms3d.classify")
+
+DEFAULT_MODEL = Path(__file__).resolve().parents[2] / "ms3d_model" / "weights" / "default.pt"
+
+
+@dataclass
+class LoadedModel:
+    net: object
+    profile: object
+    hash: str
+    path: str
+    uses_cues: bool
+
+
+_MODELS: dict[tuple, LoadedModel] = {}
+
+
+def model_path(path: str | None) -> Path:
+    """The checkpoint a config names, or the shipped default."""
+    return Path(path).expanduser().resolve() if path else DEFAULT_MODEL
+
+
+def load_model(path: str | None) -> LoadedModel:
+    """The network of a checkpoint, loaded once per process (``torch.load(weights_only=True)``).
+
+    Raises InputError naming the file when it is missing or not an ms3d checkpoint."""
+    p = model_path(path)
+    try:
+        st = p.stat()
+    except OSError:
+        raise InputError(p, "model checkpoint not found (classify.model in the config)") from None
+    key = (str(p), st.st_size, st.st_mtime_ns)
+    if key not in _MODELS:
+        from ms3d_model.train import load_checkpoint, model_hash, net_uses_cues
+
+        try:
+            net, profile, _ = load_checkpoint(p)
+        except Exception as e:  # noqa: BLE001 - any unreadable checkpoint is the user's input problem
+            raise InputError(p, f"not a loadable ms3d model checkpoint ({type(e).__name__}: {e})") from None
+        _MODELS[key] = LoadedModel(net, profile, model_hash(p), str(p), net_uses_cues(net))
+    return _MODELS[key]
+
+
+def grade_pairs(model: LoadedModel, tp, batch_size: int, threshold: float) -> tuple[np.ndarray, np.ndarray]:
+    """Scores (P,) float32 and grades (P,) int8 of a tile's pairs (``tasks.classify.pairs.TilePairs``)."""
+    import torch
+
+    from ms3d_model.dataset import to_batch
+    from tasks.classify.pairs import iter_tile_batches
+
+    prof = model.profile
+    scores = np.empty(len(tp), np.float32)
+    with torch.inference_mode():
+        for idx, feats, cues in iter_tile_batches(tp, batch_size, prof.max_points, prof.max_faces, prof.k_centre,
+                                                  prof.seed, with_cues=model.uses_cues,
+                                                  with_feats=prof.net.arch != "gbm"):
+            logits = model.net(to_batch(feats, cues if model.uses_cues else None))
+            scores[idx] = torch.softmax(logits, dim=1)[:, 1].numpy()
+    return scores, (scores >= threshold).astype(np.int8)
+
+
+def store_fingerprint(tile_dir: Path) -> str:
+    """Identity of a tile's partition output (a re-partition rewrites all three tables)."""
+    parts = []
+    for name in (PATCHES_FILE, POINTS_FILE, FACES_FILE):
+        st = (tile_dir / name).stat()
+        parts.append(f"{name}:{st.st_size}:{st.st_mtime_ns}")
+    return combine_fingerprints(parts)
+
+
+def run_classify_tile(tile: TileId, cfg, wd: WorkDir) -> dict | None:
+    """Grade every pair of one tile into ``grades.parquet``.
+
+    cfg: CampusConfig (uses ``cfg.classify`` and ``cfg.partition.min_faces`` / ``min_points``). Returns the
+    unit summary (status, n_pairs, n_bad, n_unknown, pairs_per_s, model_hash, skipped), or None when the tile
+    has no live store or classification is disabled (then a stale grades table is removed).
+    """
+    import torch
+
+    from tasks.classify.pairs import read_tile_pairs
+
+    ccfg = cfg.classify
+    tile_dir = wd.tile_dir(tile)
+    if not ccfg.enabled:
+        side_table_path(tile_dir, "grades").unlink(missing_ok=True)
+        return None
+    if not (tile_dir / PATCHES_FILE).exists() or (tile_dir / STALE_FILE).exists():
+        return None
+    try:
+        model = load_model(ccfg.model)
+    except InputError as e:
+        return {"unit": tile.key, "status": "failed", "error": str(e), "skipped": False}
+    fp = store_fingerprint(tile_dir)
+    params = {"model_hash": model.hash, "threshold": ccfg.threshold,
+              "min_faces": cfg.partition.min_faces, "min_points": cfg.partition.min_points}
+
+    def work() -> Done:
+        t0 = time.perf_counter()
+        torch.set_num_threads(ccfg.threads)
+        tp = read_tile_pairs(tile_dir, cfg.partition.min_faces, cfg.partition.min_points)
+        t_read = time.perf_counter() - t0
+        store = PatchStore(tile_dir)
+        keys = store.patches()["patch"]
+        score = np.full(len(keys), np.nan, np.float32)
+        grade = np.full(len(keys), -1, np.int8)
+        t1 = time.perf_counter()
+        if len(tp):
+            s, g = grade_pairs(model, tp, ccfg.batch_size, ccfg.threshold)
+            score[tp.rows], grade[tp.rows] = s, g
+        t_grade = time.perf_counter() - t1
+        write_side_table(tile_dir, "grades", {"patch": keys, "score": score, "grade": grade}, store.meta,
+                         model_hash=model.hash, model=Path(model.path).name, profile=model.profile.name,
+                         threshold=ccfg.threshold)
+        summary = {"tile": tile.key, "n_patches": len(keys), "n_pairs": len(tp), "n_bad": int((grade == 1).sum()),
+                   "n_unknown": int((grade == -1).sum()), "model_hash": model.hash,
+                   "read_seconds": t_read, "grade_seconds": t_grade,
+                   "pairs_per_s": len(tp) / t_grade if t_grade > 0 and len(tp) else 0.0}
+        return Done(outputs=[str(side_table_path(tile_dir, "grades").relative_to(wd.root))], summary=summary)
+
+    return run_unit(wd, "classify", tile.key, fp, params, work)

@@ -1,0 +1,233 @@
+"""Typed run configuration (pydantic), loaded from YAML and overridable from the CLI.
+
+Every parameter the paper names carries the paper's value in its description.
+"""
+
+from __future__ import annotations
+
+from pathlib import Path
+from typing import Literal
+
+import yaml
+from pydantic import BaseModel, ConfigDict, Field, ValidationError, field_validator, model_validator
+
+from storage.errors import InputError
+from storage.grid import PatchGrid
+from tasks.config.classify import ClassifyConfig
+from tasks.config.repair import RepairConfig
+
+
+class _Model(BaseModel):
+    model_config = ConfigDict(extra="forbid")
+
+
+class InputsConfig(_Model):
+    mesh: list[str] = Field(default_factory=list, description="mesh files or folders (OBJ+MTL / PLY / GLB); a folder is read as ContextCapture-style tiles")
+    points: list[str] = Field(default_factory=list, description="MLS point clouds (LAS / LAZ / PLY / PCD / XYZ)")
+    crs: str | None = Field(None, description="projected CRS of the campus, e.g. 'EPSG:32650'; read from the LAS VLRs when absent")
+    mesh_offset: tuple[float, float, float] = Field((0.0, 0.0, 0.0), description="added to mesh coordinates (ContextCapture SRSOrigin) to get world metres")
+    units_scale: float = Field(1.0, description="multiplies input coordinates into metres (e.g. 0.3048 for US feet)")
+    labels: str | None = Field(None, description="patch labels: a synth defects.json or a CSV of bad patch ids (i,j,k[,label]); ids are world-anchored, so a CSV stays valid when the campus grows")
+    origin: tuple[float, float, float] | None = Field(None, description="campus origin (world metres) of the float32 offsets; default: the inputs' minimum x/y corner snapped to 1 km, z = 0")
+    images: str | None = Field(None, description="folder of the vehicle camera images that texture rebuilt regions; default: an 'images' folder beside the first mesh input when it holds a cameras.json")
+    cameras: str | None = Field(None, description="cameras.json: OpenCV pinhole poses per image {'frame': 'MLS' | 'mesh', 'frame_origin': [x, y, z], 'cameras': [{'image', 'K', 'R', 't', 'width', 'height'}]}, X_cam = R (X_world - frame_origin) + t; default: images/cameras.json")
+
+
+class RegistrationConfig(_Model):
+    mode: Literal["auto", "pinned", "off"] = Field(
+        "auto", description="auto: register when the inputs change; pinned: reuse the recorded transform (or "
+        "`matrix`), so a changed input redoes only its tiles; off: inputs are co-registered (a check still warns)")
+    matrix: list[list[float]] | None = Field(None, description="a 4x4 similarity MLS -> mesh (campus-local) to use in pinned mode")
+    voxel_m: float = Field(0.3, description="voxel size for the coarse stage (downsampling before FPFH)")
+    fine_voxel_m: float = Field(0.05, description="voxel size for Scale-ICP")
+    max_points: int = Field(400_000, description="cap on MLS points sampled for registration")
+    sac_iterations: int = Field(1000, description="SAC-IA iterations (paper: 1000)")
+    sac_threshold_m: float = Field(0.10, description="SAC-IA inlier distance (paper: 10 cm)")
+    icp_iterations: int = Field(1000, description="Scale-ICP iterations (paper: 1000)")
+    icp_threshold_m: float = Field(0.001, description="final Scale-ICP correspondence distance / convergence (paper: 1 mm)")
+    with_scale: bool = Field(True, description="estimate a similarity (rotation, translation, scale)")
+    target_spacing_m: float = Field(0.15, gt=0, description="spacing of the area-weighted samples of the mesh surface that registration aligns to")
+    seed: int = 0
+
+    @model_validator(mode="before")
+    @classmethod
+    def _enabled_alias(cls, data):
+        if isinstance(data, dict) and "enabled" in data:  # the v1 switch: enabled false == mode off
+            data = dict(data)
+            enabled = data.pop("enabled")
+            data.setdefault("mode", "auto" if enabled else "off")
+        return data
+
+    @property
+    def enabled(self) -> bool:
+        return self.mode != "off"
+
+
+class TilingConfig(_Model):
+    tile_size_m: float = Field(100.0, gt=1.0, description="ground tile edge length")
+    chunk_points: int = Field(2_000_000, gt=1000, description="points per ingest chunk (bounds memory)")
+
+
+class PartitionConfig(_Model):
+    patch_size_m: tuple[float, float, float] = Field(
+        (2.3, 1.0, 0.7), description="patch cuboid (paper: 23 x 10 x 7, read as metres x 0.1)"
+    )
+    outlier_sigma_low: float = Field(2.0, ge=0, description="patches with log-count below mean - k*sigma are flagged (paper: histogram + normal fit)")
+    outlier_sigma_high: float = Field(3.0, ge=0, description="patches with log-count above mean + k*sigma are flagged")
+    min_faces: int = Field(1, ge=0, description="a pair needs at least this many faces to be graded")
+    min_points: int = Field(1, ge=0, description="a pair needs at least this many points to be graded")
+    memory_budget_mb: int = Field(2048, ge=64, description="peak RSS budget of a tile task (a worker); tiles that would not fit are partitioned by an external merge of sorted runs")
+    grid_anchor_m: tuple[float, float, float] = Field(
+        (0.0, 0.0, 0.0), description="world point of the patch grid's cell (0, 0, 0); keep it fixed: ids derive from it")
+
+    @field_validator("patch_size_m")
+    @classmethod
+    def _positive(cls, v):
+        if min(v) <= 0:
+            raise ValueError("patch sizes must be positive")
+        return v
+
+
+class ClusterConfig(_Model):
+    address: str | None = Field(None, description="scheduler address of an existing Dask cluster; None starts a local one")
+    n_workers: int = Field(2, ge=1)
+    threads_per_worker: int = Field(1, ge=1)
+    memory_limit: str = Field("auto")
+    prefect_api_url: str | None = Field(None, description="an existing Prefect API; None starts one embedded server")
+    tiles_per_task: int = Field(1, ge=1, description="tiles handled by one Prefect task run")
+
+
+class ReportConfig(_Model):
+    enabled: bool = Field(True, description="write output/report.html at the end of every run")
+    quality: bool = Field(True, description="measure the model against the truth when the inputs have one (a synth campus); minutes on the demo, cached after")
+
+
+class CampusConfig(_Model):
+    name: str = "campus"
+    work_dir: str = "ms3d-work/campus"
+    inputs: InputsConfig = Field(default_factory=InputsConfig)
+    registration: RegistrationConfig = Field(default_factory=RegistrationConfig)
+    tiling: TilingConfig = Field(default_factory=TilingConfig)
+    partition: PartitionConfig = Field(default_factory=PartitionConfig)
+    cluster: ClusterConfig = Field(default_factory=ClusterConfig)
+    report: ReportConfig = Field(default_factory=ReportConfig)
+    export: ExportConfig = Field(default_factory=lambda: ExportConfig(), description="3D Tiles output (merge has no parameters of its own)")
+    classify: ClassifyConfig = Field(default_factory=ClassifyConfig, description="grading of patch pairs (MS3DQE-Net)")
+    repair: RepairConfig = Field(default_factory=RepairConfig)
+    runner: Literal["dask", "local", "inline"] = Field(
+        "dask", description="'local': Prefect tasks in the flow process; 'inline': no Prefect at all, one process (debugging, tests)")
+
+    def grid(self) -> PatchGrid:
+        """The campus patch grid (patch sizes, tile size, anchor)."""
+        return PatchGrid(self.partition.patch_size_m, self.tiling.tile_size_m, self.partition.grid_anchor_m)
+
+    @classmethod
+    def from_yaml(cls, path: str | Path, overrides: dict | None = None) -> CampusConfig:
+        """Load a YAML config; relative paths are relative to the file. Every problem (missing or
+        unreadable file, broken YAML, unknown or invalid field) is an InputError naming the file."""
+        path = Path(path)
+        try:
+            text = path.read_text()
+        except FileNotFoundError:
+            raise InputError(path, "config file not found") from None
+        except IsADirectoryError:
+            raise InputError(path, "is a folder, not a YAML config file") from None
+        except (OSError, UnicodeDecodeError) as e:
+            raise InputError(path, f"cannot read the config ({e})") from None
+        try:
+            data = yaml.safe_load(text) or {}
+        except yaml.YAMLError as e:
+            mark = getattr(e, "problem_mark", None)
+            where = f" at line {mark.line + 1}, column {mark.column + 1}" if mark else ""
+            raise InputError(path, f"not valid YAML{where}: {getattr(e, 'problem', None) or e}") from None
+        if not isinstance(data, dict):
+            raise InputError(path, "the config must be a YAML mapping (name:, inputs:, ...)")
+        try:
+            return cls._from_dict(data, path, overrides)
+        except ValidationError as e:
+            raise InputError(path, format_validation_error(e)) from None
+
+    @classmethod
+    def _from_dict(cls, data: dict, path: Path, overrides: dict | None) -> CampusConfig:
+        base = path.parent
+        inputs = data.get("inputs", {})
+        for key in ("mesh", "points"):  # relative input paths are relative to the config file
+            inputs[key] = [str((base / p) if not Path(p).is_absolute() else p) for p in inputs.get(key, [])]
+        for key in ("labels", "images", "cameras"):
+            if inputs.get(key) and not Path(inputs[key]).is_absolute():
+                inputs[key] = str(base / inputs[key])
+        data["inputs"] = inputs
+        if "work_dir" in data and not Path(data["work_dir"]).is_absolute():
+            data["work_dir"] = str(base / data["work_dir"])
+        for dotted, value in (overrides or {}).items():
+            _set_dotted(data, dotted, value)
+        return cls.model_validate(data)
+
+    def to_yaml(self) -> str:
+        return yaml.safe_dump(self.model_dump(mode="json"), sort_keys=False)
+
+    def stage_params(self, stage: str) -> dict:
+        """The parameters that decide a stage's output (hashed into the manifest). Paths of inputs are
+        not parameters: inputs enter by identity and content fingerprint."""
+        reg = self.registration.model_dump(mode="json")
+        return {
+            "scan": {"mesh_offset": list(self.inputs.mesh_offset), "units_scale": self.inputs.units_scale,
+                     "target_spacing_m": self.registration.target_spacing_m},
+            "register": {k: v for k, v in reg.items() if k != "target_spacing_m"} | {"crs": self.inputs.crs},
+            "ingest": {"grid": self.grid().to_json(), "chunk_points": self.tiling.chunk_points,
+                       "mesh_offset": list(self.inputs.mesh_offset), "units_scale": self.inputs.units_scale},
+            "partition": {"grid": self.grid().to_json()},
+            "labels": {"grid": self.grid().to_json()},
+            "outliers": {k: v for k, v in self.partition.model_dump(mode="json").items()
+                         if k.startswith(("outlier", "min_"))},
+        }.get(stage, {})
+
+
+def format_validation_error(e: ValidationError) -> str:
+    """One line per problem of a pydantic error, with the field path and a hint for unknown keys."""
+    parts = []
+    for err in e.errors():
+        loc = ".".join(str(x) for x in err["loc"])
+        if err["type"] == "extra_forbidden":
+            parent = CampusConfig
+            for key in err["loc"][:-1]:
+                ann = parent.model_fields.get(str(key)) if isinstance(key, str) else None
+                parent = ann.annotation if ann is not None and isinstance(ann.annotation, type) else None
+                if parent is None or not issubclass(parent, BaseModel):
+                    break
+            known = sorted(parent.model_fields) if parent is not None and isinstance(parent, type) else []
+            close = _closest(str(err["loc"][-1]), known)
+            hint = f" (did you mean '{close}'?)" if close else (f" (known: {', '.join(known)})" if known else "")
+            parts.append(f"unknown field '{loc}'{hint}")
+        else:
+            parts.append(f"{loc or 'config'}: {err['msg']} (got {err.get('input')!r})")
+    return "invalid config: " + "; ".join(parts)
+
+
+def _closest(word: str, options: list[str]) -> str | None:
+    import difflib
+
+    got = difflib.get_close_matches(word, options, n=1, cutoff=0.6)
+    return got[0] if got else None
+
+
+def _set_dotted(d: dict, dotted: str, value) -> None:
+    keys = dotted.split(".")
+    for k in keys[:-1]:
+        nxt = d.setdefault(k, {})
+        if not isinstance(nxt, dict):
+            raise InputError(None, f"--set {dotted}: '{k}' is not a section of the config")
+        d = nxt
+    d[keys[-1]] = value
+
+
+class ExportConfig(_Model):
+    """3D Tiles export (tasks/export/build.py)."""
+
+    compression: Literal["none", "draco"] = Field("none", description="glb geometry compression: none, or Draco (KHR_draco_mesh_compression via DracoPy)")
+    max_texture_px: int = Field(4096, ge=64, le=4096, description="texture atlases are cropped to what a tile uses and downscaled to at most this side length")
+    jpeg_quality: int = Field(85, ge=10, le=100, description="quality of re-encoded JPEG textures")
+    lod_reduction: float = Field(4.0, gt=1.0, description="each quadtree level keeps 1/lod_reduction of its children's faces")
+    hausdorff_samples: int = Field(20_000, ge=1000, description="points sampled per direction to measure a decimation's deviation")
+    decimator: Literal["auto", "fqmr", "pymeshlab"] = Field("auto", description="quadric decimation: pyfqmr (Fast Quadric Mesh Simplification, ~6x faster) or pymeshlab; auto = fqmr when installed")
+    overview_max_faces: int = Field(300_000, ge=1000, description="faces of output/overview.glb (whole campus, decimated)")

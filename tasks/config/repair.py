@@ -1,0 +1,140 @@
+"""Typed configuration of the repair stages (regions -> fuse -> mesh -> texture), ``CampusConfig.repair``.
+
+Pure pydantic, no heavy imports: ``tasks.config.campus`` imports it. Every threshold notes where its default
+comes from (the paper names none of them: §5 gives the method, not the values; ours are measured on
+synth campuses, see ``benchmarks/quality_bench.py`` and ``docs/repair.md``).
+"""
+
+from __future__ import annotations
+
+from typing import Literal
+
+from pydantic import BaseModel, ConfigDict, Field
+
+
+class _Section(BaseModel):
+    model_config = ConfigDict(extra="forbid")
+
+
+class RegionsConfig(_Section):
+    """Connected bad patches -> regions (``tasks.regions.plan``)."""
+
+    min_patches: int = Field(1, ge=1, description="regions with fewer bad patches are left to the mesh")
+    grow_cells: int = Field(0, ge=0, le=3, description="growth margin: the bad set is dilated by this many cells "
+                            "(26-neighbourhood) before the components are taken; grown cells are rebuilt too")
+    context_cells: int = Field(2, ge=1, le=4, description="ring of neighbouring cells read (not rebuilt): the "
+                               "retained faces the rebuilt mesh welds to, and MLS context for normals")
+    memory_budget_mb: float = Field(1024.0, gt=0, description="a region whose estimated working set exceeds "
+                                    "this is split along its longest axis (the halves weld to each other's "
+                                    "original border vertices)")
+
+
+class FusionConfig(_Section):
+    """Graph-cut fusion of mesh vertices (reference) and MLS points (candidates), §5.1 (``tasks.repair.fuse``)."""
+
+    sigma_distance_m: float = Field(0.06, gt=0, description="similarity exp(-d²/2σd² - θ²/2σθ²): distance scale "
+                                    "(0.04, 0.06, 0.1 measure the same with the typed repair on: its cut dominates)")
+    sigma_angle_deg: float = Field(25.0, gt=0, description="similarity: normal-angle scale")
+    similarity_threshold: float = Field(0.25, gt=0, lt=1, description="a mesh vertex whose best MLS similarity "
+                                        "exceeds this prefers to be replaced (the paper's 'threshold')")
+    search_radius_m: float = Field(0.25, gt=0, description="MLS points farther than this never match a vertex")
+    point_reach_m: float = Field(0.6, gt=0, description="MLS points farther than this in front of the mesh "
+                                 "(scanner side) are clutter (fences, cars, trees) and rejected")
+    point_depth_m: float = Field(1.2, gt=0, description="MLS points may lie this far behind the mesh (a "
+                                 "protrusion hides the wall behind it)")
+    k_neighbours: int = Field(8, ge=2, le=32, description="k of the k-NN smoothness graph")
+    smoothness: float = Field(0.6, ge=0, description="weight of the smoothness term (per k-NN edge)")
+    unary_weight: float = Field(4.0, gt=0, description="weight of the data terms")
+    normal_k: int = Field(12, ge=5, le=64, description="neighbours of the PCA normal estimate (MLS points)")
+    mls_spacing_m: float = Field(0.05, gt=0, description="MLS points are thinned to one per voxel of this size "
+                                 "before fusion (real MLS density is far above what the mesh needs); measured on "
+                                 "30 demo regions: F@5cm 0.826 at 3 cm, 0.834 at 5 and 7 cm")
+    drop_classes: tuple[int, ...] = Field((3, 4, 5, 7, 18), description="ASPRS classes never fused "
+                                          "(vegetation, noise)")
+
+
+class TypedRepairConfig(_Section):
+    """Evidence of the defect type per region and repair by type (beyond the paper's single repair)."""
+
+    enabled: bool = Field(True, description="repair by type; false: the paper's single repair everywhere")
+    offset_m: float = Field(0.06, gt=0, description="a mesh vertex this far in front of / behind the MLS surface "
+                            "is evidence of a protrusion / recess")
+    conflict_radius_m: float = Field(0.5, ge=0, description="a mesh vertex with an accepted MLS point this close but no "
+                                     "similar one contradicts the scan and is cut (measured: such vertices lie "
+                                     "within 5 cm of the truth in 0-23 % of cases; F@5cm 0.798 / 0.826 / 0.827 at "
+                                     "0.3 / 0.5 / 0.8 m); 0 disables")
+    front_m: float = Field(0.0, ge=0, description="a mesh vertex farther than conflict_radius_m from the MLS but this far "
+                           "in front of the nearest scanned surface (on the scanner's side of it) stands where the "
+                           "laser passed: cut it (melted eaves hanging off a scanned wall); 0 disables (the default: "
+                           "measured at 0.15 / 0.3 m on 29 demo regions, mean F@5cm 0.835 / 0.835 against 0.836, "
+                           "mean accuracy 4.0 cm -> 4.0 cm; gains and losses cancel)")
+    front_reach_m: float = Field(3.0, gt=0, description="scanned surface farther than this from a vertex says nothing of it")
+    uncovered: Literal["keep", "fill"] = Field("fill", description="a region the MLS does not cover is left to "
+                                                "the mesh: 'fill' re-triangulates its own vertices in its chart, "
+                                                "closing its holes from the mesh alone (measured: never worse, "
+                                                "F@5cm 0.500 -> 0.533 on a holed one); 'keep' leaves its faces")
+    min_coverage: float = Field(0.15, ge=0, le=1, description="regions whose surface the MLS covers less than this "
+                                "are left to the mesh (a hole no scanner saw)")
+
+
+class MeshConfig(_Section):
+    """Triangulation of the fused points, clipping and stitching, §5.2 (``tasks.repair.mesh``)."""
+
+    method: Literal["delaunay", "poisson"] = Field("delaunay", description="(measured on 30 demo regions: F@5cm "
+                                                   "0.826 delaunay, 0.818 poisson at 1.8x the time) delaunay: the fused points "
+                                                   "triangulated in the region's chart (Gopi et al. 2000 style, "
+                                                   "interpolating); poisson: screened Poisson of the fused points, "
+                                                   "density-trimmed, triangulated in the same chart. Default by "
+                                                   "measured accuracy (docs/repair.md)")
+    poisson_depth: int = Field(9, ge=5, le=12, description="octree depth of screened Poisson per region")
+    poisson_trim_quantile: float = Field(0.05, ge=0, lt=0.5, description="Poisson vertices of lower density "
+                                         "than this quantile are trimmed")
+    max_map_distance_m: float = Field(1.2, gt=0, description="fused points farther than this from the region's "
+                                      "chart surface are not triangulated")
+    max_edge_m: float = Field(0.6, gt=0, description="rebuilt triangles with a longer 3D edge (a fold of the "
+                              "chart) are dropped")
+    stitch_tolerance_m: float = Field(0.01, gt=0, description="largest border gap accepted between the rebuilt "
+                                      "mesh and the retained mesh")
+    max_hole_loop_m: float = Field(40.0, gt=0, description="open boundary loops of the mesh shorter than this "
+                                   "inside a region are holes, filled in the chart; longer ones are the mesh edge")
+
+
+class TextureConfig(_Section):
+    """Projective texture mapping from the vehicle images, §5.3 (``tasks.repair.texture``)."""
+
+    enabled: bool = Field(True, description="false: rebuilt faces take the original mesh colours only")
+    px_per_m: float = Field(120.0, gt=0, description="atlas resolution target; charts are resampled to this")
+    max_atlas_px: int = Field(4096, ge=256, le=8192)
+    max_view_angle_deg: float = Field(75.0, gt=0, lt=90, description="views more oblique than this are never used")
+    max_distance_m: float = Field(40.0, gt=0)
+    seam_weight: float = Field(0.5, ge=0, description="Potts weight of a seam between adjacent faces (in units "
+                           "of the per-face view cost)")
+    occluder_voxel_m: float = Field(0.2, gt=0, description="MLS points off the mesh are voxelised at this size "
+                                    "into occluders (trees, cars) for the visibility test")
+    occluder_radius_m: float = Field(25.0, gt=0, description="MLS occluders are gathered this far around a region")
+    images: str | None = Field(None, description="folder of the vehicle camera images; default: an 'images' folder "
+                               "beside the first mesh input (synth layout)")
+    cameras: str | None = Field(None, description="cameras.json (OpenCV pinhole: K, R, t per image, 'frame': MLS "
+                                "or mesh); default: images/cameras.json")
+
+
+class RepairConfig(_Section):
+    """The repair of bad regions (issue 9): which grades, how regions form, fuse, mesh, texture."""
+
+    enabled: bool = True
+    grades: Literal["auto", "model", "labels", "all"] = Field(
+        "auto", description="auto: the classify stage's grades.parquet when present, else labels.parquet; "
+        "model / labels: only that one (a tile without it has no bad patches); all: rebuild every patch from "
+        "the fused points (measured on a held-out synth demo campus: F@5cm on the MLS-seen facades 0.958 "
+        "against 0.846 with the model's grades, at 6.7x the repair time and ~2x the peak memory per region)")
+    regions: RegionsConfig = Field(default_factory=RegionsConfig)
+    fusion: FusionConfig = Field(default_factory=FusionConfig)
+    typed: TypedRepairConfig = Field(default_factory=TypedRepairConfig)
+    mesh: MeshConfig = Field(default_factory=MeshConfig)
+    texture: TextureConfig = Field(default_factory=TextureConfig)
+
+    def params(self) -> dict:
+        """What decides a region's output (hashed into its manifest record); image paths enter by content."""
+        d = self.model_dump(mode="json")
+        d["texture"] = {k: v for k, v in d["texture"].items() if k not in ("images", "cameras")}
+        return d

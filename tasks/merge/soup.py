@@ -1,0 +1,168 @@
+"""Face soups: faces as unshared corners with weld keys and attributes, welded into a TileMesh.
+
+The store's faces and each rebuilt region become a :class:`FaceSoup`; :func:`weld_soup` welds their
+concatenation by key (:mod:`tasks.merge.weld`) into the export's :class:`storage.tile_mesh.TileMesh`.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Sequence
+from dataclasses import dataclass
+
+import numpy as np
+
+from storage.tile_mesh import GRADE_BAD, NO_REGION, SOURCE_MESH, SOURCE_REBUILT, TileMesh
+from tasks.merge.region import RegionMesh
+from tasks.merge.weld import face_keep_mask, weld_corners, weld_keys
+
+REBUILT_GREY = np.array([170, 170, 170], np.uint8)  # rebuilt faces with neither atlas nor colours
+
+
+@dataclass(frozen=True, eq=False)
+class FaceSoup:
+    """Faces as unshared corners, before welding.
+
+    xyz: (m, 3, 3) float32 metres campus-local. keys: (m, 3) int64 weld key per corner (campus vertex
+    id, or a region's own key < 0). uv: (m, 3, 2) float32 (0 where untextured). texture: (m,) int32
+    index into the merge's texture list, -1 untextured. color: (m, 3, 3) uint8 per corner.
+    grade / source: (m,) int8; region: (m,) int32 (storage.tile_mesh conventions).
+    """
+
+    xyz: np.ndarray
+    keys: np.ndarray
+    uv: np.ndarray
+    texture: np.ndarray
+    color: np.ndarray
+    grade: np.ndarray
+    source: np.ndarray
+    region: np.ndarray
+
+    @property
+    def n_faces(self) -> int:
+        return len(self.keys)
+
+    def take(self, rows: np.ndarray) -> FaceSoup:
+        return FaceSoup(**{k: getattr(self, k)[rows] for k in _SOUP_FIELDS})
+
+
+_SOUP_FIELDS = ("xyz", "keys", "uv", "texture", "color", "grade", "source", "region")
+
+
+def concat_soups(parts: Sequence[FaceSoup]) -> FaceSoup:
+    return FaceSoup(**{k: np.concatenate([getattr(p, k) for p in parts]) for k in _SOUP_FIELDS})
+
+
+def _position_keys(xyz: np.ndarray, base: int) -> np.ndarray:
+    """(c, 3) float32 corners -> (c,) int64 keys equal for bit-identical positions, all <= base."""
+    bits = np.ascontiguousarray(xyz, np.float32).view(np.uint32).astype(np.int64)
+    _, inverse = np.unique(bits, axis=0, return_inverse=True)
+    return base - inverse.reshape(-1)
+
+
+def store_soup(cols: dict[str, np.ndarray], grade: np.ndarray) -> FaceSoup:
+    """The soup of patch-store face rows.
+
+    cols: store face columns (at least :data:`STORE_FACE_COLUMNS` but src_face/source/patch), (m,) each.
+    grade: (m,) int8 per face. A face is textured when its texture index is >= 0 and its three uv are
+    finite. Corners without a vertex id (-1: an input written without ids) weld by exact position.
+    """
+    xyz = np.stack([np.stack([cols[f"{a}{v}"] for a in "xyz"], axis=1) for v in range(3)], axis=1)
+    keys = np.stack([cols[f"vid{v}"] for v in range(3)], axis=1).astype(np.int64, copy=False)
+    if (keys < 0).any():  # no ids: weld exactly coincident corners, in a key range of their own
+        missing = keys < 0
+        keys = keys.copy()
+        keys[missing] = _position_keys(xyz[missing], -(1 << 62))
+    uv = np.stack([np.stack([cols[f"{a}{v}"] for a in "uv"], axis=1) for v in range(3)], axis=1)
+    finite = np.isfinite(uv).all(axis=(1, 2))
+    texture = np.where(finite & (cols["texture"] >= 0), cols["texture"], -1).astype(np.int32)
+    uv = np.where((texture >= 0)[:, None, None], uv, np.float32(0)).astype(np.float32, copy=False)
+    rgb = np.stack([cols["red"], cols["green"], cols["blue"]], axis=1).astype(np.uint8, copy=False)
+    m = len(keys)
+    return FaceSoup(xyz=xyz, keys=keys, uv=uv, texture=texture, color=np.repeat(rgb[:, None, :], 3, axis=1),
+                    grade=np.asarray(grade, np.int8), source=np.full(m, SOURCE_MESH, np.int8),
+                    region=np.full(m, NO_REGION, np.int32))  # fmt: skip
+
+
+def region_soup(r: RegionMesh, texture_index: int) -> FaceSoup:
+    """The soup of one rebuilt region's faces. texture_index: its atlas in the merge's texture list
+    (ignored without an atlas). New vertices get keys ``-1 - (region << 32 | index)``: negative, so
+    never a campus vertex id (``source << 32 | index`` with source < 2**31), and distinct per region."""
+    f = r.faces
+    m = len(f)
+    ids = np.full(len(r.vertices), -1, np.int64) if r.vertex_ids is None else r.vertex_ids
+    own = -1 - ((np.int64(r.region) << 32) | np.arange(len(r.vertices), dtype=np.int64))
+    keys = np.where(ids >= 0, ids, own)[f]
+    textured = np.full(m, r.atlas is not None) if r.textured is None else (r.textured & (r.atlas is not None))
+    if r.corner_uv is not None:
+        uv = r.corner_uv
+    else:
+        uv = np.zeros((m, 3, 2), np.float32) if r.uv is None else r.uv[f]
+    textured &= np.isfinite(uv).all(axis=(1, 2))
+    uv = np.where(textured[:, None, None], uv, np.float32(0)).astype(np.float32, copy=False)
+    if r.face_colors is not None:
+        corner_color = np.repeat(np.asarray(r.face_colors, np.uint8)[:, None, :], 3, axis=1)
+    else:
+        colors = np.broadcast_to(REBUILT_GREY, (len(r.vertices), 3)) if r.colors is None else r.colors
+        corner_color = np.ascontiguousarray(colors[f], np.uint8)
+    return FaceSoup(xyz=r.vertices[f], keys=keys, uv=uv, texture=np.where(textured, texture_index, -1).astype(np.int32),
+                    color=corner_color, grade=np.full(m, GRADE_BAD, np.int8),
+                    source=np.full(m, SOURCE_REBUILT, np.int8), region=np.full(m, r.region, np.int32))  # fmt: skip
+
+
+# ------------------------------------------------------------------------------ welding a soup
+
+
+@dataclass(frozen=True)
+class WeldStats:
+    """Counts of one weld: faces in and out, dropped duplicates / degenerate faces, vertices, seam splits."""
+
+    faces_in: int
+    faces_out: int
+    duplicates: int
+    degenerate: int
+    vertices: int
+    split_vertices: int
+
+
+def weld_soup(tile_key: str, soup: FaceSoup, textures: Sequence[str]) -> tuple[TileMesh, WeldStats]:
+    """Weld a soup into a TileMesh (see the module docstring). textures: the paths ``soup.texture``
+    indexes; the TileMesh keeps only those its faces use, in first-use order of their indices."""
+    m = soup.n_faces
+    welded = weld_keys(soup.keys.reshape(-1))
+    keep = face_keep_mask(welded[0], m)
+    f = welded[0].reshape(m, 3)
+    degenerate = int(((f[:, 0] == f[:, 1]) | (f[:, 1] == f[:, 2]) | (f[:, 0] == f[:, 2])).sum())
+    del f
+    s = soup
+    if not keep.all():
+        s = soup.take(np.flatnonzero(keep))
+        welded = weld_keys(s.keys.reshape(-1))
+    textured = s.texture >= 0
+    # texture + colour in one attribute (colour only matters where untextured), uv bits in the other
+    rgb = s.color.reshape(-1, 3)
+    packed_rgb = (rgb[:, 0].astype(np.uint32) << 16) | (rgb[:, 1].astype(np.uint32) << 8) | rgb[:, 2]
+    attr_a = np.repeat((s.texture.astype(np.int64) + 1) << 24, 3)
+    attr_a |= np.where(np.repeat(textured, 3), np.uint32(0), packed_rgb)
+    del packed_rgb
+    uv_bits = s.uv.reshape(-1, 2).view(np.uint32)
+    attr_b = uv_bits[:, 0].astype(np.int64) << 32
+    attr_b |= uv_bits[:, 1]
+    w = weld_corners(s.keys.reshape(-1), attr_a, attr_b, welded)
+    del attr_a, attr_b, welded
+
+    used = np.unique(s.texture[textured])
+    remap = np.full(len(textures) + 1, -1, np.int16)
+    remap[used] = np.arange(len(used), dtype=np.int16)
+    face_texture = remap[s.texture]  # -1 stays -1 (remap[-1] is the spare slot)
+    any_textured = bool(textured.any())
+    mesh = TileMesh(
+        tile=tile_key,
+        vertices=np.ascontiguousarray(s.xyz.reshape(-1, 3)[w.position_corner], np.float32),
+        faces=w.faces, face_texture=face_texture.astype(np.int16),
+        uv=np.ascontiguousarray(s.uv.reshape(-1, 2)[w.corner], np.float32) if any_textured else None,
+        textures=[str(textures[i]) for i in used], vertex_colors=np.ascontiguousarray(s.color.reshape(-1, 3)[w.corner]),
+        grade=s.grade, source=s.source, region=s.region,
+    )  # fmt: skip
+    stats = WeldStats(faces_in=m, faces_out=mesh.n_faces, duplicates=m - int(keep.sum()) - degenerate,
+                      degenerate=degenerate, vertices=mesh.n_vertices, split_vertices=w.n_split)
+    return mesh, stats

@@ -1,0 +1,144 @@
+"""The register stage: the similarity that maps the MLS clouds onto the mesh, once per campus.
+
+``registration.mode``:
+
+- ``auto``: register (SAC-IA + Scale-ICP, :mod:`tasks.register.align`) when the inputs or the parameters
+  changed since the recorded transform; otherwise reuse it.
+- ``pinned``: reuse the recorded transform (``registration.json`` of the work dir, or
+  ``registration.matrix`` of the config) whatever the inputs do, so a changed or added input redoes
+  only its own tiles. This is the mode for scheduled reprocessing once a campus is registered.
+- ``off``: the inputs are already co-registered; identity, after a check that measures the MLS
+  points' distance to the mesh surface where they overlap (a warning, not an error, when it fails).
+
+Both sides are bounded samples, whatever the campus size: MLS points from short ranges spread over
+each file (``registration.max_points``), and the mesh's area-weighted surface samples written by the
+scan stage.
+"""
+
+from __future__ import annotations
+
+import json
+import logging
+from pathlib import Path
+
+import numpy as np
+
+from storage.atomic import write_json_atomic
+from storage.errors import InputError
+from storage.frame import CampusFrame
+from storage.inputs import InputFile
+from storage.manifest import combine_fingerprints
+from storage.pointcloud_io import iter_points, iter_points_range
+from storage.workdir import WorkDir
+from tasks.config import CampusConfig
+from tasks.scan.stage import samples_path
+from tasks.units import Done, run_unit
+
+log = logging.getLogger("ms3d.register")
+
+REGISTRATION_FILE = "registration.json"
+
+
+def sample_points_for_registration(rec: InputFile, n_target: int, cfg: CampusConfig, n_ranges: int = 16) -> np.ndarray:
+    """About n_target world points spread over a cloud file: ``n_ranges`` short ranges (LAS/LAZ) or a
+    strided pass (other formats). A file that breaks part-way ends its sample early (logged)."""
+    path = Path(rec.path)
+    out = []
+    try:
+        if path.suffix.lower() in (".las", ".laz") and rec.count > n_target:
+            per = max(n_target // n_ranges, 1)
+            starts = np.linspace(0, max(rec.count - per, 0), n_ranges).astype(np.int64)
+            for a in starts:
+                for ch in iter_points_range(path, int(a), int(a) + per, per, cfg.inputs.units_scale):
+                    out.append(ch.xyz)
+        else:
+            stride = max(rec.count // max(n_target, 1), 1)
+            for ch in iter_points(path, cfg.tiling.chunk_points, cfg.inputs.units_scale):
+                out.append(ch.xyz[::stride])
+    except InputError as e:
+        log.info("registration sample of %s ended early: %s", path, e)  # the file fails its own units
+    xyz = np.concatenate(out) if out else np.zeros((0, 3))
+    return xyz[np.isfinite(xyz).all(axis=1)]
+
+
+def mesh_target(records: list[InputFile], wd: WorkDir, frame: CampusFrame) -> tuple[np.ndarray, np.ndarray]:
+    """The scan stage's surface samples of every readable mesh: ((k, 3) float64 campus-local, (k, 3) normals)."""
+    xyz, nrm = [], []
+    for r in records:
+        if r.kind == "mesh" and not r.error:
+            p = samples_path(wd, r.source)
+            if p.exists():
+                with np.load(p) as z:
+                    xyz.append(z["xyz"].astype(np.float64) + (z["corner"] - frame.origin_array))
+                    nrm.append(z["normals"].astype(np.float64))
+    if not xyz:
+        raise InputError(None, "no readable mesh to register to: " + "; ".join(r.error for r in records if r.error))
+    return np.concatenate(xyz), np.concatenate(nrm)
+
+
+def mls_sample(records: list[InputFile], cfg: CampusConfig, frame: CampusFrame) -> np.ndarray:
+    """A bounded sample of every readable point cloud, (n, 3) float64 campus-local."""
+    pts = [r for r in records if r.kind == "points" and not r.error]
+    n_each = max(cfg.registration.max_points * 4 // max(len(pts), 1), 10_000)
+    parts = [sample_points_for_registration(r, n_each, cfg) for r in pts]
+    src = np.concatenate(parts) - frame.origin_array if parts else np.zeros((0, 3))
+    if len(src) < 100:
+        raise InputError(None, "no readable MLS points to register: " + "; ".join(r.error for r in records if r.error))
+    return src
+
+
+def _recorded(wd: WorkDir) -> dict | None:
+    p = wd.root / REGISTRATION_FILE
+    try:
+        return json.loads(p.read_text())
+    except (FileNotFoundError, json.JSONDecodeError):
+        return None
+
+
+def _estimate(records: list[InputFile], frame: CampusFrame, cfg: CampusConfig, wd: WorkDir) -> dict:
+    from tasks.register.align import check_coregistered_samples, register_to_samples
+
+    src = mls_sample(records, cfg, frame)
+    tgt, nrm = mesh_target(records, wd, frame)
+    if cfg.registration.mode == "off":
+        check = check_coregistered_samples(src, tgt, nrm, seed=cfg.registration.seed)
+        if not check.ok:
+            log.warning("registration is off but %s: the inputs do not look co-registered "
+                        "(set registration.mode: auto)", check)
+        return {"matrix": np.eye(4).tolist(), "scale": 1.0, "method": "identity (registration off)",
+                "check": check.to_json()}
+    return register_to_samples(src, tgt, nrm, cfg.registration).to_json()
+
+
+def run_register(records: list[InputFile], frame: CampusFrame, cfg: CampusConfig, wd: WorkDir) -> dict:
+    """The campus registration as a dict (``matrix`` 4x4 MLS world-minus-origin -> campus-local, ``scale``,
+    ``method``, figures). Raises InputError when it cannot be had (pinned with nothing recorded, no
+    readable inputs)."""
+    mode = cfg.registration.mode
+    if mode == "pinned":
+        if cfg.registration.matrix is not None:
+            m = np.asarray(cfg.registration.matrix, np.float64)
+            if m.shape != (4, 4) or not np.isfinite(m).all():
+                raise InputError(None, "registration.matrix must be a finite 4x4 matrix")
+            return {"matrix": m.tolist(), "scale": float(np.cbrt(abs(np.linalg.det(m[:3, :3])))),
+                    "method": "pinned (config)"}
+        rec = _recorded(wd)
+        if rec is None:
+            raise InputError(wd.root / REGISTRATION_FILE, "registration.mode is pinned but no transform is recorded: "
+                                                          "run once with mode auto, or give registration.matrix")
+        return rec | {"method": f"pinned ({rec.get('method', 'recorded')})"}
+    fp = combine_fingerprints(sorted(f"{r.kind}:{r.source}:{r.fingerprint}:{r.error != ''}" for r in records)
+                              + [json.dumps(frame.to_json(), sort_keys=True)])
+
+    def work() -> Done:
+        reg = _estimate(records, frame, cfg, wd)
+        write_json_atomic(wd.root / REGISTRATION_FILE, reg)
+        return Done(outputs=[REGISTRATION_FILE], summary={k: reg.get(k) for k in ("scale", "fitness", "method")})
+
+    res = run_unit(wd, "register", "campus", fp, cfg.stage_params("register"), work)
+    if res["status"] == "failed":
+        raise InputError(None, res["error"])
+    reg = _recorded(wd)
+    if reg is None:
+        raise InputError(wd.root / REGISTRATION_FILE, "the recorded registration is missing or unreadable")
+    return reg | {"seconds": res.get("seconds", 0.0), "reused": bool(res.get("skipped"))}

@@ -1,0 +1,121 @@
+"""Before/after renders of the rebuilt regions for the run report.
+
+For each rebuilt region (faces of the merged tiles with source "rebuilt"), the faces around it are drawn
+twice with one camera: the input mesh from the patch stores (bad patches red) and the merged model
+(rebuilt faces orange). Only the merged tiles near the region and the store patches whose boxes meet it
+are read.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+
+from storage.atomic import write_bytes_atomic
+from storage.errors import InputError
+from storage.grid import PatchGrid
+from storage.ids import TileId
+from storage.patch_store import PatchStore
+from storage.tile_mesh import SOURCE_REBUILT, read_tile_mesh
+from storage.workdir import WorkDir
+from tasks.report.figures import BAD_COLOUR, MESH_COLOUR, REBUILT_COLOUR, render_png, view_basis
+from tasks.report.html import Section, table
+
+MAX_REGION_RENDERS = 12
+REGION_MARGIN_M = 1.5
+
+
+def any_rebuilt_region(wd: WorkDir, tiles: list[str]) -> bool:
+    """Whether any merged tile holds a rebuilt face (the same test the regions section makes)."""
+    return any((read_tile_mesh(wd.root / "tiles" / k).source == SOURCE_REBUILT).any() for k in tiles)
+
+
+def _region_boxes(wd: WorkDir, tiles: list[str]) -> dict[int, dict]:
+    """Per rebuilt region: bbox of its faces (campus-local), face count, normals sample, tiles."""
+    out: dict[int, dict] = {}
+    for k in tiles:
+        tm = read_tile_mesh(wd.root / "tiles" / k)
+        rebuilt = np.flatnonzero(tm.source == SOURCE_REBUILT)
+        if not len(rebuilt):
+            continue
+        for r in np.unique(tm.region[rebuilt]):
+            tri = tm.vertices[tm.faces[rebuilt[tm.region[rebuilt] == r]]].astype(np.float64)
+            n = np.cross(tri[:, 1] - tri[:, 0], tri[:, 2] - tri[:, 0])
+            rec = out.setdefault(int(r), {"lo": np.full(3, np.inf), "hi": np.full(3, -np.inf), "faces": 0,
+                                          "normal": np.zeros(3), "tiles": []})  # fmt: skip
+            rec["lo"] = np.minimum(rec["lo"], tri.reshape(-1, 3).min(axis=0))
+            rec["hi"] = np.maximum(rec["hi"], tri.reshape(-1, 3).max(axis=0))
+            rec["faces"] += len(tri)
+            rec["normal"] += n.sum(axis=0)
+            rec["tiles"].append(k)
+    return out
+
+
+def _in_box(tri: np.ndarray, lo: np.ndarray, hi: np.ndarray) -> np.ndarray:
+    c = tri.mean(axis=1)
+    return ((c >= lo) & (c <= hi)).all(axis=1)
+
+
+def regions_section(wd: WorkDir, tiles: list[str], grid: PatchGrid, origin: np.ndarray) -> tuple[Section, bool]:
+    sec = Section("Rebuilt regions: before and after")
+    boxes = _region_boxes(wd, tiles)
+    if not boxes:
+        sec.body = "<p>No rebuilt region in the merged tiles (repair has not run, or found nothing to rebuild).</p>"
+        return sec, False
+    shown = sorted(boxes, key=lambda r: -boxes[r]["faces"])[:MAX_REGION_RENDERS]
+    rows = []
+    for r in shown:
+        b = boxes[r]
+        lo, hi = b["lo"] - REGION_MARGIN_M, b["hi"] + REGION_MARGIN_M
+        before_tri, before_col, after_tri, after_col = [], [], [], []
+        near = {TileId.from_key(k) for k in tiles} & set(_tiles_for_box(grid, origin, lo, hi))
+        for t in sorted(near):
+            tm = read_tile_mesh(wd.tile_dir(t))
+            tri = tm.vertices[tm.faces]
+            sel = _in_box(tri, lo, hi)
+            after_tri.append(tri[sel])
+            after_col.append(np.where((tm.source[sel] == SOURCE_REBUILT)[:, None], REBUILT_COLOUR, MESH_COLOUR))
+            tri_b, bad = _store_faces_in_box(wd, t, lo, hi)
+            before_tri.append(tri_b)
+            before_col.append(np.where(bad[:, None], BAD_COLOUR, MESH_COLOUR))
+        before, after = np.concatenate(before_tri), np.concatenate(after_tri)
+        basis = view_basis(b["normal"][None, :])
+        png = render_png([("before: input mesh, bad patches red", before, np.concatenate(before_col)),
+                          ("after: merged, rebuilt faces orange", after, np.concatenate(after_col))], basis,
+                         f"region {r}: {b['faces']:,} rebuilt faces in tiles {', '.join(b['tiles'])}")  # fmt: skip
+        name = f"region_{r:06d}"
+        write_bytes_atomic(wd.report_dir / "regions" / f"{name}.png", png)
+        sec.figures[name] = png
+        rows.append([r, b["faces"], " × ".join(f"{v:.1f}" for v in b["hi"] - b["lo"]), ", ".join(b["tiles"])])
+    sec.body = table(["region", "rebuilt faces", "extent (m)", "tiles"], rows)
+    if len(boxes) > len(shown):
+        sec.body += f"<p>{len(boxes) - len(shown)} smaller regions not rendered.</p>"
+    return sec, True
+
+
+def _tiles_for_box(grid: PatchGrid, origin: np.ndarray, lo: np.ndarray, hi: np.ndarray) -> list[TileId]:
+    return [TileId(int(a), int(b)) for a, b in grid.tiles_for_bounds(lo + origin, hi + origin)]
+
+
+def _store_faces_in_box(wd: WorkDir, tile: TileId, lo: np.ndarray, hi: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """The input mesh faces of a tile store with centroids in [lo, hi]: (triangles (k, 3, 3), bad (k,) bool),
+    reading only the patches whose boxes meet it."""
+    try:
+        store = PatchStore(wd.tile_dir(tile))
+    except InputError:
+        return np.zeros((0, 3, 3), np.float32), np.zeros(0, bool)
+    p = store.patches()
+    meets = ((p["xmax"] >= lo[0]) & (p["xmin"] <= hi[0]) & (p["ymax"] >= lo[1]) & (p["ymin"] <= hi[1])
+             & (p["zmax"] >= lo[2]) & (p["zmin"] <= hi[2]) & (p["n_faces"] > 0))  # fmt: skip
+    grades = store.side("grades")
+    labels = store.side("labels")
+    bad_patch = (grades["grade"] == 1) if grades is not None else (labels["label"] == 1) if labels is not None \
+        else np.zeros(len(p["patch"]), bool)
+    keys = p["patch"][meets]
+    if not len(keys):
+        return np.zeros((0, 3, 3), np.float32), np.zeros(0, bool)
+    cols = [f"{a}{v}" for v in range(3) for a in "xyz"]
+    parts = store.read_patches(keys.tolist(), point_columns=[], face_columns=cols)
+    tri = np.concatenate([d.triangles() for d in parts])
+    bad = np.repeat(bad_patch[meets], [d.n_faces for d in parts])
+    sel = _in_box(tri, lo, hi)
+    return tri[sel], bad[sel]
