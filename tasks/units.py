@@ -30,8 +30,10 @@ STAGE_VERSIONS = {
     "partition": 2,  # v2: store schema 2 (vertex ids, vertex patches, normals, side tables)
     "labels": 1,
     "outliers": 2,   # v2: flags in outliers.parquet, not in patches.parquet
-    "merge": 1,
     "classify": 1,
+    "regions": 1,
+    "region": 1,
+    "merge": 1,
 }
 
 
@@ -78,6 +80,51 @@ def unit_params(stage: str, params: dict) -> str:
     return params_hash({**params, "_stage_version": STAGE_VERSIONS[stage]})
 
 
+def failure_message(e: InputError | OSError) -> str:
+    """One line for an expected failure: a bad input's own message, or what a work-dir write hit."""
+    return str(e) if isinstance(e, InputError) else os_error_message(e)
+
+
+class _Step:
+    """Wall and CPU clock and peak RSS of one unit of work, from construction to :meth:`summary`."""
+
+    def __init__(self) -> None:
+        self.t0, self.c0 = time.perf_counter(), time.process_time()
+        reset_peak_rss()
+
+    def seconds(self) -> float:
+        return time.perf_counter() - self.t0
+
+    def summary(self) -> dict:
+        return {"peak_rss_mb": peak_rss_mb(), "cpu_seconds": round(time.process_time() - self.c0, 3)}
+
+
+def record_step(wd: WorkDir, stage: str, unit: str, work: Callable[[], dict], fingerprint: str = "",
+                params: str = "") -> dict:
+    """Run a step that is not skipped by fingerprint (a campus-wide step, an export node) and record it.
+
+    ``work`` returns a dict; its scalar values (plus peak RSS and CPU seconds) become the record's summary
+    and its ``status`` (default "done") the record's status. An expected failure (InputError, OSError) is
+    returned as ``{"status": "failed", "error": "<stage>: <one line>"}`` and recorded as failed; anything
+    else is a bug and propagates. Returns ``{"status", **work's dict}`` on success.
+    """
+    step = _Step()
+    try:
+        out = work()
+    except (InputError, OSError) as e:
+        msg = f"{stage}: {failure_message(e)}"
+        with contextlib.suppress(OSError):  # a full disk may refuse the record too; the result still says it
+            write_record(wd, ManifestRecord(stage, unit, "failed", fingerprint, params, error=msg,
+                                            seconds=step.seconds()))
+        return {"status": "failed", "error": msg}
+    status = out.get("status", "done")
+    summary = {k: v for k, v in out.items() if isinstance(v, (int, float, str, bool)) or v is None}
+    summary |= step.summary()
+    write_record(wd, ManifestRecord(stage, unit, status, fingerprint, params, seconds=step.seconds(),
+                                    summary=summary))
+    return {**out, "status": status}
+
+
 def run_unit(wd: WorkDir, stage: str, unit: str, fingerprint: str, params: dict,
              work: Callable[[], Done], on_fail: Callable[[], None] | None = None) -> dict:
     """Skip ``unit`` if done and unchanged, else run ``work`` and record the outcome.
@@ -90,23 +137,21 @@ def run_unit(wd: WorkDir, stage: str, unit: str, fingerprint: str, params: dict,
     rec = is_done(wd, stage, unit, fingerprint, ph)
     if rec is not None:
         return {**rec.summary, "unit": unit, "status": rec.status, "skipped": True, "seconds": rec.seconds}
-    t0, c0 = time.perf_counter(), time.process_time()
-    reset_peak_rss()
+    step = _Step()
     try:
         out = work()
     except EmptyTileError as e:
         out = Done(status="empty", summary={"reason": e.problem})
     except (InputError, OSError) as e:
-        msg = str(e) if isinstance(e, InputError) else os_error_message(e)
-        secs = time.perf_counter() - t0
+        msg = failure_message(e)
+        secs = step.seconds()
         with contextlib.suppress(OSError):  # a full disk may refuse the record too; the result still says it
             write_record(wd, ManifestRecord(stage, unit, "failed", fingerprint, ph, error=msg, seconds=secs))
         if on_fail is not None:
             on_fail()
         return {"unit": unit, "status": "failed", "error": msg, "skipped": False, "seconds": secs}
-    secs = time.perf_counter() - t0
-    summary = {**out.summary, "unit": unit, "status": out.status, "peak_rss_mb": peak_rss_mb(),
-               "cpu_seconds": round(time.process_time() - c0, 3)}
+    secs = step.seconds()
+    summary = {**out.summary, "unit": unit, "status": out.status, **step.summary()}
     write_record(wd, ManifestRecord(stage, unit, out.status, fingerprint, ph, seconds=secs,
                                     outputs=out.outputs, summary=summary))
     return {**summary, "skipped": False, "seconds": secs}

@@ -49,8 +49,6 @@ from tasks.regions.plan import (
 from tasks.repair.texture_inputs import camera_paths, load_cameras, occupancy, reduced_texture, run_occupancy_tile  # noqa: F401
 from tasks.units import STAGE_VERSIONS, Done, run_unit
 
-STAGE_VERSIONS.setdefault("regions", 1)
-STAGE_VERSIONS.setdefault("region", 1)
 
 
 # ----------------------------------------------------------------------------------------- plan
