@@ -11,10 +11,11 @@ import pytest
 from storage.errors import InputError
 from storage.tile_mesh import read_tile_mesh, write_tile_mesh
 from tasks.config import ExportConfig
-from tasks.export.build import plan_quadtree, run_export
+from tasks.export import run_export
 from tasks.export.check import check_mesh_features, check_tileset, node_tools, validate_glbs
 from tasks.export.georef import EnuProjector, enu_to_gltf, gltf_to_enu, make_georef
 from tasks.export.gltf import GltfMesh, build_glb, glb_primitives, read_glb, split_by_feature
+from tasks.export.tree import plan_quadtree
 
 
 def _ecef_direct(crs: str, world: np.ndarray) -> np.ndarray:
@@ -222,6 +223,34 @@ def test_process_pool_gives_the_same_tileset(tiny_merged, tmp_path):
     assert (runs[0] / "tileset.json").read_bytes() == (runs[1] / "tileset.json").read_bytes()
     for glb in runs[0].rglob("*.glb"):
         assert glb.read_bytes() == (runs[1] / glb.relative_to(runs[0])).read_bytes(), glb
+
+
+def test_nodes_mapped_in_batches_give_the_same_tileset_and_record_each_node(tiny_merged, tiny_export, tmp_path):
+    from storage.manifest import read_record
+    from storage.workdir import WorkDir
+    from tasks.export import build_nodes, node_batches, node_records
+
+    work = tmp_path / "work"
+    shutil.copytree(tiny_merged, work)
+    sizes = []
+
+    def map_jobs(jobs):  # what the flow does, without the cluster: batches in, records in job order out
+        batches = node_batches(jobs, 2)
+        sizes.append([len(b) for b in batches])
+        return node_records([r for b in reversed(batches) for r in build_nodes(b)], len(jobs))
+
+    summary = run_export(work, map_jobs=map_jobs)
+    assert sizes == [[1] * 6, [1, 1], [1], [1]]  # 6 leaves, 2 parents, the root, the overview
+    assert (work / "output/tileset.json").read_bytes() == (tiny_export[0] / "output/tileset.json").read_bytes()
+    for key in summary["built"] + ["L-1_0_0"]:
+        rec = read_record(WorkDir(work), "export", key)
+        assert rec.status == "done" and rec.summary["uri"] and rec.seconds > 0, key
+    assert [len(b) for b in node_batches(list(range(10)), 2)] == [2, 2, 1, 1, 1, 1, 1, 1]
+    with pytest.raises(InputError, match="L0_1_0: disk full"):
+        node_records([{"index": 0, "status": "done", "record": {}},
+                      {"index": 1, "status": "failed", "error": "L0_1_0: disk full"}], 2)
+    with pytest.raises(InputError, match="an export task failed"):
+        node_records([{"status": "failed", "error": "worker lost"}], 1)
 
 
 @pytest.mark.parametrize("backend", ["fqmr", "pymeshlab"])

@@ -1,0 +1,123 @@
+"""One node's content, pure: per-face provenance features, bounding boxes, cropped textures, and a merged
+tile or a decimated mesh as glTF (y-up) content."""
+
+from __future__ import annotations
+
+import io
+import math
+from pathlib import Path
+
+import numpy as np
+
+from storage.tile_mesh import TileMesh
+from tasks.config import ExportConfig
+from tasks.export.georef import EnuProjector, enu_to_gltf
+from tasks.export.gltf import GltfImage, GltfMesh, split_by_feature
+from tasks.export.lod import LodMesh, sample_colors, weld
+
+MIN_HALF_EXTENT_M = 0.01
+BOX_PAD_M = 0.001  # bounding boxes grow by this, so lossy (Draco-quantized) positions stay inside
+
+
+def feature_rows(grade: np.ndarray, source: np.ndarray, region: np.ndarray):
+    """One feature per distinct (grade, source, region): (feature per face (m,), grade (k,) int8,
+    source (k,) int8, region (k,) int32), features ordered by (region, grade, source).
+
+    >>> f, g, s, r = feature_rows(np.array([0, 1, 0], np.int8), np.array([0, 1, 0], np.int8), np.array([-1, 4, -1]))
+    >>> f.tolist(), g.tolist(), s.tolist(), r.tolist()
+    ([0, 1, 0], [0, 1], [0, 1], [-1, 4])
+    """
+    if len(grade) == 0:
+        return np.zeros(0, np.int64), np.zeros(0, np.int8), np.zeros(0, np.int8), np.zeros(0, np.int32)
+    key = ((np.asarray(region, np.int64) + 1) << 8) | ((np.asarray(grade, np.int64) + 1) << 2) | np.asarray(source, np.int64)
+    rows, inverse = np.unique(key, return_inverse=True)
+    return (inverse.reshape(-1), (((rows >> 2) & 0x3F) - 1).astype(np.int8), (rows & 0x3).astype(np.int8),
+            ((rows >> 8) - 1).astype(np.int32))
+
+
+def box_from_bounds(lo, hi) -> list[float]:
+    """3D Tiles ``box`` (centre, three half-axes) of the axis-aligned box [lo, hi] (ENU metres), grown by
+    ``BOX_PAD_M``."""
+    lo, hi = np.asarray(lo, np.float64), np.asarray(hi, np.float64)
+    c = (lo + hi) / 2
+    h = np.maximum((hi - lo) / 2 + BOX_PAD_M, MIN_HALF_EXTENT_M)
+    return [*map(float, c), float(h[0]), 0.0, 0.0, 0.0, float(h[1]), 0.0, 0.0, 0.0, float(h[2])]
+
+
+def prepare_texture(path: str, uv: np.ndarray, max_px: int, quality: int) -> tuple[GltfImage, np.ndarray, np.ndarray]:
+    """Crop an atlas to the pixels ``uv`` (k, 2) (glTF convention) use, downscale to ``max_px``.
+
+    Returns (encoded image, its pixels (H, W, 3) uint8, uv remapped to the new image (k, 2) float32).
+    The file's own bytes are embedded when neither crop nor downscale is needed.
+    """
+    from PIL import Image
+
+    with Image.open(path) as im:
+        fmt, (w0, h0) = im.format, im.size
+        x0 = max(0, math.floor(float(uv[:, 0].min()) * w0) - 2) if len(uv) else 0
+        x1 = min(w0, math.ceil(float(uv[:, 0].max()) * w0) + 2) if len(uv) else w0
+        y0 = max(0, math.floor(float(uv[:, 1].min()) * h0) - 2) if len(uv) else 0
+        y1 = min(h0, math.ceil(float(uv[:, 1].max()) * h0) + 2) if len(uv) else h0
+        cw, ch = max(1, x1 - x0), max(1, y1 - y0)
+        scale = min(1.0, max_px / max(cw, ch))
+        whole = (x0, y0, x1, y1) == (0, 0, w0, h0)
+        if fmt == "JPEG" and scale < 1.0:
+            im.draft("RGB", (math.ceil(w0 * scale), math.ceil(h0 * scale)))  # decode at 1/2, 1/4.. directly
+        f = im.size[0] / w0
+        rgb = im.convert("RGB")
+        if not whole:
+            rgb = rgb.crop((math.floor(x0 * f), math.floor(y0 * f), math.ceil(x1 * f), math.ceil(y1 * f)))
+        size = (max(1, round(cw * scale)), max(1, round(ch * scale)))
+        if rgb.size != size:
+            rgb = rgb.resize(size, Image.BILINEAR)
+        if whole and scale == 1.0 and fmt in ("JPEG", "PNG"):
+            data, mime = Path(path).read_bytes(), "image/jpeg" if fmt == "JPEG" else "image/png"
+        else:
+            buf = io.BytesIO()
+            if fmt == "PNG":
+                rgb.save(buf, format="PNG", compress_level=3)
+                mime = "image/png"
+            else:
+                rgb.save(buf, format="JPEG", quality=quality)
+                mime = "image/jpeg"
+            data = buf.getvalue()
+        pixels = np.asarray(rgb)
+    new_uv = np.empty_like(uv, dtype=np.float32)
+    new_uv[:, 0] = (uv[:, 0] * w0 - x0) / cw
+    new_uv[:, 1] = (uv[:, 1] * h0 - y0) / ch
+    return GltfImage(data, mime), pixels, new_uv
+
+
+def leaf_content(tm: TileMesh, projector: EnuProjector, cfg: ExportConfig) -> tuple[GltfMesh, LodMesh]:
+    """A ground tile's full-resolution content (glTF, y-up) and its vertex-coloured LodMesh (ENU)."""
+    # one vertex per (vertex, texture) so each texture's crop can remap its own uvs
+    faces, src, group = split_by_feature(tm.faces, tm.face_texture.astype(np.int64) + 1)
+    group -= 1
+    enu = projector.local_to_enu(tm.vertices)[src]
+    uv = np.zeros((len(src), 2), np.float32)
+    colors = (tm.vertex_colors[src] if tm.vertex_colors is not None else np.full((len(src), 3), 180, np.uint8)).copy()
+    images = []
+    used_textures = sorted(int(g) for g in np.unique(group) if g >= 0)
+    face_texture = np.full(len(faces), -1, np.int16)
+    for new_index, k in enumerate(used_textures):
+        sel = group == k
+        uv_gltf = np.stack([tm.uv[src[sel], 0], 1.0 - tm.uv[src[sel], 1]], axis=1)
+        image, pixels, uv[sel] = prepare_texture(tm.textures[k], uv_gltf, cfg.max_texture_px, cfg.jpeg_quality)
+        colors[sel] = sample_colors(pixels, uv[sel])
+        images.append(image)
+        face_texture[tm.face_texture == k] = new_index
+    feature, g_rows, s_rows, r_rows = feature_rows(tm.grade, tm.source, tm.region)
+    gltf = GltfMesh(positions=enu_to_gltf(enu), faces=faces, feature=feature, grade=g_rows, source=s_rows,
+                    region=r_rows, face_texture=face_texture, uv=uv if images else None, vertex_colors=colors,
+                    images=images)  # fmt: skip
+    lod = weld(LodMesh(enu.astype(np.float32), faces.astype(np.int32), colors, tm.grade, tm.source, tm.region))
+    return gltf, lod
+
+
+def lod_gltf(lod: LodMesh) -> GltfMesh:
+    """A LodMesh as vertex-coloured glTF content (y-up)."""
+    feature, g_rows, s_rows, r_rows = feature_rows(lod.grade, lod.source, lod.region)
+    return GltfMesh(positions=enu_to_gltf(lod.positions), faces=lod.faces, feature=feature, grade=g_rows,
+                    source=s_rows, region=r_rows, face_texture=np.full(lod.n_faces, -1, np.int16),
+                    vertex_colors=lod.colors)  # fmt: skip
+

@@ -1,0 +1,118 @@
+"""Building one node of the export quadtree from paths: a leaf from its merged tile, a parent from its
+children's passed-up meshes, or the overview from the root's. Each writes its glb under the output
+folder and its decimated mesh under the LOD cache; no work dir, no manifest (``stage.py`` records).
+
+A node's fingerprint covers its inputs' content hashes, the parameters and the georeference, so a rerun
+rebuilds a node only when it changed.
+"""
+
+from __future__ import annotations
+
+import hashlib
+import json
+import math
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+
+from storage.atomic import file_fingerprint, file_sha256, write_bytes_atomic
+from storage.tile_mesh import read_tile_mesh, tile_mesh_paths
+from tasks.config import ExportConfig
+from tasks.export.content import box_from_bounds, leaf_content, lod_gltf
+from tasks.export.georef import EnuProjector, GeoRef
+from tasks.export.gltf import GltfMesh, build_glb
+from tasks.export.lod import concat_lods, decimate, load_lod, save_lod, weld
+from tasks.export.tree import QuadNode
+
+
+def content_hash(*parts) -> str:
+    """32 hex digits of sha256 over ``parts`` (bytes as they are, anything else as sorted JSON)."""
+    h = hashlib.sha256()
+    for p in parts:
+        h.update(json.dumps(p, sort_keys=True, default=str).encode() if not isinstance(p, bytes) else p)
+    return h.hexdigest()[:32]
+
+
+def leaf_fingerprint(tile_dir: Path, base: str) -> str:
+    """A leaf's fingerprint: ``base`` (version, parameters, georeference) and the merged tile's content
+    (``merged.npz``, ``merged.json`` and its textures)."""
+    npz, meta = tile_mesh_paths(tile_dir)
+    doc = json.loads(meta.read_text())
+    textures = [file_fingerprint((tile_dir / t).resolve()) for t in doc["textures"]]
+    return content_hash(base, file_sha256(npz), meta.read_bytes(), textures)
+
+
+def _write_glb(out: Path, uri: str, mesh: GltfMesh, compression: str) -> int:
+    data = build_glb(mesh, compression)
+    write_bytes_atomic(out / uri, data)
+    return len(data)
+
+
+def _backend(cfg: ExportConfig) -> str | None:
+    return None if cfg.decimator == "auto" else cfg.decimator
+
+
+@dataclass(frozen=True)
+class NodeJob:
+    """What one node's build needs (picklable, for a process pool or a cluster)."""
+
+    node: QuadNode  # h = -1: the overview
+    fingerprint: str
+    out: Path  # work_dir/output
+    cache: Path  # work_dir/export/lod
+    georef: GeoRef
+    cfg: ExportConfig
+    tile_dir: Path | None = None  # leaves
+    children: tuple[tuple[str, dict], ...] = ()  # parents: (child key, child record); overview: ("root", {"key"})
+
+
+def _build_leaf(job: NodeJob) -> dict:
+    """Leaf: full-resolution content glb, and the decimated mesh it passes up (cached)."""
+    tm = read_tile_mesh(job.tile_dir)
+    gltf, lod = leaf_content(tm, EnuProjector(job.georef), job.cfg)
+    uri = f"content/tiles/{tm.tile}.glb"
+    nbytes = _write_glb(job.out, uri, gltf, job.cfg.compression)
+    texture_bytes = sum(len(im.data) for im in gltf.images)
+    del gltf
+    dec = decimate(lod, math.ceil(lod.n_faces / job.cfg.lod_reduction), job.cfg.hausdorff_samples, _backend(job.cfg))
+    save_lod(job.cache / f"{job.node.key}.npz", dec.mesh)
+    lo, hi = lod.bounds()
+    return {"fingerprint": job.fingerprint, "uri": uri, "tile": tm.tile, "lo": lo.tolist(), "hi": hi.tolist(),
+            "box": box_from_bounds(lo, hi), "geometricError": 0.0, "up_hausdorff_m": dec.hausdorff_m,
+            "faces": tm.n_faces, "bytes": nbytes, "texture_bytes": texture_bytes}  # fmt: skip
+
+
+def _build_parent(job: NodeJob) -> dict:
+    """Parent: its children's passed-up meshes welded (content), and its own decimation passed up.
+    geometricError = max over children of (child decimation's measured deviation + child's error)."""
+    n, kids = job.node, dict(job.children)
+    content = weld(concat_lods([load_lod(job.cache / f"{k}.npz") for k in kids]))
+    uri = f"content/lod{n.h}/{n.x}_{n.y}.glb"
+    nbytes = _write_glb(job.out, uri, lod_gltf(content), job.cfg.compression)
+    dec = decimate(content, math.ceil(content.n_faces / job.cfg.lod_reduction), job.cfg.hausdorff_samples, _backend(job.cfg))
+    save_lod(job.cache / f"{n.key}.npz", dec.mesh)
+    lo, hi = content.bounds()
+    lo = np.minimum(lo, np.min([r["lo"] for r in kids.values()], axis=0))
+    hi = np.maximum(hi, np.max([r["hi"] for r in kids.values()], axis=0))
+    error = max(r["up_hausdorff_m"] + r["geometricError"] for r in kids.values())
+    return {"fingerprint": job.fingerprint, "uri": uri, "lo": lo.tolist(), "hi": hi.tolist(),
+            "box": box_from_bounds(lo, hi), "geometricError": float(error), "up_hausdorff_m": dec.hausdorff_m,
+            "faces": content.n_faces, "bytes": nbytes, "texture_bytes": 0}  # fmt: skip
+
+
+def build_node(job: NodeJob) -> dict:
+    """Build one node of the export quadtree (a leaf from its merged tile, a parent from its children's
+    cached meshes, or the overview); picklable, so a flow can map it over workers."""
+    if job.node.h < 0:
+        return _build_overview(job)
+    return _build_leaf(job) if job.node.h == 0 else _build_parent(job)
+
+
+def _build_overview(job: NodeJob) -> dict:
+    root_key = dict(job.children)["root"]["key"]
+    ov = decimate(load_lod(job.cache / f"{root_key}.npz"), job.cfg.overview_max_faces, job.cfg.hausdorff_samples,
+                  _backend(job.cfg)).mesh
+    nbytes = _write_glb(job.out, "overview.glb", lod_gltf(ov), job.cfg.compression)
+    return {"fingerprint": job.fingerprint, "uri": "overview.glb", "bytes": nbytes}
+
