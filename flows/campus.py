@@ -15,17 +15,18 @@ tracebacks of anything unexpected.
 from __future__ import annotations
 
 import logging
-import os
 import time
-from pathlib import Path
+from dataclasses import dataclass, field
 
+import numpy as np
 from prefect import flow
 from prefect.artifacts import create_table_artifact
 
-from flows.classify import classify_task
 from flows.executors import InlineExecutor, PrefectExecutor
-from flows.stage_tasks import (
-    _cfg,
+from flows.summary import CampusRunFailed, summarise
+from flows.tasks import (
+    classify_task,
+    config_of,
     export_nodes_task,
     ingest_task,
     merge_task,
@@ -38,10 +39,12 @@ from flows.stage_tasks import (
     report_task,
     scan_task,
 )
-from flows.summary import CampusRunFailed, summarise
 from storage.errors import InputError
+from storage.housekeeping import drop_unplanned_records, sweep_temporary_files, work_dir_lock
 from storage.manifest import consolidate
-from storage.workdir import WorkDir
+from storage.staging import prune_staging
+from storage.workdir import WorkDir, write_campus
+from tasks.batches import balanced_batches, fixed_batches
 from tasks.config import CampusConfig
 
 log = logging.getLogger("ms3d.flow")
@@ -49,46 +52,20 @@ log = logging.getLogger("ms3d.flow")
 __all__ = ["CampusRunFailed", "InlineExecutor", "make_task_runner", "reprocess_campus", "reprocess_from_config",
            "run_campus", "scan_inputs"]
 
-# ------------------------------------------------------------------------------------------ planning
-
-
-def balanced_batches(items: list, weights: list[float], n_batches: int) -> list[list]:
-    """Split items into at most ``n_batches`` batches of about equal total weight (largest first,
-    greedy), each batch in input order. Task runs cost ~0.3 s each: a thousand small files must not
-    become a thousand tasks."""
-    n = max(1, min(n_batches, len(items)))
-    order = sorted(range(len(items)), key=lambda i: -weights[i])
-    loads, members = [0.0] * n, [[] for _ in range(n)]
-    for i in order:
-        b = loads.index(min(loads))
-        loads[b] += weights[i]
-        members[b].append(i)
-    return [[items[i] for i in sorted(m)] for m in members if m]
-
-
-def _batches(items: list, size: int) -> list[list]:
-    return [items[i:i + size] for i in range(0, len(items), size)]
-
-
-# ------------------------------------------------------------------------------------------ flow
-
 
 @flow(name="reprocess-campus", log_prints=True)
 def reprocess_campus(cfg_json: dict, progress: bool = True) -> dict:
-    """Scan -> register -> ingest -> partition (+ labels) -> outliers over the campus of ``cfg_json``."""
-
-    cfg = _cfg(cfg_json)
+    """The campus run of ``cfg_json`` as a Prefect flow (see the module docstring)."""
+    cfg, _ = config_of(cfg_json)
     return reprocess(cfg, PrefectExecutor(progress), publish=_publish_artifact)
 
 
 def reprocess(cfg: CampusConfig, ex, publish=None) -> dict:
     """The campus run on an executor (:class:`PrefectExecutor` inside the flow, :class:`InlineExecutor`
     for a run without Prefect). Raises CampusRunFailed when units failed or the campus is incomplete."""
-    from storage.housekeeping import work_dir_lock
-
     wd = WorkDir(cfg.work_dir)
     with work_dir_lock(wd):
-        summary = _reprocess(cfg, cfg.model_dump(mode="json"), wd, ex)
+        summary = _reprocess(_Run(cfg, cfg.model_dump(mode="json"), wd, ex))
     if publish is not None:
         publish(summary)
     if summary["failed"] or summary["incomplete"]:
@@ -101,167 +78,143 @@ def scan_inputs(cfg: CampusConfig, wd: WorkDir, ex) -> tuple:
 
     Returns (records: list[InputFile], frame: CampusFrame, discovery, {path: source id}, scan summaries).
     """
-    from storage.inputs import InputFile, assign_source_ids, discover
-    from tasks.scan.stage import campus_frame
+    from tasks.scan import campus_frame, scan_batches, scan_files, scanned_records
 
-    cfg_json = cfg.model_dump(mode="json")
-    n_workers = max(cfg.cluster.n_workers, 1)
-    found = discover(cfg.inputs.mesh, cfg.inputs.points)
-    if cfg.inputs.labels and not Path(cfg.inputs.labels).is_file():
-        raise InputError(cfg.inputs.labels, "labels file not found (inputs.labels in the config)")
-    ids = assign_source_ids(list(found.meshes) + list(found.points))
-    files = [{"path": p, "kind": "mesh", "source": ids[p]} for p in found.meshes] + \
-            [{"path": p, "kind": "points", "source": ids[p]} for p in found.points]
-    sizes = [_size(f["path"]) * (20 if f["kind"] == "mesh" else 1) for f in files]  # meshes are read whole
-    scan_batches = balanced_batches(files, sizes, 4 * n_workers)
-    scans = ex.map(scan_task, scan_batches, "scan", cfg_json=cfg_json).results()
-    records = []
-    for f, s in zip([f for b in scan_batches for f in b], scans):
-        rec = s.get("record") or InputFile(f["source"], f["path"], f["kind"], "", error=s.get("error", "scan failed")).to_json()
-        records.append(InputFile(**rec))
+    found, ids, files = scan_files(cfg)
+    batches = scan_batches(files, cfg.cluster.n_workers)
+    scans = ex.map(scan_task, batches, "scan", cfg_json=cfg.model_dump(mode="json")).results()
+    records = scanned_records(batches, scans)
     return records, campus_frame(records, cfg), found, ids, scans
 
 
-def _reprocess(cfg: CampusConfig, cfg_json: dict, wd: WorkDir, ex) -> dict:
-    import numpy as np
+@dataclass
+class _Run:
+    """One campus run: its config, work dir and executor, the failures noted so far ({what: one line})
+    and the unit summaries of each mapped stage."""
 
-    from storage.workdir import write_campus
-    from tasks.export.stage import run_export_stage
-    from tasks.ingest.stage import plan_units, prune_staging, tiles_hint
-    from storage.housekeeping import drop_unplanned_records, sweep_temporary_files
+    cfg: CampusConfig
+    cfg_json: dict
+    wd: WorkDir
+    ex: object
+    failed: dict[str, str] = field(default_factory=dict)
+    stages: dict[str, list[dict]] = field(default_factory=dict)
 
+    @property
+    def n_workers(self) -> int:
+        return max(self.cfg.cluster.n_workers, 1)
+
+    def note(self, label: str, results: list[dict], per_unit: bool = True) -> list[dict]:
+        """Note every failed summary of ``results`` as "<label> <unit>" (or ``label`` alone for a
+        campus-wide step, first error kept); returns ``results``."""
+        for s in results:
+            if s.get("status") == "failed":
+                self.failed.setdefault(f"{label} {s['unit']}" if per_unit else label, s["error"])
+        return results
+
+
+def _reprocess(run: _Run) -> dict:
     t_wall, t_start = time.perf_counter(), time.time()
-    n_workers = max(cfg.cluster.n_workers, 1)
-    sweep_temporary_files(wd)
+    sweep_temporary_files(run.wd)
+    inputs = _inputs(run)
+    outliers = _tiles(run, inputs)
+    exported, report = _outputs(run)
+    consolidate(run.wd)
+    summary = summarise(run.wd, time.perf_counter() - t_wall, run.failed, outliers, since=t_start,
+                        stages=run.stages, incomplete=inputs["incomplete"],
+                        skipped_files=list(inputs["found"].skipped), registration=inputs["registration"])
+    summary["task_runs"] = getattr(run.ex, "task_runs", 0)
+    summary["output"] = {"tileset": str(run.wd.root / "output" / "tileset.json")
+                         if exported["status"] == "done" else None, "report": report.get("report")}
+    return summary
 
+
+def _inputs(run: _Run) -> dict:
+    """Scan, register (once, while the meshes are routed: mesh ingest needs the frame only), ingest the
+    points; then note the bad inputs and prune whatever the plan no longer names."""
+    from tasks.ingest import blocked_tiles, ingest_batches, plan_units
+
+    cfg, wd, ex = run.cfg, run.wd, run.ex
     records, frame, found, ids, scans = scan_inputs(cfg, wd, ex)
-    grid = cfg.grid()
-
-    # register (once) while the meshes are routed: mesh ingest needs the frame only
     rec_json = [r.to_json() for r in records]
-    reg_future = ex.submit(register_task, rec_json, frame.to_json(), cfg_json)
+    reg_future = ex.submit(register_task, rec_json, frame.to_json(), run.cfg_json)
     units = plan_units(records, cfg.tiling.chunk_points)
-    mesh_units = [u for u in units if u.kind == "mesh"]
-    point_units = [u for u in units if u.kind == "points"]
-    mesh_batches = balanced_batches([u.to_json() for u in mesh_units],
-                                    [_size(u.path) for u in mesh_units], 4 * n_workers)
-    mesh_ingest = ex.map(ingest_task, mesh_batches, "ingest meshes", cfg_json=cfg_json, frame_json=frame.to_json(),
-                         matrix=None)
+    mesh_batches, point_batches = ingest_batches(units, run.n_workers)
+    mesh_ingest = ex.map(ingest_task, mesh_batches, "ingest meshes", cfg_json=run.cfg_json,
+                         frame_json=frame.to_json(), matrix=None)
     registration = reg_future.result()
     if "error" in registration:
         mesh_ingest.results()
         raise InputError(None, f"registration failed: {registration['error']}")
-    write_campus(wd, frame, registration, cfg.model_dump(mode="json"),
-                 extra={"name": cfg.name, "inputs": rec_json, "grid": grid.to_json(),
+    write_campus(wd, frame, registration, run.cfg_json,
+                 extra={"name": cfg.name, "inputs": rec_json, "grid": cfg.grid().to_json(),
                         "skipped_files": [list(s) for s in found.skipped]})
     matrix = np.asarray(registration["matrix"], np.float64)
-    point_batches = _batches([u.to_json() for u in point_units], 1)
-    point_ingest = ex.map(ingest_task, point_batches, "ingest points", cfg_json=cfg_json, frame_json=frame.to_json(),
-                          matrix=matrix.tolist())
+    point_ingest = ex.map(ingest_task, point_batches, "ingest points", cfg_json=run.cfg_json,
+                          frame_json=frame.to_json(), matrix=matrix.tolist())
     ingests = mesh_ingest.results() + point_ingest.results()
-
-    # what each bad input blocks: the tiles its bounds cover; unknown bounds make the campus incomplete
-    by_source = {r.source: r for r in records}
-    hints = {r.source: tiles_hint(r, frame, matrix, grid) for r in records}
-    blocked: dict[str, str] = {}
-    failed: dict[str, str] = {}
-    incomplete: list[str] = []
-    bad_inputs = [(r, r.error) for r in records if r.error]
-    unit_src = {u.key: u.source for u in units}
-    bad_inputs += [(by_source[unit_src[s["unit"]]], s["error"]) for s in ingests
-                   if s["status"] == "failed" and s["unit"] in unit_src]
-    for r, err in bad_inputs:
-        failed[f"input {r.name}"] = err
-        if not hints[r.source]:
-            incomplete.append(r.path)
-        for tk in hints[r.source]:
-            blocked.setdefault(tk, f"blocked: its input {r.name} failed (see that input's error)")
-
-    # the plan names the staging files and tiles that should exist; everything else goes
+    blocked, failed, incomplete = blocked_tiles(records, ingests, units, frame, matrix, cfg.grid())
+    run.failed.update(failed)
+    run.stages |= {"scan": scans, "ingest": ingests}
     prune_staging(wd, {u.key for u in units})
     drop_unplanned_records(wd, "ingest", {u.key for u in units})
     drop_unplanned_records(wd, "scan", {f"{s:08x}" for s in ids.values()})
+    return {"records": records, "frame": frame, "found": found, "matrix": matrix, "blocked": blocked,
+            "incomplete": incomplete, "registration": registration}
+
+
+def _tiles(run: _Run, inputs: dict) -> dict:
+    """Partition (+ labels) every planned tile, fit the patch outliers, grade every pair (MS3DQE-Net),
+    plan the bad regions over the campus, rebuild each region, merge each tile. Returns the outlier fit."""
+    from tasks.ingest import input_tiles
+
+    cfg, wd, ex, cj = run.cfg, run.wd, run.ex, run.cfg_json
+    hints = input_tiles(inputs["records"], inputs["frame"], inputs["matrix"], cfg.grid())
     tiles = sorted({k for h in hints.values() for k in h} | {t.key for t in wd.staged_tiles()}
                    | set(wd.tile_keys_on_disk()))
-    tile_batches = _batches(tiles, cfg.cluster.tiles_per_task)
-    parts = ex.map(partition_task, tile_batches, "partition", cfg_json=cfg_json, frame_json=frame.to_json(),
-                   blocked=blocked).results()
-    for s in parts:
-        if s["status"] == "failed":
-            failed[f"tile {s['unit']}"] = s["error"]
-        elif s.get("labels_error"):
-            failed[f"labels {s['unit']}"] = s["labels_error"]
+    batches = fixed_batches(tiles, cfg.cluster.tiles_per_task)
+    parts = run.note("tile", ex.map(partition_task, batches, "partition", cfg_json=cj,
+                                    frame_json=inputs["frame"].to_json(), blocked=inputs["blocked"]).results())
+    run.note("labels", [{"status": "failed", "unit": s["unit"], "error": s["labels_error"]}
+                        for s in parts if s.get("labels_error")])
     drop_unplanned_records(wd, "partition", set(tiles))
     drop_unplanned_records(wd, "labels", set(tiles))
-
-    outliers = ex.submit(outliers_task, cfg_json).result()
-
-    # grade every pair (MS3DQE-Net), plan the bad regions over the campus, rebuild each region
-    grades = ex.map(classify_task, tile_batches, "classify", cfg_json=cfg_json).results()
-    for s in grades:
-        if s["status"] == "failed":
-            failed[f"classify {s['unit']}"] = s["error"]
+    outliers = ex.submit(outliers_task, cj).result()
+    grades = run.note("classify", ex.map(classify_task, batches, "classify", cfg_json=cj).results())
     drop_unplanned_records(wd, "classify", set(tiles))
-    plan = ex.submit(regions_task, cfg_json).result()
-    if plan["status"] == "failed":
-        failed["regions"] = plan["error"]
-    region_batches = balanced_batches(plan["regions"], plan["weights"], 4 * n_workers)
-    repairs = ex.map(repair_task, region_batches, "repair", cfg_json=cfg_json).results()
-    for s in repairs:
-        if s["status"] == "failed":
-            failed[f"region {s['unit']}"] = s["error"]
-
-    # output: one clean mesh per tile, then 3D Tiles and the run report
-    merges = ex.map(merge_task, tile_batches, "merge", cfg_json=cfg_json).results()
-    for s in merges:
-        if s["status"] == "failed":
-            failed[f"merge {s['unit']}"] = s["error"]
+    plan = ex.submit(regions_task, cj).result()
+    run.note("regions", [plan], per_unit=False)
+    region_batches = balanced_batches(plan["regions"], plan["weights"], 4 * run.n_workers)
+    repairs = run.note("region", ex.map(repair_task, region_batches, "repair", cfg_json=cj).results())
+    merges = run.note("merge", ex.map(merge_task, batches, "merge", cfg_json=cj).results())
     drop_unplanned_records(wd, "merge", set(tiles))
-    from tasks.report.stage import quality_plan, write_quality
+    run.stages |= {"partition": parts, "classify": grades, "repair": repairs, "merge": merges}
+    return outliers
+
+
+def _outputs(run: _Run) -> tuple[dict, dict]:
+    """3D Tiles (nodes mapped over the workers) beside the model's quality shares, then the run report.
+    Returns (export summary, report summary)."""
+    from tasks.export import node_batches, node_records, run_export_stage
+    from tasks.quality import quality_parts, quality_plan, write_quality
+
+    cfg, wd, ex, cj = run.cfg, run.wd, run.ex, run.cfg_json
+
+    def map_jobs(jobs: list) -> list[dict]:  # one level of the quadtree at a time; records in job order
+        results = ex.map(export_nodes_task, node_batches(jobs, run.n_workers), "export").results()
+        return node_records(results, len(jobs))
 
     qplan = quality_plan(cfg, wd) if cfg.report.enabled and cfg.report.quality else None
-    shares = [ex.submit(quality_task, cfg_json, qplan, (k, n_workers)) for k in range(n_workers)] if qplan else []
-    exported = run_export_stage(cfg, wd, map_jobs=lambda jobs: _map_export_jobs(ex, jobs, n_workers))
-    if shares:  # the model against the truth, measured beside the export in n_workers shares
-        got = [s.result() for s in shares]
-        bad = [g["error"] for g in got if g.get("status") == "failed"]
-        if bad:
-            failed["quality"] = bad[0]
-        else:
+    shares = [ex.submit(quality_task, cj, qplan, part) for part in quality_parts(qplan, run.n_workers)] \
+        if qplan else []
+    exported = run_export_stage(cfg, wd, map_jobs=map_jobs)
+    if shares:  # the model against the truth, measured beside the export
+        got = run.note("quality", [s.result() for s in shares], per_unit=False)
+        if not any(g.get("status") == "failed" for g in got):
             write_quality(wd, qplan["key"], [g["sums"] for g in got])
-    if exported["status"] == "failed":
-        failed["export"] = exported["error"]
-    report = ex.submit(report_task, cfg_json).result() if cfg.report.enabled else {"status": "skipped"}
-    if report["status"] == "failed":
-        failed["report"] = report["error"]
-    consolidate(wd)
-    summary = summarise(wd, time.perf_counter() - t_wall, failed, outliers, since=t_start,
-                        stages={"scan": scans, "ingest": ingests, "partition": parts, "classify": grades,
-                                "repair": repairs, "merge": merges},
-                        incomplete=incomplete, skipped_files=list(found.skipped),
-                        registration=registration)
-    summary["task_runs"] = getattr(ex, "task_runs", 0)
-    summary["output"] = {"tileset": str(wd.root / "output" / "tileset.json") if exported["status"] == "done" else None,
-                         "report": report.get("report")}
-    return summary
-
-
-def _map_export_jobs(ex, jobs: list, n_workers: int) -> list[dict]:
-    """Build 3D Tiles nodes as mapped tasks (one level of the quadtree at a time); records in job order."""
-    indexed = list(enumerate(jobs))
-    batches = balanced_batches(indexed, [1.0] * len(indexed), 4 * n_workers)
-    got = {r["index"]: r for r in ex.map(export_nodes_task, batches, "export").results() if "index" in r}
-    bad = [r.get("error", "export task failed") for i, r in got.items() if r["status"] != "done"]
-    if bad or len(got) != len(jobs):
-        raise InputError(None, "; ".join(bad) or "an export task failed (see the run history)")
-    return [got[i]["record"] for i in range(len(jobs))]
-
-
-def _size(path: str) -> float:
-    try:
-        return float(Path(path).stat().st_size) + 1.0
-    except OSError:
-        return 1.0
+    run.note("export", [exported], per_unit=False)
+    report = ex.submit(report_task, cj).result() if cfg.report.enabled else {"status": "skipped"}
+    run.note("report", [report], per_unit=False)
+    return exported, report
 
 
 def _publish_artifact(summary: dict) -> None:

@@ -17,7 +17,7 @@ from storage.frame import CampusFrame
 from storage.grid import PatchGrid
 from storage.patch_store import TileMeta, write_side_table, write_tile_tables
 from storage.workdir import WorkDir, write_campus
-from tasks.partition.kernels import build_tile_tables
+from tasks.partition import build_tile_tables
 
 CENTRE = np.array([10.0, 10.0])
 HALF = 2.0

@@ -13,6 +13,8 @@ from __future__ import annotations
 import numpy as np
 import open3d as o3d
 
+from tasks.geometry.triangles import face_normals as unit_face_normals
+
 
 def closest_points_on_triangles(p, a, b, c) -> np.ndarray:
     """Closest point of each triangle (a, b, c) to p, all (n, 3) float64 -> (n, 3) float64.
@@ -38,13 +40,6 @@ def closest_points_on_triangles(p, a, b, c) -> np.ndarray:
         for cond, rv, rw in reversed(regions):
             v, w = np.where(cond, rv, v), np.where(cond, rw, w)
     return a + v[:, None] * ab + w[:, None] * ac
-
-
-def unit_face_normals(vertices, faces) -> np.ndarray:
-    """(m, 3) float64 unit normals of faces (m, 3) int64 (zero for degenerate faces)."""
-    a = vertices[faces[:, 0]]
-    n = np.cross(vertices[faces[:, 1]] - a, vertices[faces[:, 2]] - a)
-    return n / np.maximum(np.linalg.norm(n, axis=1, keepdims=True), 1e-300)
 
 
 class MeshDistance:

@@ -17,14 +17,9 @@ from __future__ import annotations
 import numpy as np
 
 from storage.ids import TileId
+from tasks.geometry.triangles import face_areas
 
 _R2 = np.array([1 / 1.32471795724474602596, 1 / 1.32471795724474602596**2])  # Roberts' R2 sequence
-
-
-def face_areas(vertices: np.ndarray, faces: np.ndarray) -> np.ndarray:
-    """vertices: (n, 3) float64 metres; faces: (m, 3) int64 -> (m,) float64 m²."""
-    a, b, c = (vertices[faces[:, k]] for k in range(3))
-    return 0.5 * np.linalg.norm(np.cross(b - a, c - a), axis=1)
 
 
 def sample_counts(areas: np.ndarray, density_per_m2: float) -> np.ndarray:
@@ -235,7 +230,6 @@ def samples_inside(points, boxes, tile: TileId | None, tile_size_m: float) -> np
 
 __all__ = [
     "budget_sample_counts",
-    "face_areas",
     "faces_in_boxes",
     "iter_surface_samples",
     "sample_boxes",

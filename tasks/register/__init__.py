@@ -1,1 +1,18 @@
-"""The register stage."""
+"""The register stage: the similarity that maps the MLS clouds onto the mesh, once per campus
+(Liu et al. 2023, §3.1: SAC-IA then Scale-ICP; modes auto / pinned / off, see :mod:`tasks.register.stage`).
+
+- Reads: the scan records of the inputs, a bounded sample of every readable point cloud, and the mesh
+  surface samples the scan stage wrote (``scan/{source:08x}.npz``).
+- Writes: ``registration.json`` (4x4 matrix MLS world-minus-origin -> campus-local, scale, method,
+  figures) and one manifest record (unit ``campus``).
+- Invalidated by (mode ``auto``): any input's kind, source id, content fingerprint or error state, the
+  campus frame, the registration parameters and ``STAGE_VERSIONS["register"]``. ``pinned`` never
+  re-estimates; ``off`` is the identity after a co-registration check.
+
+The pure algorithm is in :mod:`tasks.register.align` (coarse, fine, target, check and base modules).
+"""
+
+from tasks.register.stage import run_register
+from tasks.register.target import mesh_registration_target
+
+__all__ = ["mesh_registration_target", "run_register"]

@@ -176,14 +176,48 @@ def coarse_register(
     rng = np.random.default_rng(cfg.seed)
     clock = StepClock(time.perf_counter())
     centroid = source_xyz.mean(axis=0)
-    src = o3d_cloud(source_xyz).voxel_down_sample(voxel)
-    tgt = o3d_cloud(target_xyz).voxel_down_sample(voxel)
+    src, tgt = (_voxel_cloud(xyz, voxel) for xyz in (source_xyz, target_xyz))
     if len(src.points) < MIN_POINTS or len(tgt.points) < MIN_POINTS:
         raise InputError(
             None,
             f"after {voxel} m voxels only {len(src.points)} MLS / {len(tgt.points)} mesh points remain "
             f"(need {MIN_POINTS}): the clouds are too small or do not overlap",
         )
+    ks, kt, f_src, f_tgt = _keypoint_features(src, tgt, voxel, centroid, rng)
+    clock.lap("features")
+
+    src_xyz, tgt_xyz = np.asarray(src.points), np.asarray(tgt.points)
+    pairs, n_matches = _gated_matches(src_xyz, tgt_xyz, ks, kt, f_src, f_tgt, centroid, voxel)
+    clock.lap("matching")
+
+    # hypotheses are scored on the matched keypoints plus random other source voxels
+    matched = ks[pairs[:, 0]]
+    others = np.setdiff1d(np.arange(len(src_xyz)), matched)
+    n_more = max(0, min(len(others), SAC_EVAL_POINTS - len(matched)))
+    pick = _eval_sample(others, np.asarray(src.normals)[others, 2], n_more, rng)
+    src_eval = o3d_cloud(np.concatenate([src_xyz[matched], src_xyz[pick]]))
+    corres = np.stack([np.arange(len(matched)), kt[pairs[:, 1]]], axis=1).astype(np.int32)
+    distance = max(float(cfg.sac_threshold_m), SAC_MIN_THRESHOLD_VOXELS * voxel)
+    best = _best_ransac(src_eval, tgt, corres, distance, cfg)
+    clock.lap("ransac")
+    info = {
+        "inlier_distance_m": distance,
+        "keypoints": (len(ks), len(kt)),
+        "matches": (n_matches, len(pairs)),
+        "seconds": clock.laps,
+    }
+    return np.asarray(best.transformation).copy(), float(best.fitness), info
+
+
+def _voxel_cloud(xyz: np.ndarray, voxel_m: float) -> o3d.geometry.PointCloud:
+    """xyz (n, 3) float64 metres as an Open3D cloud of voxel centroids (``voxel_m`` voxels)."""
+    return o3d_cloud(xyz).voxel_down_sample(voxel_m)
+
+
+def _keypoint_features(src, tgt, voxel: float, centroid: np.ndarray, rng: np.random.Generator):
+    """Curved keypoints of both voxel clouds and their FPFH descriptors: (ks (a,) int64, kt (b,) int64,
+    f_src (a, 33), f_tgt (b, 33)). Estimates the clouds' normals (oriented towards a point 5 m above
+    ``centroid``), which scoring uses later."""
     radius = NORMAL_RADIUS_VOXELS * voxel
     ks = _keypoints(src, radius, SAC_MAX_KEYPOINTS[0], rng)
     kt = _keypoints(tgt, radius, SAC_MAX_KEYPOINTS[1], rng)
@@ -196,9 +230,12 @@ def coarse_register(
     f_tgt = np.asarray(
         _reg.compute_fpfh_feature(tgt, search, o3d.utility.IntVector(kt.astype(np.int32))).data
     ).T
-    clock.lap("features")
+    return ks, kt, f_src, f_tgt
 
-    src_xyz, tgt_xyz = np.asarray(src.points), np.asarray(tgt.points)
+
+def _gated_matches(src_xyz, tgt_xyz, ks, kt, f_src, f_tgt, centroid, voxel: float) -> tuple[np.ndarray, int]:
+    """Keypoint matches within the spatial gate, the ``SAC_CONSISTENT_MATCHES`` most consistent kept:
+    ((k, 2) int64 (index into ks, index into kt), number of gated matches before the consistency cut)."""
     max_rot = np.radians(max(ROTATION_PRIOR_DEG))
     gate = MAX_OFFSET_M + np.sin(max_rot) * np.linalg.norm(src_xyz[ks] - centroid, axis=1)
     pairs = match_features(src_xyz[ks], f_src, tgt_xyz[kt], f_tgt, gate)
@@ -208,19 +245,13 @@ def coarse_register(
     top = consistent_matches(
         src_xyz[ks[pairs[:, 0]]], tgt_xyz[kt[pairs[:, 1]]], 2.0 * voxel, max_rot, SAC_CONSISTENT_MATCHES
     )
-    pairs = pairs[top]
-    clock.lap("matching")
+    return pairs[top], n_matches
 
-    # hypotheses are scored on the matched keypoints plus random other source voxels
-    matched = ks[pairs[:, 0]]
-    others = np.setdiff1d(np.arange(len(src_xyz)), matched)
-    n_more = max(0, min(len(others), SAC_EVAL_POINTS - len(matched)))
-    pick = _eval_sample(others, np.asarray(src.normals)[others, 2], n_more, rng)
-    src_eval = o3d_cloud(np.concatenate([src_xyz[matched], src_xyz[pick]]))
-    corres = o3d.utility.Vector2iVector(
-        np.stack([np.arange(len(matched)), kt[pairs[:, 1]]], axis=1).astype(np.int32)
-    )
-    distance = max(float(cfg.sac_threshold_m), SAC_MIN_THRESHOLD_VOXELS * voxel)
+
+def _best_ransac(src_eval, tgt, corres: np.ndarray, distance: float, cfg: RegistrationConfig):
+    """Open3D's correspondence RANSAC, ``SAC_ATTEMPTS`` attempts seeded ``cfg.seed + attempt``; the best
+    (fitness, then lowest inlier RMSE) result. corres: (k, 2) int32 (row of src_eval, index into tgt)."""
+    corres = o3d.utility.Vector2iVector(corres)
     checkers = [
         _reg.CorrespondenceCheckerBasedOnEdgeLength(0.9),
         _reg.CorrespondenceCheckerBasedOnSourceRotation(np.radians(ROTATION_PRIOR_DEG).reshape(3, 1)),
@@ -241,11 +272,4 @@ def coarse_register(
         )
         if best is None or (res.fitness, -res.inlier_rmse) > (best.fitness, -best.inlier_rmse):
             best = res
-    clock.lap("ransac")
-    info = {
-        "inlier_distance_m": distance,
-        "keypoints": (len(ks), len(kt)),
-        "matches": (n_matches, len(pairs)),
-        "seconds": clock.laps,
-    }
-    return np.asarray(best.transformation).copy(), float(best.fitness), info
+    return best

@@ -29,9 +29,9 @@ from storage.frame import CampusFrame
 from storage.inputs import InputFile
 from storage.manifest import combine_fingerprints
 from storage.pointcloud_io import iter_points, iter_points_range
+from storage.surface_samples import read_surface_samples, samples_path
 from storage.workdir import WorkDir
 from tasks.config import CampusConfig
-from tasks.scan.stage import samples_path
 from tasks.units import Done, run_unit
 
 log = logging.getLogger("ms3d.register")
@@ -68,9 +68,9 @@ def mesh_target(records: list[InputFile], wd: WorkDir, frame: CampusFrame) -> tu
         if r.kind == "mesh" and not r.error:
             p = samples_path(wd, r.source)
             if p.exists():
-                with np.load(p) as z:
-                    xyz.append(z["xyz"].astype(np.float64) + (z["corner"] - frame.origin_array))
-                    nrm.append(z["normals"].astype(np.float64))
+                x, n = read_surface_samples(p, frame.origin_array)
+                xyz.append(x)
+                nrm.append(n)
     if not xyz:
         raise InputError(None, "no readable mesh to register to: " + "; ".join(r.error for r in records if r.error))
     return np.concatenate(xyz), np.concatenate(nrm)

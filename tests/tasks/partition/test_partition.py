@@ -2,12 +2,11 @@ import numpy as np
 import pytest
 
 from storage.grid import BITS, GridRangeError, PatchGrid
+from tasks.geometry.cells import Partition, partition_cells
 from tasks.partition.kernels import (
-    Partition,
     build_tile_tables,
     face_cells,
     merge_pair_index,
-    partition_cells,
     partition_faces,
     partition_points,
     point_cells,

@@ -11,7 +11,7 @@ from flows.campus import InlineExecutor, reprocess
 from storage.grid import PatchGrid
 from storage.patch_store import PatchStore
 from tasks.config import CampusConfig
-from tasks.ingest.stage import vertex_ids, weld_vertex_index
+from tasks.ingest.columns import vertex_ids, weld_vertex_index
 
 
 def test_weld_gives_seam_split_vertices_one_index():
@@ -87,7 +87,7 @@ def test_glb_seams_are_welded_on_ingest(tmp_path):
     from storage.columns import RunReader
     from storage.pointcloud_io import PointChunk, write_points
     from storage.workdir import WorkDir
-    from tasks.ingest.stage import plan_units, run_ingest_unit
+    from tasks.ingest import plan_units, run_ingest_unit
 
     box = trimesh.creation.box((4, 4, 4))
     split = trimesh.Trimesh(box.vertices[box.faces].reshape(-1, 3), np.arange(36).reshape(12, 3), process=False)

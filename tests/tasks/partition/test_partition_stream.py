@@ -13,7 +13,7 @@ from storage.frame import CampusFrame
 from storage.patch_store import PatchStore, TileMeta
 from synth.handmade import build_campus
 from tasks.config import CampusConfig
-from tasks.ingest.stage import staged_files
+from storage.staging import staged_files
 from tasks.partition.stream import plan_blocks, stream_partition_tile
 
 
@@ -69,7 +69,7 @@ def test_plan_blocks_bounds_rows_and_covers_every_key():
 def test_the_stage_streams_when_the_budget_is_small(staged, tmp_path):
     from storage.ids import TileId
     from storage.workdir import WorkDir
-    from tasks.partition.stage import run_partition_tile
+    from tasks.partition import run_partition_tile
 
     cfg, work, frame = staged
     tile = max((d for d in (work / "tiles").iterdir() if (d / "patches.parquet").exists()),

@@ -1,0 +1,161 @@
+"""Every Prefect task of the campus flow: a thin wrapper that takes ids, paths, small JSON records and the
+config, calls one stage entry point of ``tasks/`` and returns its small summaries (never arrays).
+
+Expected failures come back as failed unit summaries (``tasks.units``); anything else raises (a bug), and
+Prefect keeps its traceback in the run history. Heavy objects (the network) are loaded once per worker
+process by the stages themselves.
+"""
+
+from __future__ import annotations
+
+import os
+import time
+from functools import partial
+
+import numpy as np
+from prefect import task
+from prefect.cache_policies import NONE as NO_CACHE
+
+from storage.errors import InputError
+from storage.frame import CampusFrame
+from storage.ids import TileId
+from storage.inputs import InputFile
+from storage.workdir import WorkDir
+from tasks.config import CampusConfig
+from tasks.units import record_step
+
+
+def config_of(cfg_json: dict) -> tuple[CampusConfig, WorkDir]:
+    """The validated config of a task's JSON argument and its work dir."""
+    cfg = CampusConfig.model_validate(cfg_json)
+    return cfg, WorkDir(cfg.work_dir)
+
+
+@task(name="scan", cache_policy=NO_CACHE)
+def scan_task(files: list[dict], cfg_json: dict) -> list[dict]:
+    """Scan a batch of input files ({"path", "kind", "source"}), one summary each."""
+    from tasks.scan import run_scan_file
+
+    cfg, wd = config_of(cfg_json)
+    return [run_scan_file(f["path"], f["kind"], f["source"], cfg, wd) for f in files]
+
+
+@task(name="register", cache_policy=NO_CACHE)
+def register_task(records: list[dict], frame_json: dict, cfg_json: dict) -> dict:
+    """The campus registration ({"matrix", "scale", ...}), or {"error": one line}."""
+    from tasks.register import run_register
+
+    cfg, wd = config_of(cfg_json)
+    try:
+        return run_register([InputFile(**r) for r in records], CampusFrame.from_json(frame_json), cfg, wd)
+    except InputError as e:
+        return {"error": str(e)}
+
+
+@task(name="ingest", cache_policy=NO_CACHE)
+def ingest_task(units: list[dict], cfg_json: dict, frame_json: dict, matrix: list | None) -> list[dict]:
+    """Route a batch of ingest units to staging files; matrix: the (4, 4) registration (None for meshes)."""
+    from tasks.ingest import IngestUnit, run_ingest_unit
+
+    cfg, wd = config_of(cfg_json)
+    frame = CampusFrame.from_json(frame_json)
+    m = None if matrix is None else np.asarray(matrix, np.float64)
+    return [run_ingest_unit(IngestUnit(**u), cfg, wd, frame, m) for u in units]
+
+
+@task(name="partition", cache_policy=NO_CACHE)
+def partition_task(tile_keys: list[str], cfg_json: dict, frame_json: dict, blocked: dict[str, str]) -> list[dict]:
+    """Partition a batch of tiles into patch stores, then label each one partitioned (a labels failure
+    comes back as the tile's ``labels_error``)."""
+    from tasks.labels import run_labels_tile
+    from tasks.partition import run_partition_tile
+
+    delay = float(os.environ.get("MS3D_FAULT_PARTITION_DELAY_S", "0") or 0)  # fault-injection hook for tests
+    cfg, wd = config_of(cfg_json)
+    frame = CampusFrame.from_json(frame_json)
+    out = []
+    for k in tile_keys:
+        if delay:
+            time.sleep(delay)
+        t = TileId.from_key(k)
+        res = run_partition_tile(t, cfg, wd, frame, blocked.get(k))
+        if res["status"] == "done":
+            lab = run_labels_tile(t, cfg, wd)
+            if lab is not None and lab["status"] == "failed":
+                res = {**res, "labels_error": lab["error"]}
+        out.append(res)
+    return out
+
+
+@task(name="outliers", cache_policy=NO_CACHE)
+def outliers_task(cfg_json: dict) -> dict:
+    """The campus-wide patch outlier fit."""
+    from tasks.outliers import run_outliers
+
+    return run_outliers(*config_of(cfg_json))
+
+
+def _per_tile(run, tile_keys: list[str], cfg_json: dict) -> list[dict]:
+    """``run(tile, cfg, wd)`` over a batch of tiles; the summaries of the tiles that had work (not None)."""
+    cfg, wd = config_of(cfg_json)
+    return [res for k in tile_keys if (res := run(TileId.from_key(k), cfg, wd)) is not None]
+
+
+@task(name="classify", cache_policy=NO_CACHE)
+def classify_task(tile_keys: list[str], cfg_json: dict) -> list[dict]:
+    """Grade the pairs of a batch of tiles (MS3DQE-Net); one summary per tile that has a live store."""
+    from tasks.classify import run_classify_tile
+
+    return _per_tile(run_classify_tile, tile_keys, cfg_json)
+
+
+@task(name="regions", cache_policy=NO_CACHE)
+def regions_task(cfg_json: dict) -> dict:
+    """Plan the bad regions of the campus: {"status", "regions": [keys], "weights": [bytes per key], ...}."""
+    from tasks.regions import run_regions
+
+    return run_regions(*config_of(cfg_json))
+
+
+@task(name="repair", cache_policy=NO_CACHE)
+def repair_task(region_keys: list[str], cfg_json: dict) -> list[dict]:
+    """Repair a batch of regions (fuse -> mesh -> stitch -> texture), one summary each."""
+    from tasks.repair import run_region
+
+    cfg, wd = config_of(cfg_json)
+    return [run_region(k, cfg, wd) for k in region_keys]
+
+
+@task(name="merge", cache_policy=NO_CACHE)
+def merge_task(tile_keys: list[str], cfg_json: dict) -> list[dict]:
+    """Merge a batch of tiles into one clean mesh each (retained faces + rebuilt regions)."""
+    from tasks.merge import run_merge_tile
+
+    return _per_tile(run_merge_tile, tile_keys, cfg_json)
+
+
+@task(name="export-nodes", cache_policy=NO_CACHE)
+def export_nodes_task(jobs: list) -> list[dict]:
+    """Build a batch of 3D Tiles nodes ((index, job) pairs); one {"index", "status", "record" | "error"} each."""
+    from tasks.export import build_nodes
+
+    return build_nodes(jobs)
+
+
+@task(name="quality", cache_policy=NO_CACHE)
+def quality_task(cfg_json: dict, plan: dict, part: tuple[int, int]) -> dict:
+    """One share of the model's quality against the truth: {"status", "sums": {model: partial sums}}."""
+    from tasks.quality import run_quality_share
+
+    cfg, wd = config_of(cfg_json)
+    return record_step(wd, "quality", f"share-{part[0]}-of-{part[1]}",
+                       lambda: {"sums": run_quality_share(cfg, wd, plan, tuple(part))})
+
+
+@task(name="report", cache_policy=NO_CACHE)
+def report_task(cfg_json: dict) -> dict:
+    """Write the run report (``output/report.html``)."""
+    from tasks.report import run_report
+
+    cfg, wd = config_of(cfg_json)
+    return record_step(wd, "report", "campus", partial(run_report, cfg, wd, quality=cfg.report.quality))

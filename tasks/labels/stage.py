@@ -1,0 +1,54 @@
+"""The labels stage's I/O: each tile's ``labels.parquet`` (1 bad, 0 good per patch) from a synth
+``defects.json`` or a CSV of world-anchored patch ids (``inputs.labels``).
+"""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import numpy as np
+
+from storage.atomic import file_sha256
+from storage.ids import TileId
+from storage.labels import bad_keys_from_csv, bad_keys_from_defects
+from storage.manifest import combine_fingerprints
+from storage.patch_store import PATCHES_FILE, PatchStore, side_table_path, write_side_table
+from storage.workdir import STALE_FILE, WorkDir
+from tasks.config import CampusConfig
+from tasks.units import Done, run_unit
+
+
+def bad_patch_keys(labels_path: str, cfg: CampusConfig) -> np.ndarray:
+    """(b,) int64 sorted keys of the patches a synth defects.json or a label CSV marks bad."""
+    p = Path(labels_path)
+    if p.suffix.lower() == ".csv":
+        return bad_keys_from_csv(p)
+    return bad_keys_from_defects(p, cfg.grid())
+
+
+def run_labels_tile(tile: TileId, cfg: CampusConfig, wd: WorkDir) -> dict | None:
+    """Write the tile's ``labels.parquet`` (1 bad, 0 good) when a labels file is configured; without one,
+    remove a stale labels table. Returns the unit summary, or None when there is nothing to do."""
+    tile_dir = wd.tile_dir(tile)
+    if not cfg.inputs.labels:
+        side_table_path(tile_dir, "labels").unlink(missing_ok=True)
+        return None
+    if not (tile_dir / PATCHES_FILE).exists() or (tile_dir / STALE_FILE).exists():
+        return None
+    labels = Path(cfg.inputs.labels)
+    try:
+        labels_fp = file_sha256(labels)
+    except OSError as e:
+        return {"unit": tile.key, "status": "failed", "error": f"{labels}: cannot read the labels file ({e.strerror})"}
+    fp = combine_fingerprints([labels_fp, str(labels), f"{(tile_dir / PATCHES_FILE).stat().st_mtime_ns}"])
+
+    def work() -> Done:
+        store = PatchStore(tile_dir)
+        keys = store.patches()["patch"]
+        bad = bad_patch_keys(str(labels), cfg)
+        lab = np.isin(keys, bad).astype(np.int8)
+        write_side_table(tile_dir, "labels", {"patch": keys, "label": lab}, store.meta, labels_file=str(labels))
+        return Done(outputs=[str(side_table_path(tile_dir, "labels").relative_to(wd.root))],
+                    summary={"n_bad": int(lab.sum()), "n_labelled": len(lab)})
+
+    return run_unit(wd, "labels", tile.key, fp, cfg.stage_params("labels"), work)

@@ -1,0 +1,57 @@
+"""Bounds of input files that failed to read, so that exactly the tiles they cover are blocked: the
+finite vertices of a broken mesh, the header of a LAS/LAZ file whose points are unreadable. Best effort:
+unknown bounds come back empty (the file then blocks no tile and the campus is incomplete).
+"""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import numpy as np
+
+from tasks.config import CampusConfig
+
+
+def raw_vertices(path: Path) -> np.ndarray:
+    """Vertex positions of a mesh file that failed validation: the ``v`` lines of an OBJ (whatever its
+    faces say), else whatever trimesh can load. (n, 3) float64, possibly empty."""
+    if path.suffix.lower() == ".obj":
+        rows = []
+        with open(path, errors="replace") as f:
+            for line in f:  # the error path only: a Python loop is fine here
+                if line.startswith("v "):
+                    parts = line.split()[1:4]
+                    try:
+                        rows.append([float(p) for p in parts])
+                    except ValueError:
+                        continue
+        return np.asarray(rows, np.float64).reshape(-1, 3)
+    import trimesh
+
+    return np.asarray(trimesh.load(path, process=False, force="mesh").vertices, np.float64)
+
+
+def salvage_mesh_bounds(path: Path, cfg: CampusConfig) -> tuple[list, list]:
+    """Bounds of the finite vertices of a mesh that failed validation (to know which tiles it hits)."""
+    try:
+        v = raw_vertices(path)
+        v = v[np.isfinite(v).all(axis=1)] * cfg.inputs.units_scale + np.asarray(cfg.inputs.mesh_offset)
+        if len(v):
+            return v.min(axis=0).tolist(), v.max(axis=0).tolist()
+    except Exception:  # noqa: BLE001 - best effort; unknown bounds block no tile
+        pass
+    return [], []
+
+
+def salvage_cloud_bounds(path: Path, cfg: CampusConfig) -> tuple[list, list]:
+    """The header bounds of a LAS/LAZ file whose points are unreadable (to know which tiles it hits)."""
+    try:
+        import laspy
+
+        with laspy.open(path) as f:
+            lo, hi = np.asarray(f.header.mins, float), np.asarray(f.header.maxs, float)
+        if np.isfinite(lo).all() and np.isfinite(hi).all() and (hi >= lo).all() and (hi > lo).any():
+            return (lo * cfg.inputs.units_scale).tolist(), (hi * cfg.inputs.units_scale).tolist()
+    except Exception:  # noqa: BLE001 - best effort
+        pass
+    return [], []
