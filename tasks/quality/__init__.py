@@ -1,1 +1,25 @@
-"""The quality stage."""
+"""The quality stage: the merged model measured against a synth campus's truth (accuracy, completeness,
+F-score, uncovered facade area), and the input mesh beside it when regions were rebuilt.
+
+Reads the merged tiles (``tiles/*/merged.npz`` + ``merged.json``), ``campus.json`` (origin) and the synth
+campus's ``truth/truth_mesh*.ply`` (+ its ``mesh/`` input); it runs only where a truth exists. Writes
+``report/quality.json``: {"key", "rows": {model name: QualityReport.to_dict()}}. Invalidated by
+:func:`quality_key`: any merged tile's content (metadata, size, mtime), the truth mesh, whether a region
+was rebuilt, the sample spacing, tile and buffer sizes, and the stage's version.
+
+Modules: ``stats`` (mergeable sums, reports), ``metrics`` (one mesh against another), ``tiled`` (tile by
+tile, in shares), ``truth`` (a synth campus's truth, file-level figures), ``stage`` (plan, shares, cache).
+"""
+
+from tasks.quality.stage import (
+    ensure_quality,
+    merged_tiles,
+    quality_parts,
+    quality_plan,
+    run_quality_share,
+    truth_dir_of,
+    write_quality,
+)
+
+__all__ = ["ensure_quality", "merged_tiles", "quality_parts", "quality_plan", "run_quality_share", "truth_dir_of",
+           "write_quality"]

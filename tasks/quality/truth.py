@@ -9,7 +9,8 @@ import numpy as np
 
 from storage.errors import InputError
 from storage.mesh_io import read_mesh
-from tasks.quality.metrics import QualityReport, evaluate_mesh, facade_mask
+from tasks.quality.metrics import evaluate_mesh, facade_mask
+from tasks.quality.stats import QualityReport
 
 CLASS_NAMES = ("ground", "road", "wall", "roof", "glass", "frame", "balcony", "eave")
 

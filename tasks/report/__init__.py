@@ -1,1 +1,12 @@
-"""The report stage."""
+"""The report stage: ``output/report.html``, one self-contained page per run (figures embedded as PNG).
+
+Reads ``campus.json``, ``registration.json``, the manifest records, the outlier histograms in ``report/``,
+the patch stores (``tiles/*/patches.parquet`` and side tables), the merged tiles, the export's
+``output/tileset.json`` + ``tileset.fingerprints.json``, and the quality stage's ``report/quality.json``
+(measured here when missing or stale, see ``tasks.quality``). Writes ``output/report.html``,
+``report/class_map.png`` and ``report/regions/region_*.png``. Nothing is cached: every run rewrites the page.
+"""
+
+from tasks.report.stage import run_report
+
+__all__ = ["run_report"]

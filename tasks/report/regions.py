@@ -3,20 +3,20 @@
 For each rebuilt region (faces of the merged tiles with source "rebuilt"), the faces around it are drawn
 twice with one camera: the input mesh from the patch stores (bad patches red) and the merged model
 (rebuilt faces orange). Only the merged tiles near the region and the store patches whose boxes meet it
-are read.
+are read. The renders are returned as the section's figures (``stage.py`` writes them).
 """
 
 from __future__ import annotations
 
+from pathlib import Path
+
 import numpy as np
 
-from storage.atomic import write_bytes_atomic
 from storage.errors import InputError
 from storage.grid import PatchGrid
 from storage.ids import TileId
 from storage.patch_store import PatchStore
 from storage.tile_mesh import SOURCE_REBUILT, read_tile_mesh
-from storage.workdir import WorkDir
 from tasks.report.figures import BAD_COLOUR, MESH_COLOUR, REBUILT_COLOUR, render_png, view_basis
 from tasks.report.html import Section, table
 
@@ -24,16 +24,11 @@ MAX_REGION_RENDERS = 12
 REGION_MARGIN_M = 1.5
 
 
-def any_rebuilt_region(wd: WorkDir, tiles: list[str]) -> bool:
-    """Whether any merged tile holds a rebuilt face (the same test the regions section makes)."""
-    return any((read_tile_mesh(wd.root / "tiles" / k).source == SOURCE_REBUILT).any() for k in tiles)
-
-
-def _region_boxes(wd: WorkDir, tiles: list[str]) -> dict[int, dict]:
+def _region_boxes(tiles_dir: Path, tiles: list[str]) -> dict[int, dict]:
     """Per rebuilt region: bbox of its faces (campus-local), face count, normals sample, tiles."""
     out: dict[int, dict] = {}
     for k in tiles:
-        tm = read_tile_mesh(wd.root / "tiles" / k)
+        tm = read_tile_mesh(tiles_dir / k)
         rebuilt = np.flatnonzero(tm.source == SOURCE_REBUILT)
         if not len(rebuilt):
             continue
@@ -55,9 +50,12 @@ def _in_box(tri: np.ndarray, lo: np.ndarray, hi: np.ndarray) -> np.ndarray:
     return ((c >= lo) & (c <= hi)).all(axis=1)
 
 
-def regions_section(wd: WorkDir, tiles: list[str], grid: PatchGrid, origin: np.ndarray) -> tuple[Section, bool]:
+def regions_section(tiles_dir: Path, tiles: list[str], grid: PatchGrid, origin: np.ndarray) -> tuple[Section, bool]:
+    """Before/after renders (figures "region_<id>") of the largest rebuilt regions of the merged ``tiles``
+    under ``tiles_dir`` (``work_dir/tiles``), and whether any region was rebuilt.
+    origin: (3,) float64 world metres of the campus frame."""
     sec = Section("Rebuilt regions: before and after")
-    boxes = _region_boxes(wd, tiles)
+    boxes = _region_boxes(tiles_dir, tiles)
     if not boxes:
         sec.body = "<p>No rebuilt region in the merged tiles (repair has not run, or found nothing to rebuild).</p>"
         return sec, False
@@ -69,12 +67,12 @@ def regions_section(wd: WorkDir, tiles: list[str], grid: PatchGrid, origin: np.n
         before_tri, before_col, after_tri, after_col = [], [], [], []
         near = {TileId.from_key(k) for k in tiles} & set(_tiles_for_box(grid, origin, lo, hi))
         for t in sorted(near):
-            tm = read_tile_mesh(wd.tile_dir(t))
+            tm = read_tile_mesh(tiles_dir / t.key)
             tri = tm.vertices[tm.faces]
             sel = _in_box(tri, lo, hi)
             after_tri.append(tri[sel])
             after_col.append(np.where((tm.source[sel] == SOURCE_REBUILT)[:, None], REBUILT_COLOUR, MESH_COLOUR))
-            tri_b, bad = _store_faces_in_box(wd, t, lo, hi)
+            tri_b, bad = _store_faces_in_box(tiles_dir / t.key, lo, hi)
             before_tri.append(tri_b)
             before_col.append(np.where(bad[:, None], BAD_COLOUR, MESH_COLOUR))
         before, after = np.concatenate(before_tri), np.concatenate(after_tri)
@@ -83,7 +81,6 @@ def regions_section(wd: WorkDir, tiles: list[str], grid: PatchGrid, origin: np.n
                           ("after: merged, rebuilt faces orange", after, np.concatenate(after_col))], basis,
                          f"region {r}: {b['faces']:,} rebuilt faces in tiles {', '.join(b['tiles'])}")  # fmt: skip
         name = f"region_{r:06d}"
-        write_bytes_atomic(wd.report_dir / "regions" / f"{name}.png", png)
         sec.figures[name] = png
         rows.append([r, b["faces"], " × ".join(f"{v:.1f}" for v in b["hi"] - b["lo"]), ", ".join(b["tiles"])])
     sec.body = table(["region", "rebuilt faces", "extent (m)", "tiles"], rows)
@@ -96,11 +93,11 @@ def _tiles_for_box(grid: PatchGrid, origin: np.ndarray, lo: np.ndarray, hi: np.n
     return [TileId(int(a), int(b)) for a, b in grid.tiles_for_bounds(lo + origin, hi + origin)]
 
 
-def _store_faces_in_box(wd: WorkDir, tile: TileId, lo: np.ndarray, hi: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+def _store_faces_in_box(tile_dir: Path, lo: np.ndarray, hi: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     """The input mesh faces of a tile store with centroids in [lo, hi]: (triangles (k, 3, 3), bad (k,) bool),
     reading only the patches whose boxes meet it."""
     try:
-        store = PatchStore(wd.tile_dir(tile))
+        store = PatchStore(tile_dir)
     except InputError:
         return np.zeros((0, 3, 3), np.float32), np.zeros(0, bool)
     p = store.patches()

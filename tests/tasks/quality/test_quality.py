@@ -1,4 +1,4 @@
-"""tasks.quality.metrics: measured accuracy of a mesh against the truth, on hand-built planes and boxes."""
+"""tasks.quality (metrics, tiled): measured accuracy of a mesh against the truth, on hand-built planes and boxes."""
 
 import json
 import math
@@ -9,14 +9,10 @@ import pytest
 from storage.errors import InputError
 from storage.ids import TileId
 from synth.scene import FaceClass
-from tasks.quality.metrics import (
-    evaluate_by_tile,
-    evaluate_mesh,
-    facade_mask,
-    point_to_mesh_distance,
-    sample_surface,
-    sample_weights,
-)
+from tasks.geometry.distance import point_to_mesh_distance
+from tasks.geometry.sampling import sample_surface, sample_weights
+from tasks.quality.metrics import evaluate_mesh, facade_mask
+from tasks.quality.tiled import evaluate_by_tile
 
 NAMES = {c.value: c.name.lower() for c in FaceClass}
 

@@ -1,0 +1,157 @@
+"""The quality stage: the merged model (and the input mesh, when regions were rebuilt) measured against a
+synth campus's truth, in shares the flow runs side by side, summed into ``report/quality.json``.
+
+The figures are cached under a key of what they depend on (:func:`quality_key`: the merged tiles, the
+truth mesh, the parameters), so a rerun with unchanged tiles measures nothing.
+"""
+
+from __future__ import annotations
+
+import hashlib
+import json
+from pathlib import Path
+
+import numpy as np
+
+from storage.atomic import file_sha256, write_json_atomic
+from storage.mesh_io import read_mesh
+from storage.tile_mesh import SOURCE_REBUILT, read_tile_mesh, tile_mesh_paths
+from storage.workdir import WorkDir, campus_frame, read_campus
+
+QUALITY_VERSION = 1
+QUALITY_TILE_M = 25.0  # quality is evaluated tile by tile (memory): distances capped at the buffer
+QUALITY_BUFFER_M = 2.0
+
+
+def truth_dir_of(cfg) -> Path | None:
+    """The synth campus folder whose ``truth/`` holds the truth mesh, if the inputs come from one."""
+    candidates = []
+    if cfg.inputs.labels:
+        candidates.append(Path(cfg.inputs.labels).parent.parent)
+    candidates += [Path(p).parent for p in cfg.inputs.mesh]
+    for c in candidates:
+        if (c / "truth").is_dir() and list((c / "truth").glob("truth_mesh*.ply")):
+            return c
+    return None
+
+
+def merged_tiles(wd: WorkDir) -> list[str]:
+    """Keys ("ix_iy") of the tiles with a merged mesh, sorted."""
+    return sorted(p.parent.name for p in (wd.root / "tiles").glob("*/merged.json"))
+
+
+def any_rebuilt_region(wd: WorkDir, tiles: list[str]) -> bool:
+    """Whether any merged tile holds a rebuilt face (the same test the report's regions section makes)."""
+    return any((read_tile_mesh(wd.root / "tiles" / k).source == SOURCE_REBUILT).any() for k in tiles)
+
+
+def _merged_fingerprint(wd: WorkDir, tiles: list[str]) -> str:
+    h = hashlib.sha256()
+    for k in tiles:
+        npz, meta = tile_mesh_paths(wd.root / "tiles" / k)
+        h.update(k.encode() + meta.read_bytes() + str(npz.stat().st_size).encode() + str(npz.stat().st_mtime_ns).encode())
+    return h.hexdigest()[:32]
+
+
+def merged_surface(wd: WorkDir, tiles: list[str], shift: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """The merged tiles as one mesh for quality: (vertices (n, 3) float64 = campus-local + ``shift``,
+    faces (m, 3) int64). Each tile's vertices are welded by exact position (merge splits a vertex at
+    seams only, every copy at one position), which cuts memory several times on seam-rich meshes."""
+    from tasks.merge.weld import first_of_groups
+
+    vs, fs, off = [], [], 0
+    for k in tiles:
+        tm = read_tile_mesh(wd.root / "tiles" / k)
+        b = tm.vertices.view(np.uint32).astype(np.int64)
+        group, first = first_of_groups((b[:, 0] << 32) | b[:, 1], b[:, 2])
+        vs.append(tm.vertices[first].astype(np.float64) + shift)
+        fs.append(group[tm.faces] + off)
+        off += len(first)
+    return np.concatenate(vs), np.concatenate(fs)
+
+
+def quality_key(wd: WorkDir, truth: Path, tiles: list[str], any_rebuilt: bool, spacing_m: float = 0.05) -> dict:
+    """What the cached quality figures depend on (merged tiles, truth, parameters)."""
+    return {"version": QUALITY_VERSION, "merged": _merged_fingerprint(wd, tiles), "spacing_m": spacing_m,
+            "tile_m": QUALITY_TILE_M, "buffer_m": QUALITY_BUFFER_M,
+            "truth": file_sha256(min((truth / "truth").glob("truth_mesh*.ply"))), "rebuilt": any_rebuilt}
+
+
+def quality_share(wd: WorkDir, truth: Path, origin: np.ndarray, tiles: list[str], any_rebuilt: bool,
+                  part: tuple[int, int], spacing_m: float = 0.05) -> dict:
+    """The mergeable quality sums of one share of the quality tiles (``tasks.quality.tiled.evaluate_tiles``):
+    {model name: QualityPartial or None}. Shares run as separate tasks; their sums add up exactly.
+    origin: (3,) float64 world metres of the campus frame."""
+    from tasks.quality.metrics import facade_mask  # late: open3d loads only where quality is measured
+    from tasks.quality.tiled import evaluate_tiles
+    from tasks.quality.truth import CLASS_NAMES, load_truth
+
+    tv, tf, tc, t_origin = load_truth(truth)
+    kw = {"tile_size_m": QUALITY_TILE_M, "buffer_m": QUALITY_BUFFER_M, "spacing_m": spacing_m,
+          "true_face_mask": facade_mask(tc), "true_face_class": tc, "class_names": CLASS_NAMES, "part": part}
+    v, f = merged_surface(wd, tiles, origin - t_origin)
+    out = {"merged model": evaluate_tiles(v, f, tv - t_origin, tf, **kw)[0]}
+    del v, f
+    if any_rebuilt:
+        mesh = read_mesh(truth / "mesh", offset=t_origin)
+        out["input mesh"] = evaluate_tiles(mesh.vertices - t_origin, mesh.faces, tv - t_origin, tf, **kw)[0]
+    return out
+
+
+def write_quality(wd: WorkDir, key: dict, shares: list[dict]) -> dict:
+    """Sum the shares into ``report/quality.json`` (the figures the report page shows):
+    {"key": ``key``, "rows": {model name: QualityReport.to_dict()}}."""
+    rows = {}
+    for name in dict.fromkeys(n for s in shares for n in s):
+        parts = [s[name] for s in shares if s.get(name) is not None]
+        if parts:
+            total = parts[0]
+            for p in parts[1:]:
+                total = total + p
+            rows[name] = total.report().to_dict()
+    cache = {"key": key, "rows": rows}
+    write_json_atomic(wd.report_dir / "quality.json", cache)
+    return cache
+
+
+def ensure_quality(wd: WorkDir, truth: Path, origin: np.ndarray, tiles: list[str], any_rebuilt: bool,
+                   spacing_m: float = 0.05) -> dict:
+    """The quality figures of the merged model (and of the input mesh when regions were rebuilt) against the
+    truth (see :func:`write_quality`), computed (in this process) when ``report/quality.json`` does not hold
+    them already."""
+    cache_path = wd.report_dir / "quality.json"
+    key = quality_key(wd, truth, tiles, any_rebuilt, spacing_m)
+    cache = json.loads(cache_path.read_text()) if cache_path.exists() else {}
+    if cache.get("key") != key:
+        cache = write_quality(wd, key, [quality_share(wd, truth, origin, tiles, any_rebuilt, (0, 1), spacing_m)])
+    return cache
+
+
+def quality_plan(cfg, wd: WorkDir) -> dict | None:
+    """What a parallel quality run needs ({"key", "truth", "tiles", "rebuilt"}), or None when there is no
+    truth, no merged tile, or the cache is already up to date."""
+    truth = truth_dir_of(cfg)
+    tiles = merged_tiles(wd)
+    if truth is None or not tiles:
+        return None
+    rebuilt = any_rebuilt_region(wd, tiles)
+    key = quality_key(wd, truth, tiles, rebuilt)
+    path = wd.report_dir / "quality.json"
+    if path.exists() and json.loads(path.read_text()).get("key") == key:
+        return None
+    return {"key": key, "truth": str(truth), "tiles": tiles, "rebuilt": rebuilt}
+
+
+def quality_parts(plan: dict | None, n_workers: int) -> list[tuple[int, int]]:
+    """The shares (k, n) the flow runs for ``plan``: one per worker, none without a plan.
+
+    >>> quality_parts({"tiles": ["0_0"]}, 3), quality_parts(None, 3)
+    ([(0, 3), (1, 3), (2, 3)], [])
+    """
+    return [(k, n_workers) for k in range(n_workers)] if plan else []
+
+
+def run_quality_share(cfg, wd: WorkDir, plan: dict, part: tuple[int, int]) -> dict:
+    """:func:`quality_share` of ``part`` for a plan of :func:`quality_plan`."""
+    origin = campus_frame(read_campus(wd)).origin_array
+    return quality_share(wd, Path(plan["truth"]), origin, plan["tiles"], plan["rebuilt"], part)
