@@ -1,4 +1,5 @@
-"""Value types naming the units of work: tiles, patches, regions.
+"""Value types naming the units of work: tiles and patches (a region is named by its key:
+:class:`storage.region_plan.Region`).
 
 They are frozen dataclasses with a ``key`` used in paths and manifest rows.
 """
@@ -38,14 +39,3 @@ class PatchId:
     @property
     def key(self) -> str:
         return f"{self.i}_{self.j}_{self.k}"
-
-
-@dataclass(frozen=True, order=True)
-class RegionId:
-    """A connected set of bad patches, numbered campus-wide."""
-
-    n: int
-
-    @property
-    def key(self) -> str:
-        return f"r{self.n:06d}"

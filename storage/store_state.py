@@ -13,6 +13,7 @@ from pathlib import Path
 
 import numpy as np
 
+from .atomic import file_sha256
 from .manifest import combine_fingerprints
 from .patch_store import FACES_FILE, PATCHES_FILE, POINTS_FILE, side_table_path
 from .tile_mesh import GRADE_UNKNOWN
@@ -20,6 +21,7 @@ from .tile_mesh import GRADE_UNKNOWN
 STORE_TABLES = (PATCHES_FILE, POINTS_FILE, FACES_FILE)
 GRADE_GOOD, GRADE_BAD = 0, 1
 GRADE_MODES = ("auto", "model", "labels", "all")
+_GRADE_TABLES = {"auto": ("grades", "labels"), "model": ("grades",), "labels": ("labels",), "all": ()}
 
 
 def store_fingerprint(tile_dir: str | Path, sides: tuple[str, ...] = ()) -> str:
@@ -42,6 +44,25 @@ def store_fingerprint(tile_dir: str | Path, sides: tuple[str, ...] = ()) -> str:
     return combine_fingerprints(parts)
 
 
+def _tables(mode: str) -> tuple[str, ...]:
+    if mode not in GRADE_MODES:
+        raise ValueError(f"grades mode must be one of {GRADE_MODES}, got {mode!r}")
+    return _GRADE_TABLES[mode]
+
+
+def grades_identity(tile_dir: str | Path, mode: str) -> str:
+    """What :func:`patch_grades` of the tile's store depends on besides the patches table: ``"all"``, the
+    name and sha256 of the side table it reads (``"labels:<hex>"``), or ``"none"``. A result built on the
+    grades of one identity is valid for every mode of the same identity."""
+    if mode == "all":
+        return "all"
+    for name in _tables(mode):
+        p = side_table_path(tile_dir, name)
+        if p.exists():
+            return f"{name}:{file_sha256(p)}"
+    return "none"
+
+
 def patch_grades(store, mode: str = "auto") -> tuple[np.ndarray, np.ndarray, str]:
     """Grades of a tile's patches under ``repair.grades``: ((u,) int64 patch keys, (u,) int8 grade, source).
 
@@ -50,13 +71,11 @@ def patch_grades(store, mode: str = "auto") -> tuple[np.ndarray, np.ndarray, str
     everywhere the MLS reaches). source is "grades", "labels", "all" or "none" (every patch unknown).
     ``store`` is a :class:`storage.patch_reader.PatchStore`.
     """
-    if mode not in GRADE_MODES:
-        raise ValueError(f"grades mode must be one of {GRADE_MODES}, got {mode!r}")
+    tables = _tables(mode)
     keys = store.patches()["patch"]
     if mode == "all":
         return keys, np.full(len(keys), GRADE_BAD, np.int8), "all"
-    order = {"auto": ("grades", "labels"), "model": ("grades",), "labels": ("labels",)}[mode]
-    for name in order:
+    for name in tables:
         side = store.side(name)
         if side is not None:
             col = side["grade"] if name == "grades" else side["label"]

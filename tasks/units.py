@@ -33,7 +33,7 @@ STAGE_VERSIONS = {
     "classify": 1,
     "regions": 1,
     "region": 1,
-    "merge": 1,
+    "merge": 2,      # v2: faces graded under repair.grades (the regions stage's rule), not grades-else-labels
 }
 
 

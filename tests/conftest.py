@@ -62,3 +62,18 @@ def tiny_export(tiny_merged, tmp_path_factory):
     work = tmp_path_factory.mktemp("export") / "work"
     shutil.copytree(tiny_merged, work)
     return work, run_export(work)
+
+
+@pytest.fixture(scope="session")
+def tiny_work(tiny_campus, tmp_path_factory):
+    """The tiny synth campus processed once per session (inline, classify off): (config, WorkDir).
+    Read-only for tests."""
+    from flows.campus import run_campus
+    from storage.workdir import WorkDir
+    from tasks.config import CampusConfig
+
+    work = tmp_path_factory.mktemp("model-tiny") / "work"
+    cfg = CampusConfig.from_yaml(tiny_campus / "campus.yaml", {"work_dir": str(work), "runner": "inline",
+                                                              "classify": {"enabled": False}})
+    run_campus(cfg, progress=False)
+    return cfg, WorkDir(work)

@@ -1,1 +1,15 @@
-"""The classify stage."""
+"""The classify stage: grade every (mesh patch, point patch) pair of a tile good or bad with MS3DQE-Net.
+
+Reads a tile's store (``tiles/{ix}_{iy}/points|faces|patches.parquet``) and the model checkpoint
+(``classify.model``, else the shipped ``ms3d_model/weights/default.pt``). Writes
+``tiles/{ix}_{iy}/grades.parquet`` (score, grade per patch; -1 for patches that are not pairs). Invalidated
+by a re-partitioned tile (:func:`storage.store_state.store_fingerprint`), a new model (its sha256) or a new
+threshold / ``partition.min_faces`` / ``min_points``; with ``classify.enabled`` off the grades are removed.
+Also the pair readers training and evaluation use (:func:`read_tile_pairs`, :func:`campus_pair_set`).
+"""
+
+from tasks.classify.pairs import featurise_tile_pairs, read_tile_pairs
+from tasks.classify.stage import DEFAULT_MODEL, campus_pair_set, grade_pairs, load_model, run_classify_tile
+
+__all__ = ["DEFAULT_MODEL", "campus_pair_set", "featurise_tile_pairs", "grade_pairs", "load_model", "read_tile_pairs",
+           "run_classify_tile"]

@@ -1,6 +1,6 @@
 """Pairs straight from the patch store: read a tile once, cut it into (mesh patch, point patch) pairs,
 featurise them in batches (``ms3d_model.features``, ``ms3d_model.cues``), and cache featurised tiles for
-training.
+training. Readers take a tile's folder; the campus-wide set is :func:`tasks.classify.stage.campus_pair_set`.
 
 A pair is *gradable* when its patch holds at least ``min_faces`` faces and ``min_points`` points
 (``partition.min_faces`` / ``min_points``, default 1): a patch with faces but no points, or points but no
@@ -21,7 +21,8 @@ from ms3d_model.cues import CUE_NAMES, batch_cues, open_edge_flags
 from ms3d_model.dataset import PairSet
 from ms3d_model.features import PairFeatures, featurise_pairs
 from storage.atomic import atomic_path
-from storage.patch_store import PATCHES_FILE, PatchStore
+from storage.patch_store import PatchStore
+from storage.store_state import store_fingerprint
 
 FACE_COLUMNS = [f"{a}{v}" for v in range(3) for a in "xyz"] + ["vid0", "vid1", "vid2"]
 CACHE_VERSION = 1
@@ -59,11 +60,16 @@ class TilePairs:
         return pts, [self._tris[s] for s in sl], [self._vids[s] for s in sl], [self._open[s] for s in sl]
 
 
+def gradable_mask(patches: dict, min_faces: int = 1, min_points: int = 1) -> np.ndarray:
+    """(U,) bool: which patches of a patches table hold a gradable pair (at least one face and point)."""
+    return (patches["n_faces"] >= max(min_faces, 1)) & (patches["n_points"] >= max(min_points, 1))
+
+
 def read_tile_pairs(tile_dir: str | Path, min_faces: int = 1, min_points: int = 1) -> TilePairs:
     """Read a tile's points and faces once and index its gradable pairs."""
     store = PatchStore(tile_dir)
     p = store.patches()
-    gradable = (p["n_faces"] >= max(min_faces, 1)) & (p["n_points"] >= max(min_points, 1))
+    gradable = gradable_mask(p, min_faces, min_points)
     rows = np.flatnonzero(gradable)
     lab = store.side("labels")
     labels = (lab["label"][rows].astype(np.int8) if lab is not None else np.full(len(rows), -1, np.int8))
@@ -100,16 +106,6 @@ def iter_tile_batches(tp: TilePairs, batch_size: int, max_points: int, max_faces
         yield idx, feats, cues
 
 
-def tile_fingerprint(tile_dir: Path) -> str:
-    """Identity of a tile's store and labels (sizes and modification times: a rewrite changes them)."""
-    parts = []
-    for name in (PATCHES_FILE, "points.parquet", "faces.parquet", "labels.parquet"):
-        f = tile_dir / name
-        st = f.stat() if f.exists() else None
-        parts.append(f"{name}:{st.st_size}:{st.st_mtime_ns}" if st else f"{name}:-")
-    return hashlib.sha256("|".join(parts).encode()).hexdigest()[:16]
-
-
 def _cache_name(cache_dir, campus_name: str, tile: str, kind: str, spec: dict) -> Path | None:
     if not cache_dir:
         return None
@@ -130,7 +126,7 @@ def tile_pair_set(tile_dir: str | Path, campus_name: str, max_points: int, max_f
     cues (per tile) are cached as .npz, keyed by the tile's store fingerprint and the parameters.
     ``max_pairs``: keep a seeded random subset of at most this many pairs (large input sizes)."""
     tile_dir = Path(tile_dir)
-    base = {"v": CACHE_VERSION, "tile": tile_fingerprint(tile_dir), "seed": seed, "min": [min_faces, min_points],
+    base = {"v": CACHE_VERSION, "tile": store_fingerprint(tile_dir, sides=("labels",)), "seed": seed, "min": [min_faces, min_points],
             "labelled_only": labelled_only} | ({"max_pairs": max_pairs} if max_pairs else {})
     f_path = _cache_name(cache_dir, campus_name, tile_dir.name, "feats",
                          base | {"max_points": max_points, "max_faces": max_faces, "k": k_centre})
@@ -152,7 +148,7 @@ def tile_pair_set(tile_dir: str | Path, campus_name: str, max_points: int, max_f
         f, c = featurise_tile_pairs(tp, idx, max_points, max_faces, k_centre, seed, with_cues=cues is None)
         c = c if cues is None else cues[s:s + chunk]
         parts.append(PairSet(f, c, tp.labels[idx], tp.ijk[idx], np.zeros(len(idx), np.int16), (campus_name,)).compact())
-    ps = PairSet.concat(parts) if parts else _empty(max_points, max_faces, k_centre, campus_name)
+    ps = PairSet.concat(parts) if parts else empty_pair_set(max_points, max_faces, k_centre, campus_name)
     if f_path is not None:
         arrays = ps.to_arrays()
         _save_npz(c_path, {"cues": arrays.pop("cues")})
@@ -160,34 +156,10 @@ def tile_pair_set(tile_dir: str | Path, campus_name: str, max_points: int, max_f
     return ps
 
 
-def _empty(n: int, f: int, k: int, name: str) -> PairSet:
+def empty_pair_set(n: int, f: int, k: int, name: str) -> PairSet:
+    """A PairSet of no pairs with feature shapes (n points, f faces, k neighbours) of campus ``name``."""
     z = np.zeros
     feats = PairFeatures(z((0, n, 3), np.float16), z((0, f, 3), np.float16), z((0, f, 3), np.float16),
                          z((0, f, 18), np.float16), z((0, f, 3), np.int16), z((0, f, k), np.int16),
                          z(0, np.int64), z(0, np.int64), z(0, np.float32), z(0, np.int64))
     return PairSet(feats, z((0, len(CUE_NAMES)), np.float32), z(0, np.int8), z((0, 3), np.int64), z(0, np.int16), (name,))
-
-
-def campus_pair_set(work_dir: str | Path, campus_name: str, max_points: int, max_faces: int, k_centre: int,
-                    seed: int, cache_dir: str | Path | None = None, min_faces: int = 1, min_points: int = 1,
-                    labelled_only: bool = True, max_pairs: int | None = None) -> PairSet:
-    """Every labelled gradable pair of a processed campus (its live tiles), featurised (cached per tile);
-    ``max_pairs``: at most about this many, drawn from the tiles in proportion to their pairs."""
-    from storage.workdir import WorkDir
-
-    wd = WorkDir(work_dir)
-    tiles = wd.live_tiles()
-    quota = [None] * len(tiles)
-    if max_pairs:
-        n = []
-        for t in tiles:
-            p = PatchStore(wd.tile_dir(t)).patches()
-            n.append(int(((p["n_faces"] >= max(min_faces, 1)) & (p["n_points"] >= max(min_points, 1))).sum()))
-        quota = [int(np.ceil(max_pairs * k / max(sum(n), 1))) for k in n]
-    parts = [tile_pair_set(wd.tile_dir(t), campus_name, max_points, max_faces, k_centre, seed, cache_dir,
-                           min_faces, min_points, labelled_only=labelled_only, max_pairs=q)
-             for t, q in zip(tiles, quota)]
-    parts = [p for p in parts if len(p)]
-    if not parts:
-        return _empty(max_points, max_faces, k_centre, campus_name)
-    return PairSet.concat(parts)

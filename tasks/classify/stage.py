@@ -25,18 +25,13 @@ from pathlib import Path
 
 import numpy as np
 
+from ms3d_model.dataset import PairSet
 from storage.errors import InputError
 from storage.ids import TileId
-from storage.manifest import combine_fingerprints
-from storage.patch_store import (
-    FACES_FILE,
-    PATCHES_FILE,
-    POINTS_FILE,
-    PatchStore,
-    side_table_path,
-    write_side_table,
-)
+from storage.patch_store import PATCHES_FILE, PatchStore, side_table_path, write_side_table
+from storage.store_state import store_fingerprint
 from storage.workdir import STALE_FILE, WorkDir
+from tasks.classify.pairs import empty_pair_set, gradable_mask, iter_tile_batches, read_tile_pairs, tile_pair_set
 from tasks.units import Done, run_unit
 
 log = logging.getLogger("ms3d.classify")
@@ -87,7 +82,6 @@ def grade_pairs(model: LoadedModel, tp, batch_size: int, threshold: float) -> tu
     import torch
 
     from ms3d_model.dataset import to_batch
-    from tasks.classify.pairs import iter_tile_batches
 
     prof = model.profile
     scores = np.empty(len(tp), np.float32)
@@ -100,15 +94,6 @@ def grade_pairs(model: LoadedModel, tp, batch_size: int, threshold: float) -> tu
     return scores, (scores >= threshold).astype(np.int8)
 
 
-def store_fingerprint(tile_dir: Path) -> str:
-    """Identity of a tile's partition output (a re-partition rewrites all three tables)."""
-    parts = []
-    for name in (PATCHES_FILE, POINTS_FILE, FACES_FILE):
-        st = (tile_dir / name).stat()
-        parts.append(f"{name}:{st.st_size}:{st.st_mtime_ns}")
-    return combine_fingerprints(parts)
-
-
 def run_classify_tile(tile: TileId, cfg, wd: WorkDir) -> dict | None:
     """Grade every pair of one tile into ``grades.parquet``.
 
@@ -117,8 +102,6 @@ def run_classify_tile(tile: TileId, cfg, wd: WorkDir) -> dict | None:
     has no live store or classification is disabled (then a stale grades table is removed).
     """
     import torch
-
-    from tasks.classify.pairs import read_tile_pairs
 
     ccfg = cfg.classify
     tile_dir = wd.tile_dir(tile)
@@ -159,3 +142,24 @@ def run_classify_tile(tile: TileId, cfg, wd: WorkDir) -> dict | None:
         return Done(outputs=[str(side_table_path(tile_dir, "grades").relative_to(wd.root))], summary=summary)
 
     return run_unit(wd, "classify", tile.key, fp, params, work)
+
+
+def campus_pair_set(work_dir: str | Path, campus_name: str, max_points: int, max_faces: int, k_centre: int,
+                    seed: int, cache_dir: str | Path | None = None, min_faces: int = 1, min_points: int = 1,
+                    labelled_only: bool = True, max_pairs: int | None = None) -> PairSet:
+    """Every labelled gradable pair of a processed campus (its live tiles), featurised (cached per tile:
+    :func:`tasks.classify.pairs.tile_pair_set`); ``max_pairs``: at most about this many, drawn from the
+    tiles in proportion to their pairs."""
+    wd = WorkDir(work_dir)
+    tiles = wd.live_tiles()
+    quota = [None] * len(tiles)
+    if max_pairs:
+        n = [int(gradable_mask(PatchStore(wd.tile_dir(t)).patches(), min_faces, min_points).sum()) for t in tiles]
+        quota = [int(np.ceil(max_pairs * k / max(sum(n), 1))) for k in n]
+    parts = [tile_pair_set(wd.tile_dir(t), campus_name, max_points, max_faces, k_centre, seed, cache_dir,
+                           min_faces, min_points, labelled_only=labelled_only, max_pairs=q)
+             for t, q in zip(tiles, quota)]
+    parts = [p for p in parts if len(p)]
+    if not parts:
+        return empty_pair_set(max_points, max_faces, k_centre, campus_name)
+    return PairSet.concat(parts)

@@ -12,7 +12,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from storage.tile_mesh import GRADE_BAD, NO_REGION, SOURCE_MESH, SOURCE_REBUILT, TileMesh
-from tasks.merge.region import RegionMesh
+from storage.region_mesh import RegionMesh
 from tasks.merge.weld import face_keep_mask, weld_corners, weld_keys
 
 REBUILT_GREY = np.array([170, 170, 170], np.uint8)  # rebuilt faces with neither atlas nor colours
@@ -62,7 +62,7 @@ def _position_keys(xyz: np.ndarray, base: int) -> np.ndarray:
 def store_soup(cols: dict[str, np.ndarray], grade: np.ndarray) -> FaceSoup:
     """The soup of patch-store face rows.
 
-    cols: store face columns (at least :data:`STORE_FACE_COLUMNS` but src_face/source/patch), (m,) each.
+    cols: store face columns (:data:`tasks.merge.tile.STORE_FACE_COLUMNS` but patch), (m,) each.
     grade: (m,) int8 per face. A face is textured when its texture index is >= 0 and its three uv are
     finite. Corners without a vertex id (-1: an input written without ids) weld by exact position.
     """
@@ -92,18 +92,11 @@ def region_soup(r: RegionMesh, texture_index: int) -> FaceSoup:
     ids = np.full(len(r.vertices), -1, np.int64) if r.vertex_ids is None else r.vertex_ids
     own = -1 - ((np.int64(r.region) << 32) | np.arange(len(r.vertices), dtype=np.int64))
     keys = np.where(ids >= 0, ids, own)[f]
-    textured = np.full(m, r.atlas is not None) if r.textured is None else (r.textured & (r.atlas is not None))
-    if r.corner_uv is not None:
-        uv = r.corner_uv
-    else:
-        uv = np.zeros((m, 3, 2), np.float32) if r.uv is None else r.uv[f]
-    textured &= np.isfinite(uv).all(axis=(1, 2))
+    uv = np.zeros((m, 3, 2), np.float32) if r.corner_uv is None else r.corner_uv
+    textured = np.full(m, r.atlas is not None) & np.isfinite(uv).all(axis=(1, 2))
     uv = np.where(textured[:, None, None], uv, np.float32(0)).astype(np.float32, copy=False)
-    if r.face_colors is not None:
-        corner_color = np.repeat(np.asarray(r.face_colors, np.uint8)[:, None, :], 3, axis=1)
-    else:
-        colors = np.broadcast_to(REBUILT_GREY, (len(r.vertices), 3)) if r.colors is None else r.colors
-        corner_color = np.ascontiguousarray(colors[f], np.uint8)
+    face_colors = np.broadcast_to(REBUILT_GREY, (m, 3)) if r.face_colors is None else r.face_colors
+    corner_color = np.repeat(np.asarray(face_colors, np.uint8)[:, None, :], 3, axis=1)
     return FaceSoup(xyz=r.vertices[f], keys=keys, uv=uv, texture=np.where(textured, texture_index, -1).astype(np.int32),
                     color=corner_color, grade=np.full(m, GRADE_BAD, np.int8),
                     source=np.full(m, SOURCE_REBUILT, np.int8), region=np.full(m, r.region, np.int32))  # fmt: skip

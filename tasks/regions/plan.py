@@ -1,13 +1,12 @@
 """Regions: connected sets of bad patches, the unit of repair.
 
-Pure part (top): components of a set of patch keys under the 26-neighbourhood of the global,
+Components of a set of patch keys under the 26-neighbourhood of the global,
 world-anchored grid, growth, ring of context cells, and splitting of regions larger than a memory
 budget. Keys are global (:class:`storage.grid.PatchGrid`), so a region that spans a tile border or a
 tile corner is one region, with no border special case: tiles only matter when a region is read.
 
-Stage part (bottom): :func:`patch_grades` (grades of the classify stage, or the labels until it
-lands) and :func:`plan_regions_for_campus`, which reads every live tile's patches table and grades
-and writes ``regions/regions.json``.
+No I/O here: :mod:`tasks.regions.stage` reads the grades and writes the plan
+(:mod:`storage.region_plan`, which also holds the :class:`Region` record).
 
 Region identity: ``Region.key`` is ``"r"`` + the hex of the smallest patch key of its rebuilt set
 (stable across runs: a region keeps its folder and manifest unit while it keeps its first patch);
@@ -22,16 +21,14 @@ Region identity: ``Region.key`` is ``"r"`` + the hex of the smallest patch key o
 
 from __future__ import annotations
 
-import json
 import zlib
-from dataclasses import dataclass, field
-from pathlib import Path
 
 import numpy as np
 from scipy.sparse import coo_matrix
 from scipy.sparse.csgraph import connected_components as _cc
 
 from storage.grid import PatchGrid
+from storage.region_plan import Region
 
 # working set of a region per thinned MLS point / mesh face / raw MLS point (fusion graph, normals,
 # k-NN, charts, Delaunay): least squares over 79 demo regions' tracemalloc peaks (numpy and Python
@@ -46,6 +43,7 @@ def patch_cost_bytes(n_points: np.ndarray, n_faces: np.ndarray) -> np.ndarray:
     """Estimated working set of each patch in a region: (u,) int counts -> (u,) float64 bytes."""
     p, f = np.asarray(n_points, np.float64), np.asarray(n_faces, np.float64)
     return BYTES_PER_POINT * np.minimum(p, THINNED_POINTS_PER_FACE * f) + BYTES_PER_FACE * f + BYTES_PER_RAW_POINT * p
+
 
 _OFFSETS_26 = np.array([(a, b, c) for a in (-1, 0, 1) for b in (-1, 0, 1) for c in (-1, 0, 1)
                         if (a, b, c) != (0, 0, 0)], dtype=np.int64)
@@ -111,48 +109,13 @@ def dilate(keys: np.ndarray, cells: int, within: np.ndarray | None = None) -> np
     return out
 
 
-@dataclass(frozen=True)
-class Region:
-    """One connected set of patches to rebuild.
-
-    key: stable id ("r" + hex of the smallest rebuilt patch key), the folder ``regions/{key}/``.
-    number: stable 31-bit number for per-face provenance. patches: (n,) int64 sorted keys of the
-    rebuilt set (bad patches + growth); bad: (b,) int64 the bad patches among them; context: (c,) int64
-    the ring of existing patches read for stitching and fusion context (never rebuilt).
-    tiles: tile keys holding any patch of patches or context. parent: key of the region this one was
-    split from ("" if not split). est_bytes: estimated working set.
-    """
-
-    key: str
-    number: int
-    patches: np.ndarray = field(repr=False)
-    bad: np.ndarray = field(repr=False)
-    context: np.ndarray = field(repr=False)
-    tiles: tuple[str, ...] = ()
-    parent: str = ""
-    est_bytes: int = 0
-
-    @property
-    def n_patches(self) -> int:
-        return len(self.patches)
-
-    def to_json(self) -> dict:
-        return {"key": self.key, "number": self.number, "patches": self.patches.tolist(),
-                "bad": self.bad.tolist(), "context": self.context.tolist(), "tiles": list(self.tiles),
-                "parent": self.parent, "est_bytes": int(self.est_bytes)}
-
-    @classmethod
-    def from_json(cls, d: dict) -> Region:
-        arr = lambda k: np.asarray(d[k], np.int64)
-        return cls(d["key"], int(d["number"]), arr("patches"), arr("bad"), arr("context"), tuple(d["tiles"]),
-                   d.get("parent", ""), int(d.get("est_bytes", 0)))
-
-
 def region_key(patches: np.ndarray) -> str:
+    """A region's stable key: "r" + the 16 hex digits of its smallest patch key (two's complement)."""
     return f"r{int(np.min(patches)) & ((1 << 64) - 1):016x}"
 
 
 def region_number(key: str) -> int:
+    """A region's stable 31-bit number (crc32 of its key), for per-face provenance arrays."""
     return zlib.crc32(key.encode()) & 0x7FFFFFFF
 
 
@@ -207,41 +170,3 @@ def plan_regions(bad_keys: np.ndarray, all_keys: np.ndarray, grid: PatchGrid, *,
                               context=ctx, tiles=tuple(f"{a}_{b}" for a, b in tiles.tolist()), parent=parent,
                               est_bytes=int(cost_all[np.searchsorted(all_keys, part)].sum())))
     return sorted(out, key=lambda r: r.key)
-
-
-# ----------------------------------------------------------------------------------- stage helpers
-
-REGIONS_DIR = "regions"
-PLAN_FILE = "regions.json"
-
-
-def patch_grades(store, mode: str = "auto") -> tuple[np.ndarray, np.ndarray, str]:
-    """Grades of a tile's patches: ((u,) int64 keys, (u,) int8 grade -1 unknown / 0 good / 1 bad, source).
-
-    mode "auto": the classify stage's ``grades`` side table when present, else ``labels``; "model" /
-    "labels": only that table; "all": every patch is bad (fusion everywhere the MLS reaches, the
-    quality benchmark's variant (c)). source is "grades", "labels", "all" or "none" (all unknown).
-    """
-    keys = store.patches()["patch"]
-    if mode == "all":
-        return keys, np.ones(len(keys), np.int8), "all"
-    order = {"auto": ("grades", "labels"), "model": ("grades",), "labels": ("labels",)}[mode]
-    for name in order:
-        side = store.side(name)
-        if side is not None:
-            col = side["grade"] if name == "grades" else side["label"]
-            return keys, np.asarray(col, np.int8), name
-    return keys, np.full(len(keys), -1, np.int8), "none"
-
-
-def plan_path(root: Path) -> Path:
-    return Path(root) / REGIONS_DIR / PLAN_FILE
-
-
-def read_plan(root: Path) -> list[Region]:
-    """The regions of the last plan (``regions/regions.json``), [] when none was written."""
-    p = plan_path(root)
-    if not p.exists():
-        return []
-    doc = json.loads(p.read_text())
-    return [Region.from_json(d) for d in doc["regions"]]

@@ -1,187 +1,98 @@
-"""The repair stages on the work dir: plan the regions, then repair each region.
+"""The repair stage on the work dir: repair one region of the plan (fuse -> mesh -> stitch -> texture) and
+write ``regions/{key}/`` (:mod:`storage.region_mesh`).
 
-Stage functions (called by ``flows/campus.py``; they return small dicts and never raise for a bad
-input, see ``tasks.units.run_unit``):
-
-- :func:`run_regions` (unit: the campus) -> plan summary with ``regions``: the region keys to map;
-- :func:`run_region` (unit: a region) -> summary; redone when its patches, their tiles' stores, its
-  grades, the cameras file or the parameters change (:func:`region_fingerprint`);
-- :func:`tasks.repair.texture_inputs.run_occupancy_tile` (unit: a tile, optional ahead of the regions);
-- :func:`tasks.repair.region_io.region_meshes_for_tile` -> what a tile's merge needs (re-exported here).
-
-The on-disk format of a region is documented in :mod:`tasks.repair.region_io`.
+:func:`run_region` (unit: a region) returns a small dict and never raises for a bad input (see
+``tasks.units.run_unit``); it is redone when its plan entry, its tiles' stores, the cameras file or the
+parameters change (:func:`region_fingerprint`).
 """
 
 from __future__ import annotations
 
 import json
-import shutil
 import time
 import tracemalloc
 
 import numpy as np
 
-from storage.atomic import file_fingerprint, write_json_atomic
+from storage.atomic import file_fingerprint
 from storage.ids import TileId
-from storage.manifest import ManifestRecord, combine_fingerprints, write_record
-from storage.patch_store import PATCHES_FILE, PatchStore
+from storage.manifest import combine_fingerprints
+from storage.patch_store import PATCHES_FILE
+from storage.region_mesh import ATLAS_FILE, REGION_FILE, clear_region, write_region_doc, write_region_mesh
+from storage.region_plan import REGION_SCHEMA_VERSION, REGIONS_DIR, Region, occupancy_path, read_plan, region_dir
+from storage.store_state import store_fingerprint
 from storage.workdir import WorkDir, campus_frame, read_campus
 from tasks.config import CampusConfig
-from tasks.repair.region_io import (  # noqa: F401 - RegionMesh and region_meshes_for_tile are re-exported for the merge
-    REGION_SCHEMA_VERSION,
-    RegionMesh,
-    RegionRead,
-    read_region,
-    region_dir,
-    region_meshes_for_tile,
-    tile_fingerprint,
-    write_region_mesh,
-)
-from tasks.regions.plan import (
-    REGIONS_DIR,
-    Region,
-    patch_cost_bytes,
-    patch_grades,
-    plan_path,
-    plan_regions,
-    read_plan,
-)
-from tasks.repair.texture_inputs import camera_paths, load_cameras, occupancy, reduced_texture, run_occupancy_tile  # noqa: F401
-from tasks.units import STAGE_VERSIONS, Done, run_unit
+from tasks.repair.region_io import RegionRead, read_region
+from tasks.repair.texture_inputs import camera_paths, image_loader, load_cameras, occupancy, reduced_texture
+from tasks.units import Done, run_unit
 
 
-
-# ----------------------------------------------------------------------------------------- plan
-
-def run_regions(cfg: CampusConfig, wd: WorkDir) -> dict:
-    """Plan the regions over every live tile and write ``regions/regions.json``.
-
-    Reads each tile's patches table and grades (:func:`tasks.regions.plan.patch_grades` with
-    ``cfg.repair.grades``); removes the folders of regions the plan no longer names. Returns
-    {"regions": [keys], "n_bad", "n_regions", "split", "grades": {tile: source}, "seconds"}.
-    """
-    t0 = time.perf_counter()
-    rc = cfg.repair.regions
-    grid = cfg.grid()
-    keys, bad, cost, sources, tile_fp = [], [], [], {}, {}
-    for t in wd.live_tiles():
-        store = PatchStore(wd.tile_dir(t))
-        k, g, src = patch_grades(store, cfg.repair.grades)
-        p = store.patches()
-        keys.append(k)
-        bad.append(k[g == 1])
-        cost.append(patch_cost_bytes(p["n_points"], p["n_faces"]))
-        sources[t.key] = src
-        tile_fp[t.key] = tile_fingerprint(wd.tile_dir(t))
-    all_keys = np.concatenate(keys) if keys else np.zeros(0, np.int64)
-    order = np.argsort(all_keys)
-    all_keys = all_keys[order]
-    cost_all = np.concatenate(cost)[order] if cost else np.zeros(0)
-    bad_keys = np.concatenate(bad) if bad else np.zeros(0, np.int64)
-    regions = plan_regions(bad_keys, all_keys, grid, min_patches=rc.min_patches, grow_cells=rc.grow_cells,
-                           context_cells=rc.context_cells, patch_cost=cost_all,
-                           budget_bytes=rc.memory_budget_mb * 2**20) if cfg.repair.enabled else []
-    doc = {"schema_version": REGION_SCHEMA_VERSION, "grades": sources, "tile_fingerprints": tile_fp,
-           "grid": grid.to_json(), "regions": [r.to_json() for r in regions]}
-    write_json_atomic(plan_path(wd.root), doc, indent=None)
-    names = {r.key for r in regions}
-    root = wd.root / REGIONS_DIR
-    removed = 0
-    for d in root.iterdir() if root.exists() else []:
-        if d.is_dir() and d.name not in names and not d.name.startswith("_"):
-            shutil.rmtree(d, ignore_errors=True)
-            (wd.manifest_dir / "region" / f"{d.name}.json").unlink(missing_ok=True)
-            removed += 1
-    out = {"regions": sorted(names), "n_regions": len(regions), "n_bad": len(bad_keys),
-           "n_patches_rebuilt": int(sum(r.n_patches for r in regions)),
-           "split": int(sum(bool(r.parent) for r in regions)), "removed": removed,
-           "grades": sorted(set(sources.values())), "seconds": time.perf_counter() - t0}
-    write_record(wd, ManifestRecord("regions", "campus", "done", seconds=out["seconds"],
-                                    summary={k: v for k, v in out.items() if k != "regions"}))
-    return out
+def _occupied_voxels(cfg: CampusConfig, wd: WorkDir, origin: np.ndarray, lo: np.ndarray, hi: np.ndarray,
+                     box: tuple[np.ndarray, np.ndarray]) -> np.ndarray:
+    """(k, 3) float64 MLS-occupied voxel centres inside ``box`` from the tiles within
+    ``occluder_radius_m`` of the region's bounds [lo, hi] (campus-local; origin: (3,) float64 world)."""
+    tc = cfg.repair.texture
+    vox = []
+    for ix, iy in cfg.grid().tiles_for_bounds(lo + origin, hi + origin, tc.occluder_radius_m).tolist():
+        t = TileId(ix, iy)
+        if (wd.tile_dir(t) / PATCHES_FILE).exists():
+            c = occupancy(wd.tile_dir(t), occupancy_path(wd.root, t.key), tc.occluder_voxel_m)
+            vox.append(c[np.all((c >= box[0]) & (c <= box[1]), axis=1)])
+    return np.concatenate(vox).astype(np.float64) if vox else np.zeros((0, 3))
 
 
-# ----------------------------------------------------------------------------------------- one region
-
-def _texture_region(mesh, rr: RegionRead, region: Region, cfg: CampusConfig, wd: WorkDir, doc, frame,
-                    cams_all) -> tuple[object, np.ndarray, dict]:
+def _texture_region(mesh, rr: RegionRead, cfg: CampusConfig, wd: WorkDir, frame, cams_all: list
+                    ) -> tuple[object, np.ndarray, dict]:
     """Atlas + per-face colours of a rebuilt mesh. Returns (atlas or None, (m, 3) uint8 colours, stats)."""
-    from tasks.repair.mesh import ClosestPoint
-    from tasks.repair.texture import sample_texture_colors, texture_mesh, voxel_boxes
+    from tasks.repair.region_texture import cameras_near, fallback_colors, occluder_box, texture_region
 
-    d = rr.input
-    faces = mesh.faces
-    tri = mesh.xyz[faces]
-    cen = tri.mean(axis=1)
-    # fallback colour: the original texture at the closest replaced face
-    fid, bary, _ = ClosestPoint(d.xyz, d.zone_faces).query(cen)
-    fid = np.maximum(fid, 0)
-    uv = np.einsum("kc,kcd->kd", bary, rr.zone_attrs["uv"][fid].astype(np.float64))
-    texpaths = rr.textures
-    colors = sample_texture_colors(uv, rr.zone_attrs["texture"][fid],
-                                   lambda i: reduced_texture(texpaths[i]) if i < len(texpaths) else None)
+    textures = rr.textures
+    colors = fallback_colors(mesh, rr.input, rr.zone_attrs["uv"], rr.zone_attrs["texture"],
+                             lambda i: reduced_texture(textures[i]) if i < len(textures) else None)
     tc = cfg.repair.texture
     if not tc.enabled or not cams_all:
         return None, colors, {"cameras": 0}
     lo, hi = mesh.xyz.min(0), mesh.xyz.max(0)
-    centres = np.stack([c.centre for c in cams_all])
-    gap = np.maximum(np.maximum(lo - centres, centres - hi), 0)
-    near = np.flatnonzero(np.linalg.norm(gap, axis=1) <= tc.max_distance_m)
-    cams = [cams_all[i] for i in near]
-    # occluders: retained faces around the region + MLS-occupied voxels off the rebuilt surface
-    grid = cfg.grid()
-    r = tc.occluder_radius_m
-    vox = []
-    # only what lies between the region and its cameras can hide it
-    cc = np.stack([c.centre for c in cams]) if cams else np.zeros((0, 3))
-    box_lo = np.maximum(np.minimum(lo, cc.min(0)) if len(cc) else lo, lo - r)
-    box_hi = np.minimum(np.maximum(hi, cc.max(0)) if len(cc) else hi, hi + r)
-    for ix, iy in grid.tiles_for_bounds(lo + frame.origin_array, hi + frame.origin_array, r).tolist():
-        t = TileId(ix, iy)
-        if (wd.tile_dir(t) / PATCHES_FILE).exists():
-            c = occupancy(wd, t, tc.occluder_voxel_m)
-            sel = np.all((c >= box_lo) & (c <= box_hi), axis=1)
-            vox.append(c[sel])
-    vox = np.concatenate(vox).astype(np.float64) if vox else np.zeros((0, 3))
-    surf_v = np.concatenate([mesh.xyz, d.xyz])
-    surf_f = np.concatenate([faces, d.context_faces + len(mesh.xyz)])
-    if len(vox):
-        dist = ClosestPoint(surf_v, surf_f).query(vox)[2]
-        vox = vox[dist > 0.3 + 0.87 * tc.occluder_voxel_m]
-    bv, bf = voxel_boxes(vox, tc.occluder_voxel_m)
-    occ_v = np.concatenate([d.xyz, bv])
-    occ_f = np.concatenate([d.context_faces, bf + len(d.xyz)])
-    images: dict[int, np.ndarray] = {}
-
-    def load_image(i):
-        if i not in images:
-            from PIL import Image
-
-            images[i] = np.asarray(Image.open(cams[i].image).convert("RGB"))
-        return images[i]
-
-    atlas, st = texture_mesh(mesh.xyz, faces, cams, load_image, (occ_v, occ_f), tc, colors)
-    st["occluder_voxels"] = len(vox)
-    if atlas.image is not None:  # textured faces take the mean image colour as their fallback colour
-        for lab in np.unique(atlas.view[atlas.view >= 0]):
-            sel = atlas.view == lab
-            px, _ = cams[int(lab)].project(cen[sel])
-            img = load_image(int(lab))
-            x = np.clip(np.round(px[:, 0]).astype(int), 0, img.shape[1] - 1)
-            y = np.clip(np.round(px[:, 1]).astype(int), 0, img.shape[0] - 1)
-            colors[sel] = img[y, x]
-    return atlas, colors, st
+    cams = cameras_near(cams_all, lo, hi, tc.max_distance_m)
+    box = occluder_box(lo, hi, cams, tc.occluder_radius_m)
+    vox = _occupied_voxels(cfg, wd, frame.origin_array, lo, hi, box)
+    return texture_region(mesh, rr.input, cams, vox, tc, colors, image_loader(cams))
 
 
 def region_fingerprint(region: Region, wd: WorkDir, cfg: CampusConfig) -> str:
     """What a region's output depends on besides the parameters: its patch sets and grades (the plan
     entry), the stores of its tiles, and the cameras file."""
     parts = [json.dumps(region.to_json(), sort_keys=True)]
-    parts += [f"{t}:{tile_fingerprint(wd.root / 'tiles' / t)}" for t in region.tiles]
+    parts += [f"{t}:{store_fingerprint(wd.tile_dir(TileId.from_key(t)))}" for t in region.tiles]
     _, cams = camera_paths(cfg)
     if cfg.repair.texture.enabled and cams is not None and cams.exists():
         parts.append(file_fingerprint(cams))
     return combine_fingerprints(parts)
+
+
+def _write_rebuilt(out_dir, geo, rr: RegionRead, colors: np.ndarray, atlas, cfg: CampusConfig, origin) -> list[str]:
+    """Write a rebuilt region's mesh, fused points and atlas; returns the file names written."""
+    mesh = geo.mesh
+    rep = np.flatnonzero(geo.replaced)
+    arrays = {"vertices": mesh.xyz, "vertex_id": mesh.vertex_id, "vertex_source": mesh.source, "faces": mesh.faces,
+              "face_patch": cfg.grid().keys_local(mesh.xyz[mesh.faces].mean(axis=1), origin),
+              "uv": atlas.uv if atlas is not None else np.full((mesh.n_faces, 3, 2), np.nan, np.float32),
+              "face_color": colors, "replaced_tile": rr.zone_tile[rep], "replaced_row": rr.zone_row[rep]}
+    image = atlas.image if atlas is not None else None
+    return write_region_mesh(out_dir, arrays, geo.fused_xyz, geo.fused_source, image)
+
+
+def _summary(region: Region, rr: RegionRead, geo, status: str, t: tuple[float, float, float], peak: int) -> dict:
+    """The unit summary of a repaired region (t: start, geometry done, texture done; peak: traced bytes)."""
+    t0, t1, t2 = t
+    return {"region": region.key, "number": region.number, "result": status,
+            "defect_type": geo.evidence.type, "n_patches": region.n_patches, "n_bad": len(region.bad),
+            "tiles": list(region.tiles), "zone_faces": len(rr.input.zone_faces),
+            "replaced_faces": int(geo.replaced.sum()), "rebuilt_faces": geo.mesh.n_faces,
+            "max_border_gap_m": geo.stats.get("border", {}).get("max_gap_m", 0.0),
+            "step_seconds": {"read": rr.seconds, **geo.stats.get("seconds", {}), "texture": t2 - t1, "total": t2 - t0},
+            "peak_traced_mb": peak / 2**20}
 
 
 def run_region(region_id: str, cfg: CampusConfig, wd: WorkDir) -> dict:
@@ -197,8 +108,7 @@ def run_region(region_id: str, cfg: CampusConfig, wd: WorkDir) -> dict:
                 "(regions/regions.json): run the regions stage first", "skipped": False}
     region = plan[region_id]
     params = {"repair": cfg.repair.params(), "grid": cfg.grid().to_json()}
-    fp = region_fingerprint(region, wd, cfg)
-    out_dir = region_dir(wd, region_id)
+    out_dir = region_dir(wd.root, region_id)
 
     def work() -> Done:
         from tasks.repair.geometry import repair_region_geometry
@@ -207,47 +117,33 @@ def run_region(region_id: str, cfg: CampusConfig, wd: WorkDir) -> dict:
         t0 = time.perf_counter()
         doc = read_campus(wd)
         frame = campus_frame(doc)
-        rr = read_region(region, cfg, wd, frame)
+        rr = read_region(region, cfg.grid(), wd.tile_dir, frame.origin)
         geo = repair_region_geometry(rr.input, cfg.repair)
         t1 = time.perf_counter()
-        (out_dir / "region.json").unlink(missing_ok=True)  # the 'done' marker goes first, comes back last
-        for name in ("mesh.npz", "fused.npz", "atlas.jpg"):
-            (out_dir / name).unlink(missing_ok=True)
-        tex_stats, status = {}, "kept"
-        outputs = []
+        clear_region(out_dir)
+        tex_stats, status, written = {}, "kept", []
         if geo.mesh.n_faces:
             status = "rebuilt"
             cams = load_cameras(cfg, doc, frame) if cfg.repair.texture.enabled else []
-            atlas, colors, tex_stats = _texture_region(geo.mesh, rr, region, cfg, wd, doc, frame, cams)
-            write_region_mesh(out_dir, geo, rr, colors, atlas, cfg, frame)
-            outputs += [f"{REGIONS_DIR}/{region_id}/mesh.npz", f"{REGIONS_DIR}/{region_id}/fused.npz"]
-            if atlas is not None and atlas.image is not None:
-                outputs.append(f"{REGIONS_DIR}/{region_id}/atlas.jpg")
+            atlas, colors, tex_stats = _texture_region(geo.mesh, rr, cfg, wd, frame, cams)
+            written = _write_rebuilt(out_dir, geo, rr, colors, atlas, cfg, frame.origin)
         t2 = time.perf_counter()
         _, peak = tracemalloc.get_traced_memory()
         tracemalloc.stop()
-        summary = {"region": region_id, "number": region.number, "result": status,
-                   "defect_type": geo.evidence.type, "n_patches": region.n_patches, "n_bad": len(region.bad),
-                   "tiles": list(region.tiles), "zone_faces": len(rr.input.zone_faces),
-                   "replaced_faces": int(geo.replaced.sum()), "rebuilt_faces": geo.mesh.n_faces,
-                   "max_border_gap_m": geo.stats.get("border", {}).get("max_gap_m", 0.0),
-                   "step_seconds": {"read": rr.seconds, **geo.stats.get("seconds", {}), "texture": t2 - t1,
-                               "total": t2 - t0},
-                   "peak_traced_mb": peak / 2**20}
-        doc_r = {"schema_version": REGION_SCHEMA_VERSION, "key": region_id, "number": region.number,
-                 "status": status, "patches": region.patches.tolist(), "bad": region.bad.tolist(),
-                 "tiles": list(region.tiles), "parent": region.parent, "replaced_tiles": rr.tiles,
-                 "evidence": geo.evidence.to_json(), "stats": _jsonable(geo.stats), "texture": _jsonable(tex_stats),
-                 "atlas": "atlas.jpg" if (out_dir / "atlas.jpg").exists() else None,
-                 "summary": _jsonable(summary)}
-        write_json_atomic(out_dir / "region.json", doc_r, indent=None)
-        outputs.append(f"{REGIONS_DIR}/{region_id}/region.json")
-        return Done(outputs=outputs, summary=_jsonable(summary))
+        summary = _jsonable(_summary(region, rr, geo, status, (t0, t1, t2), peak))
+        write_region_doc(out_dir, {
+            "schema_version": REGION_SCHEMA_VERSION, "key": region_id, "number": region.number, "status": status,
+            "patches": region.patches.tolist(), "bad": region.bad.tolist(), "tiles": list(region.tiles),
+            "parent": region.parent, "replaced_tiles": rr.tiles, "evidence": geo.evidence.to_json(),
+            "stats": _jsonable(geo.stats), "texture": _jsonable(tex_stats),
+            "atlas": ATLAS_FILE if ATLAS_FILE in written else None, "summary": summary})
+        return Done(outputs=[f"{REGIONS_DIR}/{region_id}/{n}" for n in [*written, REGION_FILE]], summary=summary)
 
-    return run_unit(wd, "region", region_id, fp, params, work)
+    return run_unit(wd, "region", region_id, region_fingerprint(region, wd, cfg), params, work)
 
 
 def _jsonable(x):
+    """``x`` with numpy scalars and arrays as Python values and non-finite floats as None (for JSON)."""
     if isinstance(x, dict):
         return {str(k): _jsonable(v) for k, v in x.items()}
     if isinstance(x, (list, tuple)):
@@ -259,5 +155,3 @@ def _jsonable(x):
     if isinstance(x, np.ndarray):
         return _jsonable(x.tolist())
     return x
-
-

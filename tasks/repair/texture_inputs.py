@@ -1,5 +1,6 @@
-"""Inputs of the texture step: the vehicle cameras in the campus frame, MLS occupancy voxels (occluders),
-and the original mesh textures at reduced size (the colour of faces no image sees).
+"""Readers of the texture step's inputs: the vehicle cameras in the campus frame and their images, MLS
+occupancy voxels (occluders), and the original mesh textures at reduced size (the colour of faces no image
+sees).
 
 The images and ``cameras.json`` are a config input: ``repair.texture.images`` / ``repair.texture.cameras``
 (or ``inputs.images`` / ``inputs.cameras`` when the config has them); without either, an ``images``
@@ -9,21 +10,16 @@ folder beside the first mesh input is used when it holds a cameras.json (the syn
 from __future__ import annotations
 
 import json
-import time
+from collections.abc import Callable
 from pathlib import Path
 
 import numpy as np
 
 from storage.atomic import atomic_path
 from storage.errors import InputError
-from storage.ids import TileId
 from storage.patch_store import PatchStore
-from storage.workdir import WorkDir
+from storage.store_state import store_fingerprint
 from tasks.config import CampusConfig
-from tasks.repair.region_io import tile_fingerprint
-from tasks.regions.plan import REGIONS_DIR
-
-OCCUPANCY_DIR = "_occupancy"
 
 
 def camera_paths(cfg: CampusConfig) -> tuple[Path | None, Path | None]:
@@ -70,14 +66,12 @@ def load_cameras(cfg: CampusConfig, doc: dict, frame) -> list:
     return [c for c in cams if Path(c.image).is_file()]  # a camera whose image is missing is no candidate
 
 
-def occupancy(wd: WorkDir, tile: TileId, voxel_m: float) -> np.ndarray:
-    """(k, 3) float32 centres of the tile's MLS-occupied voxels (campus-local), cached in
-    ``regions/_occupancy/{tile}.npz`` and rebuilt when the tile's store changes."""
-    tile_dir = wd.tile_dir(tile)
-    fp = tile_fingerprint(tile_dir)
-    path = wd.root / REGIONS_DIR / OCCUPANCY_DIR / f"{tile.key}.npz"
-    if path.exists():
-        with np.load(path) as z:
+def occupancy(tile_dir: Path, cache: Path, voxel_m: float) -> np.ndarray:
+    """(k, 3) float32 centres of a tile's MLS-occupied voxels (``voxel_m`` metres, campus-local), cached in
+    ``cache`` (``regions/_occupancy/{tile}.npz``) and rebuilt when the tile's store changes."""
+    fp = store_fingerprint(tile_dir)
+    if cache.exists():
+        with np.load(cache) as z:
             if str(z["fingerprint"]) == fp and float(z["voxel_m"]) == voxel_m:
                 return z["centres"]
     store = PatchStore(tile_dir)
@@ -85,16 +79,23 @@ def occupancy(wd: WorkDir, tile: TileId, voxel_m: float) -> np.ndarray:
     xyz = np.stack([pts["x"], pts["y"], pts["z"]], 1)
     cells = np.unique(np.floor(xyz / voxel_m).astype(np.int64), axis=0)
     centres = ((cells + 0.5) * voxel_m).astype(np.float32)
-    with atomic_path(path) as tmp:
+    with atomic_path(cache) as tmp:
         np.savez(tmp, centres=centres, fingerprint=np.array(fp), voxel_m=np.array(voxel_m))
     return centres
 
 
-def run_occupancy_tile(tile: TileId, cfg: CampusConfig, wd: WorkDir) -> dict:
-    """Build one tile's occupancy voxels ahead of the regions (optional: run_region builds missing ones)."""
-    t0 = time.perf_counter()
-    n = len(occupancy(wd, tile, cfg.repair.texture.occluder_voxel_m))
-    return {"unit": tile.key, "status": "done", "voxels": n, "seconds": time.perf_counter() - t0}
+def image_loader(cams: list) -> Callable[[int], np.ndarray]:
+    """load_image(i) -> (h, w, 3) uint8 RGB image of ``cams[i]``, each decoded once."""
+    images: dict[int, np.ndarray] = {}
+
+    def load_image(i: int) -> np.ndarray:
+        if i not in images:
+            from PIL import Image
+
+            images[i] = np.asarray(Image.open(cams[i].image).convert("RGB"))
+        return images[i]
+
+    return load_image
 
 
 _CACHE: dict = {}

@@ -12,7 +12,7 @@ def test_train_then_evaluate_on_a_processed_campus(tiny_work, tmp_path):
     from flows.train import TrainSpec, train
     from ms3d_model.dataset import area_split
     from ms3d_model.train import load_checkpoint
-    from tasks.classify.pairs import campus_pair_set
+    from tasks.classify import campus_pair_set
 
     _, wd = tiny_work
     out = tmp_path / "train"

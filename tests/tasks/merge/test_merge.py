@@ -16,7 +16,7 @@ from storage.patch_store import TileMeta, write_side_table, write_tile_tables
 from storage.tile_mesh import GRADE_BAD, GRADE_GOOD, SOURCE_MESH, SOURCE_REBUILT, read_tile_mesh
 from storage.workdir import WorkDir, write_campus
 from tasks.config import CampusConfig
-from tasks.merge.stage import RebuiltRegion, RegionMesh, run_merge_tile, weld_soup
+from tasks.merge import FaceSoup, RegionMesh, run_merge_tile, weld_soup
 from tasks.merge.weld import face_keep_mask, weld_corners, weld_keys
 from tasks.partition.kernels import build_tile_tables
 
@@ -105,9 +105,10 @@ def _region(cfg, tmp_path, perturb_m: float = 1e-4, duplicate: bool = True) -> R
     base = np.array(base, np.float32)
     uv = np.clip((base[:, :2] - [9.0, 1.0]) / 2.0, 0, 1).astype(np.float32)
     pts = base + np.where(np.array(ids)[:, None] >= 0, perturb_m * np.array([1, -1, 1]), 0).astype(np.float32)
-    return RegionMesh(region=REGION, vertices=pts, faces=np.array(faces), vertex_ids=np.array(ids, np.int64),
+    faces = np.array(faces)
+    return RegionMesh(region=REGION, vertices=pts, faces=faces, vertex_ids=np.array(ids, np.int64),
                       replaced_patches=np.array([_cell_key(cfg, i, j) for i, j in REPLACED_CELLS], np.int64),
-                      uv=uv, atlas=str(atlas))
+                      corner_uv=uv[faces], atlas=str(atlas))
 
 
 def _on_outer_border(edge) -> bool:
@@ -142,15 +143,12 @@ def test_weld_kernels_on_three_faces():
     assert w.faces.tolist() == [[0, 1, 0], [1, 2, 2]] and w.position_corner.tolist() == [0, 0, 0]
 
 
-def test_repair_type_satisfies_the_protocol():
-    class Repaired:  # what repair might hand over: its own type with the same attribute names
-        def __init__(self):
-            self.region, self.vertices, self.faces, self.replaced_patches = 4, np.zeros((3, 3)), [[0, 1, 2]], [1, 2]
-
-    assert isinstance(Repaired(), RebuiltRegion)
-    r = RegionMesh.of(Repaired())
-    assert r.vertices.dtype == np.float32 and r.faces.shape == (1, 3) and r.atlas is None
-    assert len(r.content_fingerprint()) == 32
+def test_region_mesh_checks_its_shapes_and_fingerprints_its_content():
+    r = RegionMesh(region=4, vertices=np.zeros((3, 3), np.float32), faces=np.array([[0, 1, 2]]))
+    moved = RegionMesh(region=4, vertices=np.ones((3, 3), np.float32), faces=np.array([[0, 1, 2]]))
+    assert len(r.content_fingerprint()) == 32 and r.content_fingerprint() != moved.content_fingerprint()
+    with pytest.raises(ValueError, match="an atlas needs corner_uv"):
+        RegionMesh(region=1, vertices=np.zeros((3, 3), np.float32), faces=np.array([[0, 1, 2]]), atlas="a.png")
     with pytest.raises(ValueError, match="outside the vertices"):
         RegionMesh(region=1, vertices=np.zeros((2, 3), np.float32), faces=np.array([[0, 1, 2]]),
                    replaced_patches=np.zeros(0, np.int64))
@@ -210,7 +208,7 @@ def test_rerun_skips_and_a_changed_region_redoes_its_tiles(handmade):
     region = _region(cfg, tmp)
     first = [run_merge_tile(t, cfg, wd, regions=[region]) for t in TILES]
     mtimes = [p.stat().st_mtime_ns for t in TILES for p in sorted(wd.tile_dir(t).glob("merged.*"))]
-    again = [run_merge_tile(t, cfg, wd, regions=lambda _wd, _t: [region]) for t in TILES]
+    again = [run_merge_tile(t, cfg, wd, regions=[region]) for t in TILES]
     assert all(r["skipped"] for r in again) and not any(r["skipped"] for r in first)
     assert mtimes == [p.stat().st_mtime_ns for t in TILES for p in sorted(wd.tile_dir(t).glob("merged.*"))]
     moved = _region(cfg, tmp, perturb_m=2e-4, duplicate=False)
@@ -237,8 +235,6 @@ def test_tile_without_store_loses_its_merged_mesh_and_bad_textures_fail(handmade
 
 
 def test_weld_soup_keeps_untextured_colours_apart():
-    from tasks.merge.stage import FaceSoup
-
     xyz = np.array([[[0, 0, 0], [1, 0, 0], [0, 1, 0]], [[1, 0, 0], [1, 1, 0], [0, 1, 0]]], np.float32)
     keys = np.array([[1, 2, 3], [2, 4, 3]])
     color = np.zeros((2, 3, 3), np.uint8)

@@ -11,9 +11,9 @@ from flows.campus import InlineExecutor, reprocess
 from storage.tile_mesh import SOURCE_REBUILT, read_tile_mesh
 from storage.workdir import WorkDir
 from tasks.config import CampusConfig
-from tasks.repair.region_io import region_meshes_for_tile
-from tasks.regions.plan import read_plan
-from tasks.repair.stage import run_region
+from storage.region_mesh import region_meshes_for_tile
+from tasks.regions import read_plan
+from tasks.repair import run_region
 
 pytestmark = pytest.mark.slow
 
@@ -36,11 +36,11 @@ def test_tiny_campus_regions_are_rebuilt_welded_textured_and_merged(tiny_campus,
         if doc["atlas"]:
             assert (wd.root / "regions" / r["region"] / "atlas.jpg").exists()
     assert textured > 0  # the vehicle images, moved through the registration, see rebuilt faces
-    pieces = [m for t in wd.live_tiles() for m in region_meshes_for_tile(wd, t)]
+    pieces = list({m.region_id: m for t in wd.live_tiles() for m in region_meshes_for_tile(wd.root, t)}.values())
     assert {m.region_id for m in pieces} == {r["region"] for r in rebuilt}
     for m in pieces:
-        seen = np.isfinite(m.uv).all(axis=(1, 2))
-        assert ((m.uv[seen] >= 0) & (m.uv[seen] <= 1)).all() and m.face_colors.shape == (len(m.faces), 3)
+        seen = np.isfinite(m.corner_uv).all(axis=(1, 2))
+        assert ((m.corner_uv[seen] >= 0) & (m.corner_uv[seen] <= 1)).all() and m.face_colors.shape == (len(m.faces), 3)
     # the merge took the rebuilt faces: every piece's faces are in its tile's merged mesh
     merged_rebuilt = sum(int((read_tile_mesh(wd.tile_dir(t)).source == SOURCE_REBUILT).sum()) for t in wd.live_tiles()
                          if (wd.tile_dir(t) / "merged.npz").exists())

@@ -3,7 +3,7 @@
 import numpy as np
 
 from storage.grid import PatchGrid
-from tasks.regions.plan import connected_components, dilate, plan_regions
+from tasks.regions import connected_components, dilate, plan_regions
 
 G = PatchGrid((2.3, 1.0, 0.7), tile_size_m=10.0)
 

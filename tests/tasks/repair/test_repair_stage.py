@@ -5,13 +5,17 @@ import json
 import numpy as np
 import pytest
 
+from storage.ids import TileId
 from storage.patch_store import PatchStore, write_side_table
-from storage.workdir import read_campus
+from storage.region_mesh import region_meshes_for_tile
+from storage.store_state import patch_grades
+from storage.workdir import campus_frame, read_campus
 from synth.corner_scene import CENTRE, HALF, building_mesh, write_campus_workdir
 from tasks.config import CampusConfig
+from tasks.merge import faces_in_tile
+from tasks.regions import read_plan, run_regions
+from tasks.repair import run_region
 from tasks.repair.chart import boundary_edges
-from tasks.regions.plan import patch_grades
-from tasks.repair.stage import region_meshes_for_tile, run_region, run_regions
 
 TILES = ["0_0", "0_1", "1_0", "1_1"]
 
@@ -33,7 +37,7 @@ def corner(tmp_path_factory):
 
 
 def _tile_faces(wd, tile):
-    s = PatchStore(wd.tile_dir(__import__("storage.ids", fromlist=["TileId"]).TileId.from_key(tile)))
+    s = PatchStore(wd.tile_dir(TileId.from_key(tile)))
     _, f = s.read_all(point_columns=["x"], face_columns=[*(f"{a}{v}" for v in range(3) for a in "xyz"),
                                                           "vid0", "vid1", "vid2"])
     tri = np.stack([np.stack([f[f"{a}{v}"] for a in "xyz"], 1) for v in range(3)], 1).astype(np.float64)
@@ -41,32 +45,42 @@ def _tile_faces(wd, tile):
 
 
 def _assemble(wd):
-    tris, vids = [], []
+    """Every tile's faces minus those the regions replace, plus every rebuilt region once, welded by id."""
+    tris, vids, regions = [], [], {}
     for t in TILES:
         tri, vid = _tile_faces(wd, t)
         keep = np.ones(len(tri), bool)
-        for rm in region_meshes_for_tile(wd, t):
+        for rm in region_meshes_for_tile(wd.root, TileId.from_key(t)):
             keep[rm.replaced_rows] = False
-            tris.append(rm.vertices[rm.faces].astype(np.float64))
-            vids.append(np.where(rm.vertex_ids >= 0, rm.vertex_ids, rm.vertex_ids - (1 << 40))[rm.faces])
+            regions[rm.region_id] = rm
         tris.append(tri[keep])
         vids.append(vid[keep])
+    for rm in regions.values():
+        tris.append(rm.vertices[rm.faces].astype(np.float64))
+        vids.append(np.where(rm.vertex_ids >= 0, rm.vertex_ids, rm.vertex_ids - (1 << 40))[rm.faces])
     tri, vid = np.concatenate(tris), np.concatenate(vids)
     _uid, first, inv = np.unique(vid.ravel(), return_index=True, return_inverse=True)
     return tri.reshape(-1, 3)[first], inv.reshape(-1, 3)
 
 
 def test_region_spanning_a_tile_corner_is_repaired_as_one_piece(corner):
-    wd, _, bad, plan, results = corner
-    assert plan["n_regions"] == 1 and plan["n_bad"] == len(bad)
+    wd, cfg, bad, plan, results = corner
+    assert plan["status"] == "done" and plan["n_regions"] == 1 and plan["n_bad"] == len(bad)
+    assert plan["weights"] == [float(read_plan(wd.root)[0].est_bytes)] and plan["weights"][0] > 1
     (r,) = results
     assert r["status"] == "done" and r["result"] == "rebuilt" and sorted(r["tiles"]) == TILES
-    pieces = {t: region_meshes_for_tile(wd, t) for t in TILES}
+    pieces = {t: region_meshes_for_tile(wd.root, TileId.from_key(t)) for t in TILES}
     assert all(len(p) == 1 and p[0].region_id == plan["regions"][0] for p in pieces.values())
-    assert sum(len(p[0].faces) for p in pieces.values()) == r["rebuilt_faces"]
+    assert all(len(p[0].faces) == r["rebuilt_faces"] for p in pieces.values())  # each tile gets the whole region
+    # and the merge's rule hands each rebuilt face to exactly one tile
+    origin = campus_frame(read_campus(wd)).origin_array
+    owned = [faces_in_tile(p[0].vertices[p[0].faces], cfg.grid(), origin, TileId.from_key(t))[0]
+             for t, p in pieces.items()]
+    assert (np.sum(owned, axis=0) == 1).all()
     assert sum(len(p[0].replaced_rows) for p in pieces.values()) == r["replaced_faces"] == r["zone_faces"]
     # the protrusion is cut back: new vertices lie on the true walls (a 4 x 4 m box around CENTRE)
-    v = np.concatenate([p[0].vertices[p[0].vertex_ids < 0] for p in pieces.values()]).astype(np.float64)
+    one = pieces[TILES[0]][0]
+    v = one.vertices[one.vertex_ids < 0].astype(np.float64)
     wall = np.abs(np.abs(v[:, :2] - CENTRE).max(1) - HALF)
     assert len(v) > 1000 and np.percentile(wall, 99) < 0.02
 
@@ -97,7 +111,7 @@ def test_region_is_redone_when_grades_or_parameters_change(corner, tmp_path):
     assert not run_region(key, cfg, wd)["skipped"]
     assert run_region(key, cfg, wd)["skipped"]
     # one more bad patch next to the region: the plan and the region change, the region is redone
-    td = wd.tile_dir(__import__("storage.ids", fromlist=["TileId"]).TileId.from_key("0_0"))
+    td = wd.tile_dir(TileId.from_key("0_0"))
     s = PatchStore(td)
     lab = s.side("labels")["label"].copy()
     ring = run_regions(cfg, wd)

@@ -17,7 +17,7 @@ def _checkpoint(path, seed=0):
 
 
 def test_classify_grades_every_pair_then_skips_and_regrades_for_a_new_model(tiny_work, tmp_path):
-    from tasks.classify.stage import run_classify_tile
+    from tasks.classify import run_classify_tile
 
     cfg, wd = tiny_work
     h1 = _checkpoint(tmp_path / "m1.pt", 0)
@@ -49,7 +49,7 @@ def test_classify_grades_every_pair_then_skips_and_regrades_for_a_new_model(tiny
 
 
 def test_a_missing_model_fails_the_tile_with_one_line(tiny_work, tmp_path):
-    from tasks.classify.stage import run_classify_tile
+    from tasks.classify import run_classify_tile
 
     cfg, wd = tiny_work
     cfg = cfg.model_copy(update={"classify": cfg.classify.model_copy(update={"enabled": True,
