@@ -183,18 +183,18 @@ def ecef_round_trip_error_m(work_dir: str | Path, tile: str) -> float:
     from pyproj import CRS, Transformer
     from scipy.spatial import cKDTree
 
+    from storage.frame import CampusFrame
     from storage.tile_mesh import read_tile_mesh
-    from storage.workdir import WorkDir, campus_frame, read_campus
 
-    wd = WorkDir(work_dir)
-    frame = campus_frame(read_campus(wd))
-    doc = json.loads((wd.root / "output" / "tileset.json").read_text())
+    root = Path(work_dir)
+    frame = CampusFrame.from_json(json.loads((root / "campus.json").read_text())["frame"])
+    doc = json.loads((root / "output" / "tileset.json").read_text())
     m = np.asarray(doc["root"]["transform"], np.float64).reshape(4, 4).T
-    via = gltf_to_enu(glb_positions((wd.root / "output" / "content" / "tiles" / f"{tile}.glb").read_bytes()))
+    via = gltf_to_enu(glb_positions((root / "output" / "content" / "tiles" / f"{tile}.glb").read_bytes()))
     via = via @ m[:3, :3].T + m[:3, 3]
     src = CRS(frame.crs)
     src = src if src.is_compound else src.to_3d()
-    world = read_tile_mesh(wd.root / "tiles" / tile).vertices.astype(np.float64) + frame.origin_array
+    world = read_tile_mesh(root / "tiles" / tile).vertices.astype(np.float64) + frame.origin_array
     direct = np.stack(Transformer.from_crs(src, "EPSG:4978", always_xy=True).transform(*world.T), axis=1)
     return float(cKDTree(direct).query(via)[0].max())
 

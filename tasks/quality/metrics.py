@@ -30,7 +30,13 @@ import numpy as np
 from storage.errors import InputError
 from storage.ids import TileId
 from tasks.geometry.distance import MeshDistance, unit_face_normals
-from tasks.geometry.sampling import faces_in_boxes, iter_surface_samples, sample_boxes, samples_inside, seed_of
+from tasks.geometry.sampling import (
+    faces_in_boxes,
+    iter_surface_samples,
+    sample_boxes,
+    samples_inside,
+    seed_of,
+)
 from tasks.quality.stats import QualityPartial, QualityReport, SideSums
 
 # synth.scene.FaceClass values of facade faces: WALL, GLASS, FRAME, BALCONY, EAVE.
