@@ -31,7 +31,13 @@ from storage.ids import TileId
 from storage.patch_store import PATCHES_FILE, PatchStore, side_table_path, write_side_table
 from storage.store_state import store_fingerprint
 from storage.workdir import STALE_FILE, WorkDir
-from tasks.classify.pairs import empty_pair_set, gradable_mask, iter_tile_batches, read_tile_pairs, tile_pair_set
+from tasks.classify.pairs import (
+    empty_pair_set,
+    gradable_mask,
+    iter_tile_batches,
+    read_tile_pairs,
+    tile_pair_set,
+)
 from tasks.units import Done, run_unit
 
 log = logging.getLogger("ms3d.classify")

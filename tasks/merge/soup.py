@@ -11,8 +11,8 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from storage.tile_mesh import GRADE_BAD, NO_REGION, SOURCE_MESH, SOURCE_REBUILT, TileMesh
 from storage.region_mesh import RegionMesh
+from storage.tile_mesh import GRADE_BAD, NO_REGION, SOURCE_MESH, SOURCE_REBUILT, TileMesh
 from tasks.merge.weld import face_keep_mask, weld_corners, weld_keys
 
 REBUILT_GREY = np.array([170, 170, 170], np.uint8)  # rebuilt faces with neither atlas nor colours

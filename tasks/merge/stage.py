@@ -1,16 +1,18 @@
 """Merge: per ground tile, the retained mesh and the rebuilt regions become one clean :class:`TileMesh`.
 
 Inputs of tile T (``tiles/{ix}_{iy}/``): the patch store's faces (corners inline, campus vertex ids,
-per-corner uv, texture index), the patch grades under ``repair.grades`` (:func:`storage.store_state.patch_grades`,
-the rule the regions stage plans by, so merge marks bad exactly what repair was asked to rebuild), and the
-rebuilt regions that reach into T (:func:`storage.region_mesh.region_meshes_for_tile`; none until repair
-runs). Output: ``tiles/{ix}_{iy}/merged.npz`` + ``merged.json`` (:mod:`storage.tile_mesh`), the input of
-export. The pure merge is in :mod:`tasks.merge.tile`, soups and their weld in :mod:`tasks.merge.soup`.
+per-corner uv, texture index), the patch grades under ``repair.grades``
+(:func:`storage.store_state.patch_grades`, the rule the regions stage plans by, so merge marks bad
+exactly what repair was asked to rebuild), and the rebuilt regions that reach into T
+(:func:`storage.region_mesh.region_meshes_for_tile`; none until repair runs). Output:
+``tiles/{ix}_{iy}/merged.npz`` + ``merged.json`` (:mod:`storage.tile_mesh`), the input of export. The
+pure merge is in :mod:`tasks.merge.tile`, soups and their weld in :mod:`tasks.merge.soup`.
 
 Rules:
 
-- **Retained** faces are the store faces of T whose patch or row no region replaces. They keep the original texture: the tile's texture list references
-  the input atlases by path (nothing is copied) and uv become per-vertex.
+- **Retained** faces are the store faces of T whose patch or row no region replaces. They keep the
+  original texture: the tile's texture list references the input atlases by path (nothing is copied)
+  and uv become per-vertex. They carry their patch's grade (under ``repair.grades``).
 - **Rebuilt** faces are the region faces whose centroid lies in a patch of T (the rule that assigns a
   store face to its tile), so a face belongs to exactly one tile even when its region spans several.
   They take their region's atlas (or its vertex colours) and provenance (grade bad, source rebuilt,
@@ -24,8 +26,8 @@ Rules:
 
 Memory is bounded by the tile (one store, the regions touching it). The stage
 :func:`run_merge_tile` is resumable: its fingerprint is the tile's store, the grade table it reads (or
-"all"), the campus frame and the rebuilt regions touching it; an unchanged result is not rewritten, so export's
-fingerprint of the tile (the file's bytes) does not change either.
+"all"), the campus frame and the rebuilt regions touching it; an unchanged result is not rewritten, so
+export's fingerprint of the tile (the file's bytes) does not change either.
 """
 
 from __future__ import annotations

@@ -15,6 +15,7 @@ from dataclasses import dataclass, field
 import numpy as np
 from scipy.spatial import cKDTree
 
+from tasks.repair.chart import zone_charts
 from tasks.repair.defect_types import DefectEvidence, classify_evidence, repair_plan
 from tasks.repair.fuse import (
     FusionParams,
@@ -35,7 +36,6 @@ from tasks.repair.mesh import (
     rebuild_charts,
     triangle_areas,
 )
-from tasks.repair.chart import zone_charts
 
 
 @dataclass(frozen=True)
@@ -74,19 +74,11 @@ class RegionGeometry:
     stats: dict = field(default_factory=dict)
 
 
-def repair_region_geometry(data: RegionInput, cfg) -> RegionGeometry:
-    """Fuse, classify the defect, triangulate and stitch one region. cfg: ``RepairConfig``."""
-    t0 = time.perf_counter()
-    fc, mc, tc = cfg.fusion, cfg.mesh, cfg.typed
-    params = FusionParams.from_config(fc)
-    mz = len(data.zone_faces)
-    stats: dict = {}
-    allf = np.concatenate([data.zone_faces, data.context_faces])
-    vn = vertex_normals(data.xyz, allf, data.face_normals)
-    zone_v = np.unique(data.zone_faces)
-    bord = border_edges(data.zone_faces, data.context_faces, len(data.xyz))
-    locked = np.isin(zone_v, bord.ravel())
-    # MLS: drop classes, thin, normals oriented like the mesh
+def _thinned_mls(data: RegionInput, fc, zone_v: np.ndarray, vn: np.ndarray
+                 ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+    """The region's MLS points without the dropped classes, thinned to ``fc.mls_spacing_m``, and the
+    context points likewise; PCA normals oriented like the mesh. Returns (mls (p, 3), mls normals (p, 3),
+    mls + context points (p + q, 3), their normals (p + q, 3)), float64."""
     keep = ~np.isin(data.mls_class, np.asarray(fc.drop_classes, np.uint8))
     mls = data.mls_xyz[keep]
     mls = mls[thin_points(mls, fc.mls_spacing_m)]
@@ -97,49 +89,98 @@ def repair_region_geometry(data: RegionInput, cfg) -> RegionGeometry:
         nrm = orient_like(nrm, both, data.xyz[zone_v] if len(zone_v) else data.xyz, vn[zone_v] if len(zone_v) else vn)
     else:
         nrm = np.zeros((len(both), 3))
-    mls_n = nrm[: len(mls)]
-    stats["mls_points"] = len(data.mls_xyz)
-    stats["mls_thinned"] = len(mls)
+    return mls, nrm[: len(mls)], both, nrm
+
+
+def _hole_area_m2(data: RegionInput, zone_v: np.ndarray, mls: np.ndarray, mls_n: np.ndarray, spacing_m: float) -> float:
+    """Area of MLS surface with no mesh near it, nor straight in front of or behind it (m², one
+    ``spacing_m`` square per thinned point)."""
+    if not (len(mls) and len(zone_v)):
+        return 0.0
+    dmesh, j = cKDTree(data.xyz[zone_v]).query(mls)
+    delta = data.xyz[zone_v][j] - mls
+    lateral = np.linalg.norm(delta - np.einsum("ij,ij->i", delta, mls_n)[:, None] * mls_n, axis=1)
+    return float(((dmesh > 0.2) & (lateral > 0.2)).sum()) * spacing_m**2
+
+
+def _conflicts(data: RegionInput, zone_v: np.ndarray, vn: np.ndarray, mls: np.ndarray, mls_n: np.ndarray, tc,
+               params: FusionParams, stats: dict) -> np.ndarray | None:
+    """(v,) bool zone vertices the MLS contradicts (a dissimilar MLS point within ``tc.conflict_radius_m``,
+    or, with ``tc.front_m``, the vertex lies more than that in front of the MLS surface); None when the
+    typed repair does not look for conflicts. Adds the counts to ``stats``."""
+    if not (tc.enabled and tc.conflict_radius_m > 0 and len(mls)):
+        return None
+    from tasks.repair.fuse import best_similarity
+
+    dn = cKDTree(mls).query(data.xyz[zone_v], distance_upper_bound=tc.conflict_radius_m)[0]
+    sim = best_similarity(data.xyz[zone_v], vn[zone_v], mls, mls_n, cKDTree(mls), params)
+    conflict = np.isfinite(dn) & (sim < params.similarity_threshold)
+    stats["conflict"] = int(conflict.sum())
+    if tc.front_m > 0:
+        far = ~np.isfinite(dn)
+        d2, j2 = cKDTree(mls).query(data.xyz[zone_v][far], distance_upper_bound=tc.front_reach_m)
+        ok = np.isfinite(d2)
+        jj = np.where(ok, j2, 0)
+        off = np.einsum("ij,ij->i", data.xyz[zone_v][far] - mls[jj], mls_n[jj])
+        front = np.zeros(len(zone_v), bool)
+        front[np.flatnonzero(far)[ok & (off > tc.front_m)]] = True
+        conflict |= front
+        stats["in_front"] = int(front.sum())
+    return conflict
+
+
+def _mesh_points(fused_xyz: np.ndarray, fused_n: np.ndarray, fused_src: np.ndarray, fused_vertex: np.ndarray, fc, mc,
+                 stats: dict) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """The points the charts are triangulated from: the fused points, or (``mesh.method`` poisson, at least
+    10 points) the Poisson surface's vertices near them. Returns ((k, 3) xyz, (k,) int8 source, (k,) int64
+    original vertex index or -1)."""
+    if mc.method != "poisson" or len(fused_xyz) < 10:
+        return fused_xyz, fused_src, fused_vertex
+    ext = float(np.ptp(fused_xyz, axis=0).max())
+    depth = poisson_depth_for(ext, fc.mls_spacing_m * 1.5, hi=mc.poisson_depth)
+    pv, _, _ = poisson_surface(fused_xyz, fused_n, depth, mc.poisson_trim_quantile)
+    near = cKDTree(fused_xyz).query(pv, distance_upper_bound=3 * fc.mls_spacing_m)[0] < np.inf
+    stats["poisson"] = {"depth": depth, "vertices": len(pv), "kept": int(near.sum())}
+    return pv[near], np.full(int(near.sum()), 2, np.int8), np.full(int(near.sum()), -1)
+
+
+def _finish_stats(stats: dict, data: RegionInput, mesh: RebuiltMesh, replaced: np.ndarray, zone_area: float) -> None:
+    """Add the border gap between the rebuilt charts and what stays (context faces and non-disc zone
+    pieces left in place) and the rebuilt figures to ``stats``."""
+    bord_used = border_edges(data.zone_faces[replaced], data.context_faces, len(data.xyz))
+    stats["border"] = border_gap(data.xyz[bord_used], data.vertex_id[bord_used], mesh)
+    stats["rebuilt_faces"] = mesh.n_faces
+    stats["rebuilt_area_m2"] = float(triangle_areas(mesh.xyz, mesh.faces).sum()) if mesh.n_faces else 0.0
+    stats["zone_area_m2"] = zone_area
+    stats["mesh"] = mesh.stats
+
+
+def repair_region_geometry(data: RegionInput, cfg) -> RegionGeometry:
+    """Fuse, classify the defect, triangulate and stitch one region. cfg: ``RepairConfig``."""
+    t0 = time.perf_counter()
+    fc, mc, tc = cfg.fusion, cfg.mesh, cfg.typed
+    params = FusionParams.from_config(fc)
+    mz = len(data.zone_faces)
+    vn = vertex_normals(data.xyz, np.concatenate([data.zone_faces, data.context_faces]), data.face_normals)
+    zone_v = np.unique(data.zone_faces)
+    locked = np.isin(zone_v, border_edges(data.zone_faces, data.context_faces, len(data.xyz)).ravel())
+    mls, mls_n, both, nrm = _thinned_mls(data, fc, zone_v, vn)
+    stats: dict = {"mls_points": len(data.mls_xyz), "mls_thinned": len(mls)}
     t1 = time.perf_counter()
     # evidence (typed repair) from the MLS surface over zone + context
     tree = cKDTree(both) if len(both) else None
     covered, offset = coverage_offsets(data.xyz[zone_v], both, nrm, tree, fc.point_depth_m, 1.5 * fc.mls_spacing_m)
     zone_area = float(triangle_areas(data.xyz, data.zone_faces).sum())
-    if len(mls) and len(zone_v):  # MLS surface with no mesh near it, nor straight in front / behind it
-        dmesh, j = cKDTree(data.xyz[zone_v]).query(mls)
-        delta = data.xyz[zone_v][j] - mls
-        lateral = np.linalg.norm(delta - np.einsum("ij,ij->i", delta, mls_n)[:, None] * mls_n, axis=1)
-        hole_area = float(((dmesh > 0.2) & (lateral > 0.2)).sum()) * fc.mls_spacing_m**2
-    else:
-        hole_area = 0.0
     topo = zone_charts(data.xyz, data.zone_faces, data.context_faces, data.near_zone, mc.max_hole_loop_m)
-    ev = classify_evidence(covered, offset, offset_m=tc.offset_m, hole_area_m2=hole_area,
+    ev = classify_evidence(covered, offset, offset_m=tc.offset_m,
+                           hole_area_m2=_hole_area_m2(data, zone_v, mls, mls_n, fc.mls_spacing_m),
                            open_loop_m=topo.hole_length_m, zone_area_m2=zone_area, min_coverage=tc.min_coverage)
-    conflict = None
-    if tc.enabled and tc.conflict_radius_m > 0 and len(mls):
-        from tasks.repair.fuse import best_similarity
-
-        dn = cKDTree(mls).query(data.xyz[zone_v], distance_upper_bound=tc.conflict_radius_m)[0]
-        sim = best_similarity(data.xyz[zone_v], vn[zone_v], mls, mls_n, cKDTree(mls), params)
-        conflict = np.isfinite(dn) & (sim < params.similarity_threshold)
-        stats["conflict"] = int(conflict.sum())
-        if tc.front_m > 0:
-            far = ~np.isfinite(dn)
-            d2, j2 = cKDTree(mls).query(data.xyz[zone_v][far], distance_upper_bound=tc.front_reach_m)
-            ok = np.isfinite(d2)
-            jj = np.where(ok, j2, 0)
-            off = np.einsum("ij,ij->i", data.xyz[zone_v][far] - mls[jj], mls_n[jj])
-            front = np.zeros(len(zone_v), bool)
-            front[np.flatnonzero(far)[ok & (off > tc.front_m)]] = True
-            conflict |= front
-            stats["in_front"] = int(front.sum())
+    conflict = _conflicts(data, zone_v, vn, mls, mls_n, tc, params, stats)
     plan = repair_plan(ev, covered, offset, typed=tc.enabled, offset_m=tc.offset_m, conflict=conflict,
                        uncovered=tc.uncovered)
     if plan.mesh_only:
         mls, mls_n = mls[:0], mls_n[:0]
-    stats["plan"] = plan.reason
-    stats["charts"] = len(topo.charts)
-    stats["non_disc_faces"] = len(topo.rejected)
+    stats |= {"plan": plan.reason, "charts": len(topo.charts), "non_disc_faces": len(topo.rejected)}
     t2 = time.perf_counter()
     if not plan.rebuild or not topo.charts:
         stats["seconds"] = {"total": time.perf_counter() - t0}
@@ -149,22 +190,12 @@ def repair_region_geometry(data: RegionInput, cfg) -> RegionGeometry:
                        "accepted": int(fr.accepted.sum()), "rejected": int((~fr.accepted).sum()),
                        "forced": int((plan.forced & ~locked).sum()), "energy": fr.energy}
     kept_v = zone_v[~fr.replaced & ~locked]
-    acc = mls[fr.accepted]
-    acc_n = mls_n[fr.accepted]
+    acc, acc_n = mls[fr.accepted], mls_n[fr.accepted]
     fused_xyz = np.concatenate([data.xyz[kept_v], acc])
     fused_src = np.r_[np.zeros(len(kept_v), np.int8), np.ones(len(acc), np.int8)]
-    fused_vertex = np.r_[kept_v, np.full(len(acc), -1)]
     t3 = time.perf_counter()
-    if mc.method == "poisson" and len(fused_xyz) >= 10:
-        fused_n = np.concatenate([vn[kept_v], acc_n])
-        ext = float(np.ptp(fused_xyz, axis=0).max())
-        depth = poisson_depth_for(ext, fc.mls_spacing_m * 1.5, hi=mc.poisson_depth)
-        pv, _, _ = poisson_surface(fused_xyz, fused_n, depth, mc.poisson_trim_quantile)
-        near = cKDTree(fused_xyz).query(pv, distance_upper_bound=3 * fc.mls_spacing_m)[0] < np.inf
-        pts, src, pvert = pv[near], np.full(int(near.sum()), 2, np.int8), np.full(int(near.sum()), -1)
-        stats["poisson"] = {"depth": depth, "vertices": len(pv), "kept": int(near.sum())}
-    else:
-        pts, src, pvert = fused_xyz, fused_src, fused_vertex
+    pts, src, pvert = _mesh_points(fused_xyz, np.concatenate([vn[kept_v], acc_n]), fused_src,
+                                   np.r_[kept_v, np.full(len(acc), -1)], fc, mc, stats)
     vxyz, vids = seam_positions(data, zone_v, fr.replaced, acc, acc_n, topo)
     stats["seam_vertices_moved"] = int((vids != data.vertex_id).sum())
     mesh = rebuild_charts(topo.charts, vids, pts, src, pvert, max_map_distance_m=mc.max_map_distance_m,
@@ -172,15 +203,7 @@ def repair_region_geometry(data: RegionInput, cfg) -> RegionGeometry:
     t4 = time.perf_counter()
     replaced = np.ones(mz, bool)
     replaced[topo.rejected] = False
-    zone_used = data.zone_faces[replaced]
-    bord_used = border_edges(zone_used, data.context_faces, len(data.xyz))
-    gap = border_gap(data.xyz[bord_used], data.vertex_id[bord_used], mesh)
-    # the border between rebuilt charts and non-disc zone pieces left in place
-    stats["border"] = gap
-    stats["rebuilt_faces"] = mesh.n_faces
-    stats["rebuilt_area_m2"] = float(triangle_areas(mesh.xyz, mesh.faces).sum()) if mesh.n_faces else 0.0
-    stats["zone_area_m2"] = zone_area
-    stats["mesh"] = mesh.stats
+    _finish_stats(stats, data, mesh, replaced, zone_area)
     stats["seconds"] = {"normals": t1 - t0, "evidence": t2 - t1, "fusion": t3 - t2, "mesh": t4 - t3,
                         "total": time.perf_counter() - t0}
     return RegionGeometry(mesh, replaced, ev, fused_xyz, fused_src, stats)

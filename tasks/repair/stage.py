@@ -19,7 +19,14 @@ from storage.ids import TileId
 from storage.manifest import combine_fingerprints
 from storage.patch_store import PATCHES_FILE
 from storage.region_mesh import ATLAS_FILE, REGION_FILE, clear_region, write_region_doc, write_region_mesh
-from storage.region_plan import REGION_SCHEMA_VERSION, REGIONS_DIR, Region, occupancy_path, read_plan, region_dir
+from storage.region_plan import (
+    REGION_SCHEMA_VERSION,
+    REGIONS_DIR,
+    Region,
+    occupancy_path,
+    read_plan,
+    region_dir,
+)
 from storage.store_state import store_fingerprint
 from storage.workdir import WorkDir, campus_frame, read_campus
 from tasks.config import CampusConfig

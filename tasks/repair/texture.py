@@ -27,8 +27,8 @@ from dataclasses import dataclass
 import maxflow
 import numpy as np
 
-from tasks.repair.chart import edges_of, undirected_key
 from tasks.repair.atlas import NO_VIEW, Atlas, build_atlas
+from tasks.repair.chart import edges_of, undirected_key
 
 
 @dataclass(frozen=True)

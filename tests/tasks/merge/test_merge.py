@@ -283,6 +283,7 @@ def test_tiny_campus_merges_every_face_once(tiny_merged_run):
 
 def test_tiny_campus_merge_feeds_export_and_passes_its_checks(tiny_merged_run, tmp_path):
     from tasks.export.build import run_export
+
     from tasks.export.check import (
         check_mesh_features,
         check_tileset,
@@ -349,6 +350,7 @@ def test_report_renders_rebuilt_regions_before_and_after(handmade):
 
 def test_tiny_campus_report_names_its_figures_and_caches_quality(tiny_merged_run, tmp_path):
     from tasks.export.build import run_export
+
     from tasks.report.stage import run_report
 
     cfg0, wd0, _ = tiny_merged_run

@@ -3,8 +3,8 @@
 import numpy as np
 import pytest
 
-from tasks.repair.mesh import border_gap, poisson_surface, rebuild_charts, triangle_areas
 from tasks.repair.chart import boundary_edges, disc_parameterisation, split_fans, trace_loops, zone_charts
+from tasks.repair.mesh import border_gap, poisson_surface, rebuild_charts, triangle_areas
 
 
 def _grid_box(n: int = 4, closed: bool = False):

@@ -8,10 +8,10 @@ import numpy as np
 import pytest
 
 from flows.campus import InlineExecutor, reprocess
+from storage.region_mesh import region_meshes_for_tile
 from storage.tile_mesh import SOURCE_REBUILT, read_tile_mesh
 from storage.workdir import WorkDir
 from tasks.config import CampusConfig
-from storage.region_mesh import region_meshes_for_tile
 from tasks.regions import read_plan
 from tasks.repair import run_region
 

@@ -4,7 +4,14 @@ import numpy as np
 
 from synth.cameras import look_rotation
 from tasks.config.repair import TextureConfig
-from tasks.repair.texture import NO_VIEW, CameraView, cameras_to_frame, select_views, texture_mesh, voxel_boxes
+from tasks.repair.texture import (
+    NO_VIEW,
+    CameraView,
+    cameras_to_frame,
+    select_views,
+    texture_mesh,
+    voxel_boxes,
+)
 
 K = np.array([[500.0, 0, 499.5], [0, 500.0, 499.5], [0, 0, 1]])
 
