@@ -86,7 +86,7 @@ def evaluate(models: dict[str, str], eval_name: str, eval_wd: str, data: str = "
     from ms3d_model.net import kernel_response_stats, n_parameters
     from ms3d_model.report import per_class, table3, table4
     from ms3d_model.train import load_checkpoint, net_uses_cues, predict
-    from tasks.classify.pairs import campus_pair_set
+    from tasks.classify import campus_pair_set
 
     torch.set_num_threads(threads)
     cache = str(Path(data) / "cache")
@@ -147,7 +147,7 @@ def _cue_seconds_per_pair(work_dir: str, n: int = 256) -> float:
     """Wall seconds per pair of the hand-made cues (from raw pairs of the campus's first non-empty tile)."""
     from ms3d_model.cues import batch_cues
     from storage.workdir import WorkDir
-    from tasks.classify.pairs import read_tile_pairs
+    from tasks.classify import read_tile_pairs
 
     for t in WorkDir(work_dir).live_tiles():
         tp = read_tile_pairs(WorkDir(work_dir).tile_dir(t))

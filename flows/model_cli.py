@@ -43,7 +43,7 @@ def _cmd_evaluate(a) -> int:
         name, _, path = kv.partition("=")
         models[name if path else "ms3dqe"] = path or name
     if not models:
-        from tasks.classify.stage import DEFAULT_MODEL
+        from tasks.classify import DEFAULT_MODEL
 
         models = {"ms3dqe": str(DEFAULT_MODEL)}
     logging.getLogger("ms3d").setLevel(logging.INFO)

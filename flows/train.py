@@ -77,7 +77,7 @@ def prepare_campus(seed: int, data: str, preset: str = "demo") -> str:
 def load_pairs(campuses: dict[str, str], profile, cache_dir: str):
     """All labelled pairs of the campuses ({name: work dir}) at the profile's input sizes."""
     from ms3d_model.dataset import PairSet
-    from tasks.classify.pairs import campus_pair_set
+    from tasks.classify import campus_pair_set
 
     parts = [campus_pair_set(wd, name, profile.max_points, profile.max_faces, profile.k_centre, profile.seed,
                              cache_dir, max_pairs=profile.max_pairs) for name, wd in campuses.items()]

@@ -2,8 +2,8 @@
 records of units that no longer exist, a lock against two runs at once, and a writable check.
 
 After any change of inputs, a resumed run must leave the same files as a clean run: whatever the plan
-does not name is removed (staging files in ``tasks.ingest.stage.prune_staging``, stores of tiles that lost
-their data in ``tasks.partition.stage``, records here).
+does not name is removed (staging files in :func:`storage.staging.prune_staging`, stores of tiles that
+lost their data in ``tasks.partition``, records here).
 """
 
 from __future__ import annotations
