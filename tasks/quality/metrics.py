@@ -29,7 +29,7 @@ import numpy as np
 
 from storage.errors import InputError
 from storage.ids import TileId
-from tasks.geometry.distance import MeshDistance, unit_face_normals
+from tasks.geometry.distance import MeshDistance, point_to_mesh_distance, unit_face_normals
 from tasks.geometry.sampling import (
     faces_in_boxes,
     iter_surface_samples,
@@ -38,6 +38,11 @@ from tasks.geometry.sampling import (
     seed_of,
 )
 from tasks.quality.stats import QualityPartial, QualityReport, SideSums
+
+# point_to_mesh_distance: still imported from here by tests/synth/test_generate.py (to move to
+# tasks.geometry.distance, then drop it from this import and __all__).
+__all__ = ["FACADE_CLASS_IDS", "class_names_of", "evaluate_mesh", "evaluate_partial", "facade_mask",
+           "point_to_mesh_distance", "validated_mesh"]
 
 # synth.scene.FaceClass values of facade faces: WALL, GLASS, FRAME, BALCONY, EAVE.
 FACADE_CLASS_IDS = (2, 4, 5, 6, 7)
