@@ -27,6 +27,7 @@ from storage.grid import PatchGrid
 REGIONS_DIR = "regions"
 PLAN_FILE = "regions.json"
 REGION_SCHEMA_VERSION = 1
+OCCUPANCY_DIR = "_occupancy"
 
 
 @dataclass(frozen=True)
@@ -101,8 +102,6 @@ def plan_grid(doc: dict) -> PatchGrid:
     g = doc["grid"]
     return PatchGrid(tuple(g["size_m"]), g["tile_size_m"], tuple(g["anchor_m"]))
 
-
-OCCUPANCY_DIR = "_occupancy"
 
 
 def occupancy_path(root: str | Path, tile_key: str) -> Path:
