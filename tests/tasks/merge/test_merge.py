@@ -282,8 +282,7 @@ def test_tiny_campus_merges_every_face_once(tiny_merged_run):
 
 
 def test_tiny_campus_merge_feeds_export_and_passes_its_checks(tiny_merged_run, tmp_path):
-    from tasks.export.build import run_export
-
+    from tasks.export import run_export
     from tasks.export.check import (
         check_mesh_features,
         check_tileset,
@@ -333,7 +332,7 @@ def test_tiny_campus_rerun_skips_and_a_relabelled_tile_is_redone(tiny_merged_run
 
 
 def test_report_renders_rebuilt_regions_before_and_after(handmade):
-    from tasks.report.stage import run_report
+    from tasks.report import run_report
 
     cfg, wd, tmp = handmade
     for t in TILES:
@@ -349,9 +348,8 @@ def test_report_renders_rebuilt_regions_before_and_after(handmade):
 
 
 def test_tiny_campus_report_names_its_figures_and_caches_quality(tiny_merged_run, tmp_path):
-    from tasks.export.build import run_export
-
-    from tasks.report.stage import run_report
+    from tasks.export import run_export
+    from tasks.report import run_report
 
     cfg0, wd0, _ = tiny_merged_run
     work = tmp_path / "work"
@@ -367,5 +365,5 @@ def test_tiny_campus_report_names_its_figures_and_caches_quality(tiny_merged_run
         assert words in page, words
     assert "Could not make this section" not in page
     quality = (wd.report_dir / "quality.json").stat().st_mtime_ns
-    again = run_report(cfg, wd)  # quality comes from the cache: the merged tiles did not change
+    run_report(cfg, wd)  # quality comes from the cache: the merged tiles did not change
     assert (wd.report_dir / "quality.json").stat().st_mtime_ns == quality
