@@ -1,4 +1,4 @@
-"""Reading the Parquet patch store (schema and writer in :mod:`storage.patch_store`).
+"""Reading the Parquet patch store (contract in :mod:`storage.patch_store`).
 
 One tile folder is opened as a :class:`PatchStore`: the patches table is read whole (it is small), the
 points and faces tables by row groups, so reading one patch touches only the row groups its rows lie in.
@@ -16,17 +16,18 @@ import pyarrow.parquet as pq
 from .errors import InputError
 from .grid import PatchGrid
 from .ids import PatchId
-from .patch_store import (
+from .patch_schema import (
     FACE_DTYPES,
     FACES_FILE,
     PATCH_DTYPES,
     PATCHES_FILE,
     POINT_DTYPES,
     POINTS_FILE,
+    SIDE_TABLES,
     TileMeta,
-    _open,
-    _to_numpy,
-    read_side_table,
+    open_table,
+    side_table_path,
+    table_columns,
 )
 
 
@@ -119,7 +120,7 @@ class _RowGroupFile:
                 t = self.pf.read_row_groups(need.tolist(), columns=columns)
             except (OSError, pa.ArrowException) as exc:
                 raise InputError(self.path, f"cannot read row groups ({exc})") from None
-            data = _to_numpy(t, columns, self.dtypes)
+            data = table_columns(t, columns, self.dtypes)
         else:
             data = {c: np.zeros(0, dtype=self.dtypes[c]) for c in columns}
         # where each needed row group begins in the concatenation; overlapped groups are consecutive there
@@ -145,17 +146,17 @@ class PatchStore:
     def __init__(self, tile_dir: str | Path):
         self.tile_dir = Path(tile_dir)
         self.stats = StoreStats()
-        pf, pmeta = _open(self.tile_dir / PATCHES_FILE, "patches")
+        pf, pmeta = open_table(self.tile_dir / PATCHES_FILE, "patches")
         try:
             table = pf.read()
         except (OSError, pa.ArrowException) as exc:
             raise InputError(self.tile_dir / PATCHES_FILE, f"cannot read ({exc})") from None
-        self._patches = _to_numpy(table, PATCH_DTYPES, PATCH_DTYPES)
+        self._patches = table_columns(table, PATCH_DTYPES, PATCH_DTYPES)
         files = {}
         for table_name, file_name, rows_key in (("points", POINTS_FILE, "points_rows"),
                                                 ("faces", FACES_FILE, "faces_rows")):
             path = self.tile_dir / file_name
-            f, m = _open(path, table_name)
+            f, m = open_table(path, table_name)
             if m["n_rows"] != pmeta.get(rows_key) or m["tile"] != pmeta["tile"] \
                     or m["patch_size_m"] != pmeta["patch_size_m"]:
                 raise InputError(path, f"does not belong with {PATCHES_FILE} (rows/tile/patch size differ): "
@@ -247,3 +248,20 @@ class PatchStore:
         return pdata, fdata
 
 
+def read_side_table(tile_dir: str | Path, name: str, patch_keys: np.ndarray | None = None) -> tuple[dict, dict] | None:
+    """A tile's side table as (columns, metadata), or None when it was never written.
+
+    patch_keys: the patches table's ``patch`` column; a side table whose keys differ is stale (written
+    for an older partition) and raises InputError rather than being joined to the wrong patches.
+    """
+    path = side_table_path(tile_dir, name)
+    if not path.exists():
+        return None
+    pf, meta = open_table(path, name)
+    try:
+        cols = table_columns(pf.read(), SIDE_TABLES[name], SIDE_TABLES[name])
+    except (OSError, pa.ArrowException) as exc:
+        raise InputError(path, f"cannot read ({exc})") from None
+    if patch_keys is not None and not np.array_equal(cols["patch"], patch_keys):
+        raise InputError(path, f"{name} do not match the tile's patches (stale): re-run `ms3d run`")
+    return cols, meta

@@ -225,3 +225,12 @@ def test_v2_face_columns_and_v1_refused(tmp_path):
     pq.write_table(table.replace_schema_metadata({b"ms3d": json.dumps(md).encode()}), path)
     with pytest.raises(InputError, match="v2.*re-run"):
         PatchStore(tmp_path)
+
+
+@pytest.mark.parametrize("module", ["storage.patch_reader", "storage.patch_writer", "storage.patch_schema",
+                                    "storage.patch_store"])
+def test_each_patch_store_module_imports_on_its_own(module):
+    import subprocess
+    import sys
+
+    subprocess.run([sys.executable, "-c", f"import {module}"], check=True)
