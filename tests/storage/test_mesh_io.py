@@ -269,12 +269,12 @@ def test_obj_face_layouts(tmp_path, face_lines):
     "v\t0 0 0\nv 1 0 0\nv 1 1 0\nv 0 1 0\nf 1 2 3 4\n",
 ])
 def test_obj_block_parser_agrees_with_the_line_parser(tmp_path, text):
-    import storage.obj_io as obj_io
+    from storage import obj_io, obj_statements
 
     p = tmp_path / "m.obj"
     p.write_text(text.replace("mtllib none.mtl\n", ""))
-    fast = obj_io._fast_statements(p.read_bytes())
-    slow = obj_io._slow_statements(p, p.read_text())
+    fast = obj_statements.fast_statements(p.read_bytes())
+    slow = obj_statements.slow_statements(p, p.read_text())
     if fast is not None:
         for name in ("xyzc", "vt", "counts", "raw_v"):
             assert np.array_equal(getattr(fast, name), getattr(slow, name)), name
@@ -285,7 +285,7 @@ def test_obj_block_parser_agrees_with_the_line_parser(tmp_path, text):
 
 
 def test_obj_block_parser_on_a_written_mesh(tmp_path):
-    import storage.obj_io as obj_io
+    from storage import obj_statements
 
     rng = np.random.default_rng(0)
     v = rng.random((500, 3)) * 100
@@ -293,6 +293,6 @@ def test_obj_block_parser_on_a_written_mesh(tmp_path):
     f = f[(f[:, 0] != f[:, 1]) & (f[:, 1] != f[:, 2]) & (f[:, 0] != f[:, 2])]
     write_obj(tmp_path / "w.obj", v, f)
     data = (tmp_path / "w.obj").read_bytes()
-    fast = obj_io._fast_statements(data)
-    slow = obj_io._slow_statements(tmp_path / "w.obj", data.decode())
+    fast = obj_statements.fast_statements(data)
+    slow = obj_statements.slow_statements(tmp_path / "w.obj", data.decode())
     assert fast is not None and np.array_equal(fast.xyzc, slow.xyzc) and np.array_equal(fast.raw_v, slow.raw_v)
