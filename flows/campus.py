@@ -113,6 +113,7 @@ class _Run:
 
 
 def _reprocess(run: _Run) -> dict:
+    """Inputs, tiles, outputs; then the run summary (failures, per-stage counts, output paths)."""
     t_wall, t_start = time.perf_counter(), time.time()
     sweep_temporary_files(run.wd)
     inputs = _inputs(run)

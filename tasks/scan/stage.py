@@ -1,5 +1,5 @@
 """Scan the inputs once per content: bounds, counts, CRS, errors, and the mesh surface samples that
-registration aligns to; then choose the campus frame.
+registration aligns to (the campus frame is then chosen from the records: :mod:`tasks.scan.frame`).
 
 One scan unit per input file, keyed by the file's stable source id and skipped while its content
 fingerprint is unchanged, so a nightly run over a thousand unchanged ContextCapture tiles reads none
@@ -10,8 +10,8 @@ model of a few hundred triangles is sampled as densely as a 10 cm MVS mesh).
 
 A file that cannot be read is still scanned: its record carries the error and, when the file says
 where it lies (a LAS header, the finite vertices of a broken mesh), its bounds, so that exactly the
-tiles it covers are blocked. A file whose bounds are unknown blocks no tile and makes the campus
-incomplete.
+tiles it covers are blocked (:mod:`tasks.scan.salvage`). A file whose bounds are unknown blocks no tile
+and makes the campus incomplete.
 """
 
 from __future__ import annotations
