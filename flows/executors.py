@@ -7,6 +7,7 @@ from prefect import unmapped
 
 from flows.progress import wait_all
 
+
 class PrefectExecutor:
     """Runs tasks as Prefect task runs on the flow's task runner (Dask workers)."""
 
@@ -78,6 +79,6 @@ def _unit_name(u) -> str:
 def _state_error(state) -> str:
     try:
         state.result()
-    except Exception as e:  # noqa: BLE001 - the message is what we report
+    except Exception as e:
         return f"{type(e).__name__}: {e}".splitlines()[0]
     return state.message or "failed"

@@ -42,7 +42,7 @@ def point_columns(chunk: PointChunk, local: np.ndarray, source: int) -> dict[str
     """Staging/patch-store point columns from a chunk and its campus-local float32 xyz (n, 3)."""
     n = len(local)
     rgb = chunk.rgb if chunk.rgb is not None else np.zeros((n, 3), np.uint16, order="F")
-    u16 = lambda a: a.astype(np.uint16, copy=False)  # noqa: E731 - columns of an F-ordered (n, 3): no copy
+    u16 = lambda a: a.astype(np.uint16, copy=False)
     return {
         "x": local[:, 0], "y": local[:, 1], "z": local[:, 2],
         "intensity": chunk.intensity if chunk.intensity is not None else np.zeros(n, np.uint16),

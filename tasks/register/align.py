@@ -38,8 +38,8 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from storage.errors import InputError
-from tasks.register import fine as register_fine
 from tasks.config import RegistrationConfig
+from tasks.register import fine as register_fine
 from tasks.register.base import (
     MIN_POINTS,
     PRE_CAP_FACTOR,
@@ -52,7 +52,12 @@ from tasks.register.base import (
     finite_xyz,
     subsample_for_registration,
 )
-from tasks.register.check import CoregistrationCheck, check_coregistered, check_coregistered_samples, check_overlap
+from tasks.register.check import (
+    CoregistrationCheck,
+    check_coregistered,
+    check_coregistered_samples,
+    check_overlap,
+)
 from tasks.register.coarse import coarse_register, consistent_matches, match_features
 from tasks.register.fine import (
     FINE_DISTANCES_M,

@@ -11,9 +11,9 @@ import pytest
 from flows.campus import InlineExecutor, reprocess
 from storage.frame import CampusFrame
 from storage.patch_store import PatchStore, TileMeta
+from storage.staging import staged_files
 from synth.handmade import build_campus
 from tasks.config import CampusConfig
-from storage.staging import staged_files
 from tasks.partition.stream import plan_blocks, stream_partition_tile
 
 
