@@ -1,7 +1,7 @@
 """Building envelopes as planar charts: walls, eave soffits, fascias and roof planes.
 
 The envelope is a building without its openings and protrusions. The truth mesh triangulates these
-charts directly (cutting windows into the walls, see ``synth.buildings``); the MVS simulator
+charts directly (cutting windows into the walls, see ``synth.facades``); the MVS simulator
 (``synth.mvs``) covers the same charts with near-equilateral lattices and displaces the wall charts
 onto the truth details. Both use these polygons, so an edge shared by two charts has the same end
 points in both (the MVS lattices then conform along it).

@@ -20,6 +20,7 @@ import json
 import logging
 import shutil
 import time
+from dataclasses import dataclass, field
 from pathlib import Path
 
 import numpy as np
@@ -190,16 +191,40 @@ def _merge_scenes(scenes: list[Scene]) -> Scene:
                  extent=scenes[0].extent, meta={})
 
 
+@dataclass
+class _SynthRun:
+    """What :func:`generate` carries from tile to tile: the output, the preset, the MLS perturbation, the
+    tile grid (nx, ny), the scenes still needed (``cache``) and what accumulates (stats, buildings,
+    cameras, the number of defects written to ``defects_part``)."""
+
+    out: Path
+    preset: SynthPreset
+    seed: int
+    perturb: np.ndarray
+    nx: int
+    ny: int
+    stats: dict = field(default_factory=dict)
+    buildings: list = field(default_factory=list)
+    cameras: list = field(default_factory=list)
+    n_defects: int = 0
+    cache: dict[tuple[int, int], Scene] = field(default_factory=dict)
+
+    @property
+    def defects_part(self) -> Path:
+        return self.out / "truth" / ".defects.part"  # one JSON array body per tile: memory stays per tile
+
+    def scene_at(self, ix: int, iy: int) -> Scene:
+        if (ix, iy) not in self.cache:
+            self.cache[(ix, iy)] = _tile_scene(self.seed, self.preset, ix, iy, self.nx * self.ny)
+        return self.cache[(ix, iy)]
+
+
 def generate(preset: str = "tiny", seed: int = 0, out: str | Path = "synth-out", overwrite: bool = False,
              scale: float = 1.0, mls_density: float | None = None) -> Path:
     """Generate a synthetic campus into ``out``; returns ``out``. See the module docstring.
 
     mls_density: the MLS scanner rate as a fraction of the real one (1.0 = real density); None keeps
     the preset's (demo 0.1)."""
-    from .cameras import render_cameras, write_images
-    from .mvs import MvsParams, make_mvs_mesh
-    from .trajectory import TrajectoryParams, build_trajectories
-
     p = get_preset(preset, scale, mls_density)
     out = Path(out).absolute()
     _prepare_out(out, overwrite)
@@ -208,76 +233,83 @@ def generate(preset: str = "tiny", seed: int = 0, out: str | Path = "synth-out",
     truth_reg = random_registration(r_reg)  # MLS local -> mesh local
     perturb = np.linalg.inv(truth_reg)  # mesh local -> MLS local
     nx, ny = int(np.ceil(p.extent_m[0] / p.tile_m)), int(np.ceil(p.extent_m[1] / p.tile_m))
-    origin = np.asarray(WORLD_ORIGIN)
-    buildings, stats = [], {}
-    defects_part = out / "truth" / ".defects.part"  # one JSON array body per tile: memory stays per tile
-    defects_part.parent.mkdir(parents=True, exist_ok=True)
-    n_defects = 0
-    mesh_inputs, cameras = [], []
-    cache: dict[tuple[int, int], Scene] = {}
-
-    def scene_at(ix, iy):
-        if (ix, iy) not in cache:
-            cache[(ix, iy)] = _tile_scene(seed, p, ix, iy, nx * ny)
-        return cache[(ix, iy)]
-
+    run = _SynthRun(out, p, seed, perturb, nx, ny)
+    run.defects_part.parent.mkdir(parents=True, exist_ok=True)
     for ix in range(nx):
         for iy in range(ny):
-            r_mvs, r_tex, r_traj, r_mls, r_cam = streams(seed * 7919 + ix * 131 + iy + 1, 5)
-            scene = scene_at(ix, iy)
-            name = f"Tile_{ix:+04d}_{iy:+04d}" if p.tiled_mesh else "mvs"
-            mvs, tile_defects = make_mvs_mesh(r_mvs, scene, MvsParams(edge_facade_m=p.mvs_edge_m))
-            for d in tile_defects:
-                d["id"] = f"{ix}_{iy}_{d['id']}"
-                d["mesh_file"] = f"mesh/{name}/{name}.obj" if p.tiled_mesh else "mesh/mvs.obj"
-            with open(defects_part, "a") as fp:
-                for d in tile_defects:
-                    fp.write((",\n" if n_defects else "") + json.dumps(d, indent=None, default=_json_default))
-                    n_defects += 1
-            del tile_defects
-            folder = out / "mesh" / name if p.tiled_mesh else out / "mesh"
-            write_mvs_tile(folder, name, mvs, r_tex)
-            stats["mvs_faces"] = stats.get("mvs_faces", 0) + mvs.n_faces
-            tname = f"truth_mesh_{name}" if p.tiled_mesh else "truth_mesh"
-            write_ply(out / "truth" / f"{tname}.ply", scene.truth.vertices + origin, scene.truth.faces,
-                      face_colors=scene.truth.face_color)
-            _save_npz(out / "truth" / f"{tname}_faces.npz", face_class=scene.truth.face_class,
-                      face_building=scene.truth.face_building)
-            buildings += [_building_json(b) for b in scene.buildings]
-            # MLS: scan the tile's roads against the tile and its neighbours (rays cross tile borders)
-            neigh = [scene_at(jx, jy) for jx in range(max(ix - 1, 0), min(ix + 2, nx))
-                     for jy in range(max(iy - 1, 0), min(iy + 2, ny))] if p.tiled_mesh else [scene]
-            seen = _merge_scenes(neigh) if len(neigh) > 1 else scene
-            tp = TrajectoryParams(n_passes=p.n_passes, gps_start_s=302_400.0 + (ix * ny + iy) * 3600.0)
-            trajs = build_trajectories(scene.roads, tp, r_traj, truth=seen.truth)
-            scan_to_laz(seen, trajs, lambda t, ix=ix, iy=iy: out / "mls" / f"strip_{ix:02d}{iy:02d}_{t.traj_id:03d}.laz",
-                        perturb, p.mls_density_scale, r_mls, stats)
-            if p.image_every_m > 0:
-                imgs, cams = render_cameras(seen, trajs, every_m=p.image_every_m, size=p.image_size, rng=r_cam)
-                cameras += write_images(out / "images", imgs, cams, perturb, origin, prefix=f"{ix:02d}{iy:02d}_")
+            _write_tile(run, ix, iy)
             # bounded memory: forget scenes no later tile needs
-            for key in [k for k in cache if k[0] < ix - 1]:
-                del cache[key]
+            for key in [k for k in run.cache if k[0] < ix - 1]:
+                del run.cache[key]
+    _write_campus_files(run, truth_reg, scale)
+    log.info("synth %s seed %d: %s in %.1f s", p.name, seed, run.stats, time.perf_counter() - t_start)
+    return out
+
+
+def _write_tile(run: _SynthRun, ix: int, iy: int) -> None:
+    """Tile (ix, iy): its MVS mesh and defects, its truth mesh, the MLS strips and camera images of its
+    roads (scanned against the tile and its neighbours: rays cross tile borders)."""
+    from .cameras import render_cameras, write_images
+    from .mvs import MvsParams, make_mvs_mesh
+    from .trajectory import TrajectoryParams, build_trajectories
+
+    out, p, nx, ny, stats = run.out, run.preset, run.nx, run.ny, run.stats
+    origin = np.asarray(WORLD_ORIGIN)
+    r_mvs, r_tex, r_traj, r_mls, r_cam = streams(run.seed * 7919 + ix * 131 + iy + 1, 5)
+    scene = run.scene_at(ix, iy)
+    name = f"Tile_{ix:+04d}_{iy:+04d}" if p.tiled_mesh else "mvs"
+    mvs, tile_defects = make_mvs_mesh(r_mvs, scene, MvsParams(edge_facade_m=p.mvs_edge_m))
+    for d in tile_defects:
+        d["id"] = f"{ix}_{iy}_{d['id']}"
+        d["mesh_file"] = f"mesh/{name}/{name}.obj" if p.tiled_mesh else "mesh/mvs.obj"
+    with open(run.defects_part, "a") as fp:
+        for d in tile_defects:
+            fp.write((",\n" if run.n_defects else "") + json.dumps(d, indent=None, default=_json_default))
+            run.n_defects += 1
+    del tile_defects
+    folder = out / "mesh" / name if p.tiled_mesh else out / "mesh"
+    write_mvs_tile(folder, name, mvs, r_tex)
+    stats["mvs_faces"] = stats.get("mvs_faces", 0) + mvs.n_faces
+    tname = f"truth_mesh_{name}" if p.tiled_mesh else "truth_mesh"
+    write_ply(out / "truth" / f"{tname}.ply", scene.truth.vertices + origin, scene.truth.faces,
+              face_colors=scene.truth.face_color)
+    _save_npz(out / "truth" / f"{tname}_faces.npz", face_class=scene.truth.face_class,
+              face_building=scene.truth.face_building)
+    run.buildings += [_building_json(b) for b in scene.buildings]
+    neigh = [run.scene_at(jx, jy) for jx in range(max(ix - 1, 0), min(ix + 2, nx))
+             for jy in range(max(iy - 1, 0), min(iy + 2, ny))] if p.tiled_mesh else [scene]
+    seen = _merge_scenes(neigh) if len(neigh) > 1 else scene
+    tp = TrajectoryParams(n_passes=p.n_passes, gps_start_s=302_400.0 + (ix * ny + iy) * 3600.0)
+    trajs = build_trajectories(scene.roads, tp, r_traj, truth=seen.truth)
+    scan_to_laz(seen, trajs, lambda t: out / "mls" / f"strip_{ix:02d}{iy:02d}_{t.traj_id:03d}.laz",
+                run.perturb, p.mls_density_scale, r_mls, stats)
+    if p.image_every_m > 0:
+        imgs, cams = render_cameras(seen, trajs, every_m=p.image_every_m, size=p.image_size, rng=r_cam)
+        run.cameras += write_images(out / "images", imgs, cams, run.perturb, origin, prefix=f"{ix:02d}{iy:02d}_")
+
+
+def _write_campus_files(run: _SynthRun, truth_reg: np.ndarray, scale: float) -> None:
+    """What follows the tiles: metadata.xml, cameras.json, registration.json, defects.json, scene.json,
+    campus.yaml and the manifest (last: it hashes every file)."""
+    out, p, seed = run.out, run.preset, run.seed
     mesh_inputs = ["mesh"]
     write_metadata_xml(out / "mesh")
-    if cameras:
+    if run.cameras:
         write_json_atomic(out / "images" / "cameras.json", {"frame": "MLS", "frame_origin": list(WORLD_ORIGIN),
                                                             "convention": "OpenCV: x right, y down, z forward; X_cam = R X_local + t, X_local = X_world - frame_origin",
-                                                            "cameras": cameras})
+                                                            "cameras": run.cameras})
     write_json_atomic(out / "truth" / "registration.json", {
         "frame_origin": list(WORLD_ORIGIN), "crs": CRS,
         "matrix_mls_to_mesh": truth_reg.tolist(),
         "note": "mesh_world - frame_origin = M (mls_world - frame_origin); M = [s R | t]",
     })
-    _assemble_defects(out / "truth" / "defects.json", defects_part)
+    _assemble_defects(out / "truth" / "defects.json", run.defects_part)
     write_json_atomic(out / "truth" / "scene.json", {"preset": p.name, "seed": seed, "scale": scale,
                                                      "mls_density": p.mls_density_scale,
-                                                     "extent_m": list(p.extent_m), "buildings": buildings,
-                                                     "stats": {k: v for k, v in stats.items() if k != "scan_seconds"}})
+                                                     "extent_m": list(p.extent_m), "buildings": run.buildings,
+                                                     "stats": {k: v for k, v in run.stats.items() if k != "scan_seconds"}})
     write_campus_yaml(out, p, mesh_inputs, seed)
     write_manifest(out, {"preset": p.name, "seed": seed, "scale": scale, "mls_density": p.mls_density_scale})
-    log.info("synth %s seed %d: %s in %.1f s", p.name, seed, stats, time.perf_counter() - t_start)
-    return out
 
 
 def _json_default(o):

@@ -44,6 +44,52 @@ def _corners(poly) -> np.ndarray:
     return np.flatnonzero(turn > 1e-7)
 
 
+def _zip_rows(params: np.ndarray, prow: np.ndarray, N: int) -> np.ndarray:
+    """Triangles (t, 3) joining consecutive rows 0..N of points (indices into the points), in one merge.
+
+    params: (n,) position of each point along its row, 0..1; prow: (n,) its row, non-decreasing. Each
+    segment p -> p + 1 inside a row makes one triangle with the apex in the neighbouring row, the
+    segments of a row pair taken in order of their midpoints (both rows merged).
+    """
+    counts = np.bincount(prow, minlength=N + 1)
+    row_off = np.cumsum(counts) - counts
+    seg = np.flatnonzero(np.diff(prow) == 0)  # segment p -> p + 1 inside a row
+    mid, srow = 0.5 * (params[seg] + params[seg + 1]), prow[seg]
+    a_sel, b_sel = srow < N, srow > 0
+    keys = np.concatenate([srow[a_sel] + mid[a_sel], srow[b_sel] - 1 + mid[b_sel]])
+    isA = np.concatenate([np.ones(a_sel.sum(), bool), np.zeros(b_sel.sum(), bool)])
+    pair = np.concatenate([srow[a_sel], srow[b_sel] - 1])
+    sp_ = np.concatenate([seg[a_sel], seg[b_sel]])
+    o = np.argsort(keys, kind="stable")
+    isA, pair, sp_ = isA[o], pair[o], sp_[o]
+    cA, cB = np.cumsum(isA) - isA, np.cumsum(~isA) - ~isA
+    g = np.searchsorted(pair, pair, side="left")
+    a_before, b_before = cA - cA[g], cB - cB[g]
+    tri = np.where(isA[:, None],
+                   np.column_stack([sp_, sp_ + 1, row_off[np.minimum(pair + 1, N)] + b_before]),
+                   np.column_stack([row_off[pair] + a_before, sp_ + 1, sp_]))
+    return tri
+
+
+def _jitter_interior(pts: np.ndarray, tri: np.ndarray, inner: np.ndarray, n: np.ndarray, sigma: float,
+                     rng: np.random.Generator) -> None:
+    """Move the ``inner`` points (mask (n,)) in place by a Gaussian of std ``sigma`` in the plane of normal
+    ``n``, clipped at a quarter of each point's shortest altitude, so no triangle can fold."""
+    e1 = np.cross(n, [0.0, 0.0, 1.0]) if abs(n[2]) < 0.9 else np.cross(n, [1.0, 0.0, 0.0])
+    e1 /= np.linalg.norm(e1)
+    e2 = np.cross(n, e1)
+    t = pts[tri]
+    area2 = np.linalg.norm(np.cross(t[:, 1] - t[:, 0], t[:, 2] - t[:, 0]), axis=1)
+    alt = np.full(len(pts), np.inf)
+    for k in range(3):
+        opp = np.linalg.norm(t[:, (k + 2) % 3] - t[:, (k + 1) % 3], axis=1)
+        np.minimum.at(alt, tri[:, k], area2 / np.maximum(opp, 1e-18))
+    d = rng.normal(0.0, sigma, (int(inner.sum()), 2))
+    r = np.linalg.norm(d, axis=1, keepdims=True)
+    d *= np.minimum(1.0, 0.25 * alt[inner][:, None] / np.maximum(r, 1e-18))
+    pts[inner] += d[:, :1] * e1 + d[:, 1:] * e2
+
+
 def strip_chart(poly: np.ndarray, edge_h, h: float, rng: np.random.Generator, jitter: float = 0.0
                 ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """Cover a convex planar 3- or 4-cornered polygon with staggered rows of near-equilateral triangles.
@@ -88,23 +134,7 @@ def strip_chart(poly: np.ndarray, edge_h, h: float, rng: np.random.Generator, ji
     params = np.concatenate([along(bottom), par, along(top)])
     prow = np.concatenate([np.zeros(len(bottom), int), row + 1, np.full(len(top), N)])
     boundary = np.concatenate([np.ones(len(bottom), bool), (j == 0) | last, np.ones(len(top), bool)])
-    counts = np.bincount(prow, minlength=N + 1)
-    row_off = np.cumsum(counts) - counts
-    seg = np.flatnonzero(np.diff(prow) == 0)  # segment p -> p + 1 inside a row
-    mid, srow = 0.5 * (params[seg] + params[seg + 1]), prow[seg]
-    a_sel, b_sel = srow < N, srow > 0
-    keys = np.concatenate([srow[a_sel] + mid[a_sel], srow[b_sel] - 1 + mid[b_sel]])
-    isA = np.concatenate([np.ones(a_sel.sum(), bool), np.zeros(b_sel.sum(), bool)])
-    pair = np.concatenate([srow[a_sel], srow[b_sel] - 1])
-    sp_ = np.concatenate([seg[a_sel], seg[b_sel]])
-    o = np.argsort(keys, kind="stable")
-    isA, pair, sp_ = isA[o], pair[o], sp_[o]
-    cA, cB = np.cumsum(isA) - isA, np.cumsum(~isA) - ~isA
-    g = np.searchsorted(pair, pair, side="left")
-    a_before, b_before = cA - cA[g], cB - cB[g]
-    tri = np.where(isA[:, None],
-                   np.column_stack([sp_, sp_ + 1, row_off[np.minimum(pair + 1, N)] + b_before]),
-                   np.column_stack([row_off[pair] + a_before, sp_ + 1, sp_]))
+    tri = _zip_rows(params, prow, N)
     t = pts[tri]
     cr = np.cross(t[:, 1] - t[:, 0], t[:, 2] - t[:, 0])
     n = polygon_normal(poly)
@@ -113,21 +143,7 @@ def strip_chart(poly: np.ndarray, edge_h, h: float, rng: np.random.Generator, ji
     if area.sum() < 0:
         tri = tri[:, ::-1]
     if jitter > 0:
-        e1 = np.cross(n, [0.0, 0.0, 1.0]) if abs(n[2]) < 0.9 else np.cross(n, [1.0, 0.0, 0.0])
-        e1 /= np.linalg.norm(e1)
-        e2 = np.cross(n, e1)
-        inner = ~boundary
-        # each point moves less than a quarter of its shortest altitude, so no triangle can fold
-        t = pts[tri]
-        area2 = np.linalg.norm(np.cross(t[:, 1] - t[:, 0], t[:, 2] - t[:, 0]), axis=1)
-        alt = np.full(len(pts), np.inf)
-        for k in range(3):
-            opp = np.linalg.norm(t[:, (k + 2) % 3] - t[:, (k + 1) % 3], axis=1)
-            np.minimum.at(alt, tri[:, k], area2 / np.maximum(opp, 1e-18))
-        d = rng.normal(0.0, jitter * h, (int(inner.sum()), 2))
-        r = np.linalg.norm(d, axis=1, keepdims=True)
-        d *= np.minimum(1.0, 0.25 * alt[inner][:, None] / np.maximum(r, 1e-18))
-        pts[inner] += d[:, :1] * e1 + d[:, 1:] * e2
+        _jitter_interior(pts, tri, ~boundary, n, jitter * h, rng)
     return pts, tri.astype(np.int64), boundary
 
 

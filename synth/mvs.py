@@ -3,7 +3,7 @@
 How it is built, per building and for the terrain:
 
 1. every envelope chart (``synth.envelope``: walls, soffits, fascias, roof planes) and every
-   terrain cell (``synth.buildings.terrain_cells``) is covered with staggered rows of near-
+   terrain cell (``synth.terrain.terrain_cells``) is covered with staggered rows of near-
    equilateral triangles of edge ``edge_*_m``, slightly jittered; chart edges are sampled the same
    way from both sides, so the charts weld into one connected, manifold surface whose only border
    is the extent's; a few random edge flips bring valence-6 vertices down to real-mesh levels;
@@ -131,7 +131,8 @@ def _lattices(rng, scene: Scene, p: MvsParams):
     2 other building chart, face_part (m,) lattice part index, part_class and part_building per
     part, roads [(axis, centre, half_width)].
     """
-    from .buildings import road_lines, terrain_cells
+    from .layout import road_lines
+    from .terrain import terrain_cells
 
     eh = p.edge_facade_m * np.sqrt(3) / 2  # chart edges sampled at the row pitch of an equilateral lattice
     roads = [tuple(r) for r in scene.meta.get("roads", road_lines(scene.extent))]

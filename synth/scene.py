@@ -116,6 +116,17 @@ class Mesh:
         )
 
 
+def soup_to_mesh(parts, building: int, tol: float = 1e-6) -> Mesh:
+    """[(triangles (m, 3, 3), class, rgb (3,)), ...] -> welded Mesh (vertices merged within ``tol`` m)."""
+    tris = np.concatenate([p[0] for p in parts])
+    key = np.round(tris.reshape(-1, 3) / tol).astype(np.int64)
+    _, first, inv = np.unique(key, axis=0, return_index=True, return_inverse=True)
+    return Mesh(vertices=tris.reshape(-1, 3)[first], faces=inv.reshape(-1, 3).astype(np.int64),
+                face_class=np.concatenate([np.full(len(p[0]), p[1], np.uint8) for p in parts]),
+                face_building=np.full(len(tris), building, np.int32),
+                face_color=np.concatenate([np.tile(np.asarray(p[2], np.uint8), (len(p[0]), 1)) for p in parts]))
+
+
 @dataclass
 class Occluders:
     """Things in front of facades that the MLS and cameras see but the truth excludes.

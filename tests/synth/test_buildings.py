@@ -1,10 +1,12 @@
-"""Truth campus geometry: layout, walls, windows, eaves, occluders (synth.buildings / synth.occluders)."""
+"""Truth campus geometry: layout, walls, windows, eaves, occluders (synth.layout, synth.facades, synth.buildings,
+synth.occluders)."""
 
 import numpy as np
 import pytest
 
-from synth.buildings import LayoutParams, make_scene, road_lines
+from synth.buildings import make_scene
 from synth.envelope import edge_normals_2d
+from synth.layout import LayoutParams, road_lines
 from synth.scene import FaceClass, OccluderClass
 
 EXTENT = (0.0, 0.0, 160.0, 160.0)
