@@ -49,7 +49,7 @@ def _vm_hwm_mb() -> float:
 def _child(work: str, compression: str, workers: int = 1) -> None:
     """Run one export in this (fresh) process and print its summary with peak RSS and CPU seconds."""
     from tasks.config import ExportConfig
-    from tasks.export.build import run_export
+    from tasks.export import run_export
 
     t0, c0 = time.perf_counter(), time.process_time()
     summary = run_export(work, ExportConfig(compression=compression), workers=workers)

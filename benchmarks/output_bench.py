@@ -59,7 +59,7 @@ def _merge_one(work: str, key: str) -> tuple[dict | None, float]:
     """Merge one tile (in a pool worker); returns its summary and the worker's peak RSS so far."""
     from storage.ids import TileId
     from storage.workdir import WorkDir
-    from tasks.merge.stage import run_merge_tile
+    from tasks.merge import run_merge_tile
 
     return run_merge_tile(TileId.from_key(key), _config(Path(work)), WorkDir(work)), _vm_hwm_mb()
 
@@ -96,7 +96,7 @@ def _child_merge(work: str, processes: int = 1) -> dict:
 
 def _child_export(work: str, processes: int = 1) -> dict:
     from tasks.config import ExportConfig
-    from tasks.export.build import run_export
+    from tasks.export import run_export
 
     t0, c0 = time.perf_counter(), time.process_time()
     s = run_export(work, ExportConfig(compression="none"), workers=processes)

@@ -57,7 +57,7 @@ def tiny_export(tiny_merged, tmp_path_factory):
     """``tiny_merged`` exported (uncompressed) into a copy of the work dir; returns (work dir, summary)."""
     import shutil
 
-    from tasks.export.build import run_export
+    from tasks.export import run_export
 
     work = tmp_path_factory.mktemp("export") / "work"
     shutil.copytree(tiny_merged, work)

@@ -13,7 +13,6 @@ from storage.region_mesh import RegionMesh
 from tasks.merge.soup import FaceSoup, weld_soup
 from tasks.merge.stage import run_merge_tile
 from tasks.merge.tile import MergeStats, faces_in_tile, merge_tile, retained_soup
-from tasks.merge.weld import first_of_groups
 
-__all__ = ["FaceSoup", "MergeStats", "RegionMesh", "faces_in_tile", "first_of_groups", "merge_tile", "retained_soup",
+__all__ = ["FaceSoup", "MergeStats", "RegionMesh", "faces_in_tile", "merge_tile", "retained_soup",
            "run_merge_tile", "weld_soup"]

@@ -23,6 +23,8 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from tasks.geometry.groups import first_of_groups
+
 _PACK_BITS = 21  # three vertex numbers below 2**21 pack into one int64 face key
 
 
@@ -48,24 +50,6 @@ def weld_keys(keys: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     kid = np.empty(len(keys), np.int64)
     kid[order] = np.cumsum(new) - 1
     return kid, order[new], order
-
-
-def first_of_groups(*columns: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """Group rows by equal values in all ``columns`` (each (r,) int64).
-
-    Returns (group (r,) int64 numbered in lexicographic order of the values, first (g,) int64 index of
-    the first row of each group).
-    """
-    order = np.lexsort(columns[::-1])  # lexsort is stable; its last key is the primary one
-    new = np.zeros(len(order), bool)
-    if len(order):
-        new[0] = True
-        for c in columns:
-            sc = c[order]
-            new[1:] |= sc[1:] != sc[:-1]
-    group = np.empty(len(order), np.int64)
-    group[order] = np.cumsum(new) - 1
-    return group, order[new]
 
 
 def face_keep_mask(kid: np.ndarray, n_faces: int) -> np.ndarray:

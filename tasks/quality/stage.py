@@ -57,7 +57,7 @@ def merged_surface(wd: WorkDir, tiles: list[str], shift: np.ndarray) -> tuple[np
     """The merged tiles as one mesh for quality: (vertices (n, 3) float64 = campus-local + ``shift``,
     faces (m, 3) int64). Each tile's vertices are welded by exact position (merge splits a vertex at
     seams only, every copy at one position), which cuts memory several times on seam-rich meshes."""
-    from tasks.merge.weld import first_of_groups
+    from tasks.geometry.groups import first_of_groups
 
     vs, fs, off = [], [], 0
     for k in tiles:

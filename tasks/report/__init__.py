@@ -4,7 +4,8 @@ Reads ``campus.json``, ``registration.json``, the manifest records, the outlier 
 the patch stores (``tiles/*/patches.parquet`` and side tables), the merged tiles, the export's
 ``output/tileset.json`` + ``tileset.fingerprints.json``, and the quality stage's ``report/quality.json``
 (measured here when missing or stale, see ``tasks.quality``). Writes ``output/report.html``,
-``report/class_map.png`` and ``report/regions/region_*.png``. Nothing is cached: every run rewrites the page.
+``report/class_map.png`` and ``report/regions/region_*.png``. Never invalidated, never skipped: nothing is
+cached, every run rewrites the page.
 """
 
 from tasks.report.stage import run_report

@@ -33,7 +33,8 @@ def test_assembly_keeps_region_local_ids_apart(tmp_path):
     from storage.workdir import read_campus
     from synth.corner_scene import write_campus_workdir
     from tasks.config import CampusConfig
-    from tasks.repair.stage import run_region, run_regions
+    from tasks.regions import run_regions
+    from tasks.repair import run_region
 
     wd, _ = write_campus_workdir(tmp_path / "w")
     cfg = CampusConfig.model_validate(read_campus(wd)["config"])
