@@ -78,6 +78,17 @@ def _cmd_serve(a) -> int:
     return serve_campus(Path(a.config), cfg, cron=a.cron, name=a.name, overrides=_overrides(a))
 
 
+
+def _config_command(sub, name: str, help_text: str, func):
+    """A subcommand that reads a campus config: ``CONFIG [--work-dir DIR] [--set KEY=VALUE ...]``."""
+    p = sub.add_parser(name, help=help_text)
+    p.add_argument("config")
+    p.add_argument("--work-dir")
+    p.add_argument("--set", action="append", metavar="KEY=VALUE",
+                   help="override a config field, e.g. tiling.tile_size_m=50")
+    p.set_defaults(func=func)
+    return p
+
 def _cmd_status(a) -> int:
     from flows.status import campus_status, format_status, status_exit_code
 
@@ -131,21 +142,13 @@ def build_parser() -> argparse.ArgumentParser:
                    help="MLS scanner rate as a fraction of the real one (1.0 = real density; default: the preset's)")
     s.set_defaults(func=_cmd_synth)
 
-    r = sub.add_parser("run", help="reprocess a campus described by a YAML config")
-    r.add_argument("config")
+    r = _config_command(sub, "run", "reprocess a campus described by a YAML config", _cmd_run)
     r.add_argument("--dask-address", help="scheduler address of an existing Dask cluster")
     r.add_argument("--workers", type=int, help="local Dask worker processes")
-    r.add_argument("--work-dir")
-    r.add_argument("--set", action="append", metavar="KEY=VALUE", help="override a config field, e.g. tiling.tile_size_m=50")
-    r.set_defaults(func=_cmd_run)
 
-    sv = sub.add_parser("serve", help="serve a scheduled Prefect deployment that reprocesses the campus")
-    sv.add_argument("config")
+    sv = _config_command(sub, "serve", "serve a scheduled Prefect deployment that reprocesses the campus", _cmd_serve)
     sv.add_argument("--cron", default="0 2 * * *", help="schedule (cron syntax, UTC); default nightly at 02:00")
     sv.add_argument("--name", default=None, help="deployment name (default: the campus name)")
-    sv.add_argument("--work-dir")
-    sv.add_argument("--set", action="append", metavar="KEY=VALUE", help="override a config field")
-    sv.set_defaults(func=_cmd_serve)
 
     st = sub.add_parser("status", help="tiles done, failed and pending of a work dir")
     st.add_argument("work_dir")

@@ -56,3 +56,14 @@ def build_campus(root: Path, tile_size_m: float = 20.0, extra_stray: bool = Fals
     path = root / "campus.yaml"
     path.write_text(yaml.safe_dump(cfg))
     return path
+
+
+def jittered_parallelogram(origin, u, v, spacing_m: float, rng: np.random.Generator) -> np.ndarray:
+    """Points on a jittered grid over the parallelogram ``origin + a u + b v`` (a, b in [0, 1]), about
+    ``spacing_m`` apart: (k, 3) float64 metres. A scanned plane for hand-made registration scenes."""
+    u, v = np.asarray(u, float), np.asarray(v, float)
+    nu, nv = max(int(np.linalg.norm(u) / spacing_m), 1), max(int(np.linalg.norm(v) / spacing_m), 1)
+    a, b = np.meshgrid((np.arange(nu) + 0.5) / nu, (np.arange(nv) + 0.5) / nv, indexing="ij")
+    a = a.ravel() + rng.uniform(-0.3, 0.3, a.size) / nu
+    b = b.ravel() + rng.uniform(-0.3, 0.3, b.size) / nv
+    return np.asarray(origin, float) + a[:, None] * u + b[:, None] * v

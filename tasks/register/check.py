@@ -139,21 +139,28 @@ def check_coregistered(
     """
     rng = np.random.default_rng(seed)
     v, f = mesh_arrays(vertices, faces)
-    src = finite_xyz(source_xyz, "MLS point cloud", PRE_CAP_FACTOR * CHECK_POINTS, rng)
     mesh_lo, mesh_hi = used_bounds(v, f)
-    check_overlap(src.min(axis=0), src.max(axis=0), mesh_lo, mesh_hi,
-                  "the MLS point cloud (campus-local)", "the mesh")  # fmt: skip
-    src = subsample_for_registration(src, CHECK_POINTS, CHECK_VOXEL_M, rng)
-    over = ((src[:, :2] >= mesh_lo[:2]) & (src[:, :2] <= mesh_hi[:2])).all(axis=1)
-    pts = src[over]
+    pts, n_sample = _points_over(source_xyz, mesh_lo, mesh_hi, rng)
     if len(pts) == 0:
-        return CoregistrationCheck(False, math.nan, math.nan, 0.0, 0, len(src), float(tol_m))
+        return CoregistrationCheck(False, math.nan, math.nan, 0.0, 0, n_sample, float(tol_m))
     lo, hi = pts.min(axis=0) - CHECK_CROP_M, pts.max(axis=0) + CHECK_CROP_M
     if not ((lo <= mesh_lo).all() and (mesh_hi <= hi).all()):  # else every face is near
         near = faces_in_box(v, f, lo, hi)
         f = f[near] if len(near) else f
     dist = point_to_mesh_distance(pts, v, f)
-    return _summarise(pts, dist, len(src), tol_m)
+    return _summarise(pts, dist, n_sample, tol_m)
+
+
+def _points_over(source_xyz: np.ndarray, mesh_lo: np.ndarray, mesh_hi: np.ndarray,
+                 rng: np.random.Generator) -> tuple[np.ndarray, int]:
+    """The thinned MLS points over the mesh's x/y extent: ((m, 3) float64, size of the thinned sample).
+    Raises InputError when the extents do not overlap at all."""
+    src = finite_xyz(source_xyz, "MLS point cloud", PRE_CAP_FACTOR * CHECK_POINTS, rng)
+    check_overlap(src.min(axis=0), src.max(axis=0), mesh_lo, mesh_hi,
+                  "the MLS point cloud (campus-local)", "the mesh")  # fmt: skip
+    src = subsample_for_registration(src, CHECK_POINTS, CHECK_VOXEL_M, rng)
+    over = ((src[:, :2] >= mesh_lo[:2]) & (src[:, :2] <= mesh_hi[:2])).all(axis=1)
+    return src[over], len(src)
 
 
 def _summarise(pts: np.ndarray, dist: np.ndarray, n_sample: int, tol_m: float) -> CoregistrationCheck:
@@ -193,18 +200,12 @@ def check_coregistered_samples(
     rng = np.random.default_rng(seed)
     tgt = np.asarray(samples_xyz, np.float64)
     nrm = np.asarray(samples_normal, np.float64)
-    src = finite_xyz(source_xyz, "MLS point cloud", PRE_CAP_FACTOR * CHECK_POINTS, rng)
-    mesh_lo, mesh_hi = tgt.min(axis=0), tgt.max(axis=0)
-    check_overlap(src.min(axis=0), src.max(axis=0), mesh_lo, mesh_hi,
-                  "the MLS point cloud (campus-local)", "the mesh")  # fmt: skip
-    src = subsample_for_registration(src, CHECK_POINTS, CHECK_VOXEL_M, rng)
-    over = ((src[:, :2] >= mesh_lo[:2]) & (src[:, :2] <= mesh_hi[:2])).all(axis=1)
-    pts = src[over]
+    pts, n_sample = _points_over(source_xyz, tgt.min(axis=0), tgt.max(axis=0), rng)
     if len(pts) == 0:
-        return CoregistrationCheck(False, math.nan, math.nan, 0.0, 0, len(src), float(tol_m))
+        return CoregistrationCheck(False, math.nan, math.nan, 0.0, 0, n_sample, float(tol_m))
     near, idx = cKDTree(tgt).query(pts, workers=-1)
     plane = np.abs(((pts - tgt[idx]) * nrm[idx]).sum(axis=1))
     dist = np.where(near <= reach_m, plane, near)
-    return _summarise(pts, dist, len(src), tol_m)
+    return _summarise(pts, dist, n_sample, tol_m)
 
 __all__ = ["CHECK_TOL_M", "CoregistrationCheck", "check_coregistered", "check_coregistered_samples", "check_overlap"]

@@ -16,6 +16,7 @@ import pytest
 
 from storage.errors import InputError
 from synth.generate import similarity
+from synth.handmade import jittered_parallelogram as _rect
 from tasks.config import RegistrationConfig
 from tasks.register.align import (
     RegistrationResult,
@@ -33,16 +34,6 @@ from tasks.register.align import (
 # (x0, x1, facade y, depth, height), metres; north buildings extend to +y, south ones to -y
 NORTH = [(-32.0, -14.0, 8.0, 12.0, 12.0), (-9.0, 8.0, 9.5, 10.0, 16.0), (13.0, 30.0, 8.0, 12.0, 9.0)]
 SOUTH = [(-28.0, -6.0, -9.0, 12.0, 10.0), (0.0, 26.0, -8.0, 14.0, 18.0)]
-
-
-def _rect(origin, u, v, spacing, rng):
-    """Jittered grid on the parallelogram origin + a u + b v, a, b in [0, 1]: (k, 3) float64."""
-    u, v = np.asarray(u, float), np.asarray(v, float)
-    nu, nv = max(int(np.linalg.norm(u) / spacing), 1), max(int(np.linalg.norm(v) / spacing), 1)
-    a, b = np.meshgrid((np.arange(nu) + 0.5) / nu, (np.arange(nv) + 0.5) / nv, indexing="ij")
-    a = a.ravel() + rng.uniform(-0.3, 0.3, a.size) / nu
-    b = b.ravel() + rng.uniform(-0.3, 0.3, b.size) / nv
-    return np.asarray(origin, float) + a[:, None] * u + b[:, None] * v
 
 
 def _grid_mesh(origin, u, v, spacing, rng):

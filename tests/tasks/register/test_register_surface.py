@@ -16,6 +16,7 @@ import trimesh
 
 from storage.errors import InputError
 from synth.generate import similarity
+from synth.handmade import jittered_parallelogram as _rect
 from tasks.config import RegistrationConfig
 from tasks.geometry.distance import point_to_mesh_distance
 from tasks.register.align import (
@@ -57,16 +58,6 @@ def _lod2_mesh() -> tuple[np.ndarray, np.ndarray]:
     parts.append(trimesh.Trimesh(ground, cells, process=False))
     mesh = trimesh.util.concatenate(parts)
     return np.asarray(mesh.vertices, np.float64), np.asarray(mesh.faces, np.int64)
-
-
-def _rect(origin, u, v, spacing, rng):
-    """Jittered grid on the parallelogram origin + a u + b v, a, b in [0, 1]: (k, 3) float64."""
-    u, v = np.asarray(u, float), np.asarray(v, float)
-    nu, nv = max(int(np.linalg.norm(u) / spacing), 1), max(int(np.linalg.norm(v) / spacing), 1)
-    a, b = np.meshgrid((np.arange(nu) + 0.5) / nu, (np.arange(nv) + 0.5) / nv, indexing="ij")
-    a = a.ravel() + rng.uniform(-0.3, 0.3, a.size) / nu
-    b = b.ravel() + rng.uniform(-0.3, 0.3, b.size) / nv
-    return np.asarray(origin, float) + a[:, None] * u + b[:, None] * v
 
 
 def _mls(seed: int = 0) -> np.ndarray:
