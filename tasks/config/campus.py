@@ -48,6 +48,15 @@ class RegistrationConfig(_Model):
     with_scale: bool = Field(True, description="estimate a similarity (rotation, translation, scale)")
     target_spacing_m: float = Field(0.15, gt=0, description="spacing of the area-weighted samples of the mesh surface that registration aligns to")
     seed: int = 0
+    # the guard (tasks.register.guard): an estimate is applied only when it clearly beats the transform in place
+    min_improvement_m: float = Field(0.05, ge=0, description="an estimate replaces the transform in place (identity, or the recorded one) only when it lowers the robust MLS-to-surface distance of held-out points by at least this much ...")
+    min_improvement_ratio: float = Field(0.5, ge=0, lt=1, description="... and by at least this share of it (0.5: to half or less); co-registered inputs stay where they are")
+    max_scale_error: float = Field(0.001, ge=0, description="scale prior: an estimate whose |scale - 1| exceeds this is refused (1000 ppm; a scanner's scale error is ppm, an MVS mesh's can be ~0.1-0.5 %: raise it for such a mesh; the synth campus states 0.005)")
+    max_displacement_m: float = Field(1.0, gt=0, description="displacement prior: an estimate moving any sampled MLS point further than this is flagged (warning, or error when strict)")
+    min_fitness: float = Field(0.5, ge=0, le=1, description="an estimate whose final fitness (share of MLS points within the last ICP distance of the mesh) is below this is flagged")
+    min_coarse_fitness: float = Field(0.05, ge=0, le=1, description="a coarse (SAC-IA) fitness below this counts as a failed coarse stage and is flagged")
+    holdout_share: float = Field(0.2, gt=0, lt=1, description="share of the sampled MLS points held out of the fit to score identity, the recorded transform and the estimate")
+    strict: bool = Field(False, description="a flagged registration (failed, low fitness, failed coarse stage, outside the scale or displacement prior) is an error instead of one warning line")
 
     @model_validator(mode="before")
     @classmethod
@@ -57,6 +66,14 @@ class RegistrationConfig(_Model):
             enabled = data.pop("enabled")
             data.setdefault("mode", "auto" if enabled else "off")
         return data
+
+    @field_validator("mode", mode="before")
+    @classmethod
+    def _yaml_boolean_mode(cls, v):
+        """YAML 1.1 reads an unquoted ``off`` (and ``no``/``false``) as False, ``on``/``yes`` as True."""
+        if isinstance(v, bool):
+            return "auto" if v else "off"
+        return v
 
     @property
     def enabled(self) -> bool:
@@ -100,6 +117,7 @@ class ClusterConfig(_Model):
 class ReportConfig(_Model):
     enabled: bool = Field(True, description="write output/report.html at the end of every run")
     quality: bool = Field(True, description="measure the model against the truth when the inputs have one (a synth campus); minutes on the demo, cached after")
+    max_unknown_share: float = Field(0.5, ge=0.0, le=1.0, description="the run summary warns when more than this share of the patches could not be graded (unknown)")
 
 
 class CampusConfig(_Model):

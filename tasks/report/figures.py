@@ -140,3 +140,22 @@ def render_png(panels: list[tuple[str, np.ndarray, np.ndarray]], basis: np.ndarr
     fig.suptitle(title, fontsize=10)
     fig.tight_layout()
     return _png(fig)
+
+
+def score_histogram_png(counts: np.ndarray, threshold: float = 0.5) -> bytes:
+    """Bar chart of patch counts per score bin: counts (b,) int over b equal bins of [0, 1] (the network's
+    probability of "bad"), bars at or above ``threshold`` coloured bad, below good."""
+    counts = np.asarray(counts)
+    edges = np.linspace(0.0, 1.0, len(counts) + 1)
+    mid = (edges[:-1] + edges[1:]) / 2
+    fig = _figure(7, 3.2)
+    ax = fig.add_subplot(1, 1, 1)
+    colours = [GRADE_COLOURS[1] if m >= threshold else GRADE_COLOURS[0] for m in mid]
+    ax.bar(mid, counts, width=edges[1] - edges[0], color=colours, edgecolor="white", linewidth=0.5)
+    ax.axvline(threshold, color="k", linestyle="--", linewidth=1)
+    ax.set_xlim(0, 1)
+    ax.set_xlabel("score (probability of bad)")
+    ax.set_ylabel("graded patches")
+    ax.set_title(f"{int(counts.sum()):,} graded patches; threshold {threshold:g}")
+    fig.tight_layout()
+    return _png(fig)

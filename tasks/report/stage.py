@@ -7,7 +7,9 @@ Sections, each from what the work dir holds (a section whose inputs are missing 
    campus, its error against the true transform;
 2. the patch-count histograms with their normal fit (``report/patch_*_histogram.png``, outlier stage);
 3. the class map: a top view of the patches coloured by score (classify's ``grades``), else by grade
-   (the labels), written to ``report/class_map.png`` too;
+   (the labels), written to ``report/class_map.png`` too; then the grade distribution (good / bad /
+   unknown), why patches are unknown (no faces, no points, too few) and the score histogram
+   (``grades.py``, ``report/score_histogram.png``), which need no truth;
 4. per-stage units, times and peak memory from the manifest records (``manifest.d``);
 5. quality against the truth where it exists (a synth campus): the merged model, and the input mesh
    when regions were rebuilt (cached in ``report/quality.json`` by the merged tiles' fingerprints);
@@ -32,6 +34,7 @@ from storage.errors import InputError
 from storage.manifest import all_records
 from storage.workdir import WorkDir, campus_frame, read_campus
 from tasks.quality import ensure_quality, merged_tiles, truth_dir_of
+from tasks.report.grades import census_of_stores, grades_section
 from tasks.report.html import Section, esc, render_page
 from tasks.report.regions import regions_section
 from tasks.report.sections import (
@@ -85,6 +88,10 @@ def run_report(cfg, wd: WorkDir, truth_dir: str | Path | None = None, quality: b
         _guarded("Patch counts and their fit", lambda: histogram_section(records, wd.report_dir)),
         _guarded("Class map", lambda: _written(class_map_section([wd.tile_dir(t) for t in wd.live_tiles()], grid,
                                                                   origin), wd.report_dir)),
+        _guarded("Grades: distribution and unknown patches", lambda: _written(grades_section(
+            census_of_stores([wd.tile_dir(t) for t in wd.live_tiles()], cfg.partition.min_faces,
+                             cfg.partition.min_points), cfg.partition.min_faces, cfg.partition.min_points,
+            cfg.classify.threshold, cfg.report.max_unknown_share), wd.report_dir)),
         _guarded("Stages: time and memory", lambda: stages_section(records)),
     ]
     region_sec = _guarded("Rebuilt regions: before and after", regions_fn)
