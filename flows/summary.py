@@ -72,7 +72,39 @@ def summarise(wd: WorkDir, wall_s: float, failed: dict, outliers: dict, since: f
         "registration": {k: reg.get(k) for k in ("method", "scale", "fitness", "reused", "check")
                          if k in reg},
         "outliers": outliers,
+        "grades": grades_summary(wd),
     }
+
+
+def grades_summary(wd: WorkDir) -> dict:
+    """Patches by grade and unknown reason over the live stores (``tasks.report.census_of_stores``), with
+    the thresholds of the config snapshot in ``campus.json`` (``partition.min_faces`` / ``min_points``,
+    ``report.max_unknown_share``); {} when there is no store or no campus."""
+    from storage.workdir import read_campus
+    from tasks.config.campus import ReportConfig
+    from tasks.report import census_of_stores
+
+    tiles = wd.live_tiles()
+    if not tiles or not wd.campus_json.exists():
+        return {}
+    snap = read_campus(wd).get("config") or {}
+    part, rep = snap.get("partition") or {}, snap.get("report") or {}
+    census = census_of_stores([wd.tile_dir(t) for t in tiles], part.get("min_faces", 1), part.get("min_points", 1))
+    return census.to_json() | {"max_unknown_share": rep.get("max_unknown_share", ReportConfig().max_unknown_share)}
+
+
+def unknown_warning(grades: dict | None) -> str:
+    """One warning line when more than ``max_unknown_share`` of the patches are unknown, else "".
+
+    >>> unknown_warning({"patches": 10, "unknown": 7, "unknown_share": 0.7, "max_unknown_share": 0.5,
+    ...                  "reasons": {"no_faces": 5, "no_points": 1, "too_few": 0, "not_graded": 1}})
+    'WARNING: 70% of the 10 patches could not be graded (no faces 5, no points 1, not graded 1); over report.max_unknown_share 0.5: see report.html'
+    """
+    if not grades or not grades.get("patches") or grades["unknown_share"] <= grades["max_unknown_share"]:
+        return ""
+    why = ", ".join(f"{k.replace('_', ' ')} {n:,}" for k, n in grades["reasons"].items() if n)
+    return (f"WARNING: {100 * grades['unknown_share']:.0f}% of the {grades['patches']:,} patches could not be graded "
+            f"({why}); over report.max_unknown_share {grades['max_unknown_share']:g}: see report.html")
 
 
 def format_summary(s: dict) -> str:
@@ -89,6 +121,7 @@ def format_summary(s: dict) -> str:
         lines.append(f"skipped {len(s['skipped_files'])} file(s) in input folders: "
                      + ", ".join(f"{p.rsplit('/', 1)[-1]} ({why})" for p, why in s["skipped_files"][:5])
                      + (" ..." if len(s["skipped_files"]) > 5 else ""))
+    lines += [w for w in [unknown_warning(s.get("grades"))] if w]
     lines.append(f"wall {s['wall_seconds']:.1f} s, sum of task times {s['task_seconds']:.1f} s")
     out = s.get("output") or {}
     if out.get("tileset"):

@@ -8,6 +8,7 @@ the patch stores (``tiles/*/patches.parquet`` and side tables), the merged tiles
 cached, every run rewrites the page.
 """
 
+from tasks.report.grades import GradeCensus, census_of_stores
 from tasks.report.stage import run_report
 
-__all__ = ["run_report"]
+__all__ = ["GradeCensus", "census_of_stores", "run_report"]

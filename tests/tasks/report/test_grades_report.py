@@ -106,3 +106,23 @@ def test_section_without_grades_says_so(tmp_path):
     assert census.reasons == {"no_faces": 1, "no_points": 1, "too_few": 0, "not_graded": 5}
     sec = grades_section(census, 1, 1)
     assert not sec.figures and "No scores" in sec.body
+
+
+def test_summary_warns_in_one_line_when_most_patches_are_unknown(tmp_path):
+    from flows.summary import format_summary, grades_summary, summarise
+
+    wd = write_handmade_store(tmp_path / "work")
+    campus = __import__("json").loads(wd.campus_json.read_text())
+    frame = CampusFrame(origin=(0.0, 0.0, 0.0), crs="EPSG:32650")
+    for share, warned in ((0.5, True), (0.6, False)):
+        snap = {"name": "handmade", "partition": {"min_faces": MIN_FACES, "min_points": MIN_POINTS},
+                "report": {"max_unknown_share": share}}
+        write_campus(wd, frame, campus["registration"], snap)
+        g = grades_summary(wd)
+        assert (g["patches"], g["unknown"], g["reasons"]) == (7, 4, EXPECTED)
+        text = format_summary(summarise(wd, 1.0, {}, {}))
+        lines = [ln for ln in text.splitlines() if ln.startswith("WARNING")]
+        assert len(lines) == int(warned), text
+        if warned:
+            assert "57% of the 7 patches" in lines[0] and "no faces 1, no points 1, too few 1, not graded 1" in lines[0]
+    assert grades_summary(WorkDir(tmp_path / "empty")) == {}
