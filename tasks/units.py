@@ -26,7 +26,7 @@ from storage.workdir import WorkDir
 STAGE_VERSIONS = {
     "scan": 3,       # v3: stable source ids; mesh surface samples as float32 offsets from a corner
     "register": 2,   # v2: surface target, modes auto / pinned / off
-    "ingest": 3,     # v3: sorted runs (Arrow IPC) of world-anchored keys, vertex ids, face normals
+    "ingest": 4,     # v4: faces longer than the smallest patch side split (conforming); v3: sorted runs, vertex ids, normals
     "partition": 2,  # v2: store schema 2 (vertex ids, vertex patches, normals, side tables)
     "labels": 1,
     "outliers": 2,   # v2: flags in outliers.parquet, not in patches.parquet

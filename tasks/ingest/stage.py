@@ -24,8 +24,10 @@ from tasks.config import CampusConfig
 from tasks.geometry.cells import partition_cells
 from tasks.geometry.tiling import group_by_tile
 from tasks.geometry.triangles import face_normals
-from tasks.ingest.columns import face_columns, point_columns, to_campus, vertex_ids, weld_vertex_index
+from tasks.ingest.columns import (face_columns, point_columns, split_mesh_faces, to_campus, vertex_ids,
+                                  weld_vertex_index)
 from tasks.ingest.plan import LAS_SUFFIXES, IngestUnit
+from tasks.scan import mesh_placement
 from tasks.units import Done, run_unit
 
 
@@ -62,22 +64,30 @@ def _route_mesh(unit: IngestUnit, cfg: CampusConfig, frame: CampusFrame, wd: Wor
     """Route a whole mesh file's faces (with welded vertex ids, normals and corner patches); returns the
     mesh's clean-up counts."""
     grid = cfg.grid()
-    mesh = read_mesh(unit.path, offset=cfg.inputs.mesh_offset, units_scale=cfg.inputs.units_scale)
-    vids = vertex_ids(unit.source, mesh.faces, weld_vertex_index(mesh.vertices))
+    placement = mesh_placement(unit.path, cfg)  # a production's metadata.xml, else inputs.mesh_offset
+    mesh = read_mesh(unit.path, offset=placement.offset, units_scale=cfg.inputs.units_scale)
+    vids = vertex_ids(unit.source, mesh.faces, weld_vertex_index(mesh.vertices), mesh.vertices, placement.seam_key)
     normals = face_normals(mesh.vertices, mesh.faces)
     local64 = to_campus(mesh.vertices, frame, None, unit.path)
-    vkeys = grid.pack(grid.cells_local(local64, frame.origin))  # Algorithm 1 step 3: patch of each vertex
-    tri64 = local64[mesh.faces]  # (m, 3, 3) float64
+    n_in = mesh.n_faces
+    # faces longer than the smallest patch side are split, so every patch a coarse surface crosses holds
+    # its part (tasks.geometry.split); pieces keep their face's normal, texture and src_face
+    mesh, tri64, vids, parent = split_mesh_faces(mesh, local64[mesh.faces], vids, min(grid.size_m))
+    normals = normals[parent]
+    corners = tri64.reshape(-1, 3)  # Algorithm 1 step 3: patch of each corner vertex
+    vkeys = grid.pack(grid.cells_local(corners, frame.origin)).reshape(-1, 3)
     cells = grid.face_cells([tri64[:, v, a] for v in range(3) for a in range(3)], frame.origin)
-    cols = face_columns(mesh, tri64.astype(np.float32), vids, normals, unit.source)
+    cols = face_columns(mesh, tri64.astype(np.float32), vids, normals, unit.source, src_face=parent)
     cols["patch"] = grid.pack(cells)
     for v in range(3):
-        cols[f"vp{v}"] = vkeys[mesh.faces[:, v]]
+        cols[f"vp{v}"] = vkeys[:, v]
     meta = {"textures": mesh.textures, "source": unit.path,
             "n_degenerate_dropped": mesh.n_degenerate_dropped, "n_duplicate_dropped": mesh.n_duplicate_dropped}
     _write_runs(wd, unit.key, 0, cols, cells, grid, meta, outputs, tiles)
     return {"n_degenerate_dropped": mesh.n_degenerate_dropped, "n_duplicate_dropped": mesh.n_duplicate_dropped,
-            "n_nonmanifold_edges": mesh.n_nonmanifold_edges}
+            "n_nonmanifold_edges": mesh.n_nonmanifold_edges,
+            "n_faces_split": int(np.count_nonzero(np.bincount(parent, minlength=n_in) > 1)),
+            "n_faces_added": int(len(parent) - n_in)}
 
 
 def _write_runs(wd: WorkDir, key: str, part: int, cols: dict, cells: np.ndarray, grid: PatchGrid,

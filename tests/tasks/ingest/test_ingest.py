@@ -106,5 +106,6 @@ def test_glb_seams_are_welded_on_ingest(tmp_path):
     run_ingest_unit(unit, cfg, wd, frame, None)
     cols = np.concatenate([np.stack([c[f"vid{v}"] for v in range(3)], axis=1)
                            for c in (RunReader(p).read() for p in sorted((wd.root / "staging").rglob("m*.arrow")))])
-    assert len(cols) == 12 and len(np.unique(cols)) == 8  # 36 split vertices, 8 corners
+    # 36 split vertices, 8 corners; the 4 m faces are split at ingest (pieces <= 0.7 m) and still weld
+    assert len(cols) > 12 and len(np.unique(cols[cols >= 0])) == 8
     assert _components(cols) == 1
