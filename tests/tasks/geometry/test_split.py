@@ -50,7 +50,7 @@ def test_wall_split_is_conforming_area_conserving_and_keeps_winding():
     # conforming: a closed 2-manifold with boundary; every interior edge is shared by exactly two pieces
     # and the boundary is exactly the rectangle's outline (no T-junction leaves a dangling edge)
     pairs, lo, hi = _edge_table(s.tri, s.ids)
-    uniq, inverse, counts = np.unique(pairs, axis=0, return_inverse=True, return_counts=True)
+    _, inverse, counts = np.unique(pairs, axis=0, return_inverse=True, return_counts=True)
     assert counts.max() == 2
     boundary = counts[inverse.ravel()] == 1
     mid = (lo[boundary] + hi[boundary]) / 2
