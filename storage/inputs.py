@@ -11,6 +11,9 @@ that depend on it.
   assignment is a function of the set of files, the same in every run over that set.
 - Folder scans take the supported extensions only and report what they skipped (a ``readme.txt``, a
   hidden or temporary file), so a stray file can never fail a campus.
+- A ContextCapture production folder (``metadata.xml``, ``Data/Tile_*/``) is scanned like any folder of
+  meshes, but of a tile with levels of detail (``Tile_+000_+000_L18.obj``, ``_L19``, ...) only the finest
+  level is taken; the coarser ones are reported as skipped (:mod:`storage.production`).
 """
 
 from __future__ import annotations
@@ -21,6 +24,7 @@ from pathlib import Path
 
 from .atomic import file_fingerprint
 from .errors import InputError
+from .production import finest_lod
 
 SOURCE_ID_BITS = 31
 VERTEX_INDEX_BITS = 32  # up to 4.29e9 vertices per mesh file
@@ -107,8 +111,8 @@ def _scan_folder(folder: Path, suffixes: frozenset[str], kind: str, skipped: lis
 def discover(mesh_entries: list[str], point_entries: list[str]) -> Discovery:
     """Expand the config's input entries (files or folders) into files.
 
-    A folder contributes its files with a supported extension (recursively); anything else is listed in
-    ``skipped``. A named file is taken whatever its extension (its reader then says if it cannot be
+    A folder contributes its files with a supported extension (recursively), of a tiled production
+    only the finest level of detail; anything else is listed in ``skipped``. A named file is taken whatever its extension (its reader then says if it cannot be
     read). Raises InputError for an entry that does not exist and when no mesh or no point cloud is left.
     """
     skipped: list[tuple[str, str]] = []
@@ -121,6 +125,9 @@ def discover(mesh_entries: list[str], point_entries: list[str]) -> Discovery:
                 found = _scan_folder(p, suffixes, kind, skipped)
                 if not found:
                     raise InputError(p, f"no {kind} files ({', '.join(sorted(suffixes))}) in this folder")
+                if kind == "mesh":
+                    found, coarser = finest_lod(found)
+                    skipped += coarser
                 files += found
             elif p.exists():
                 files.append(str(p.absolute()))

@@ -29,7 +29,8 @@ def choose_origin(records: list[InputFile], fixed=None) -> tuple[float, float, f
 
 
 def resolve_crs(configured: str | None, point_recs: list[InputFile]) -> str | None:
-    """The configured CRS, else the one the LAS headers agree on; disagreement is an input error."""
+    """The configured CRS, else the one the inputs agree on (LAS headers, production metadata.xml);
+    disagreement is an input error."""
     found = {r.crs for r in point_recs if r.crs and not r.error}
     if configured:
         for r in point_recs:
@@ -38,7 +39,7 @@ def resolve_crs(configured: str | None, point_recs: list[InputFile]) -> str | No
                                          "reproject the file or fix inputs.crs")
         return configured
     if len(found) > 1:
-        raise InputError(None, f"point clouds carry different CRSs {sorted(found)}: set inputs.crs or reproject")
+        raise InputError(None, f"the inputs carry different CRSs {sorted(found)}: set inputs.crs or reproject")
     return found.pop() if found else None
 
 
@@ -82,7 +83,7 @@ def check_overlap(records: list[InputFile], margin_m: float = 50.0) -> None:
 def campus_frame(records: list[InputFile], cfg: CampusConfig) -> CampusFrame:
     """Frame of the campus from the scanned records: checks CRS, overlap and the float32 reach."""
     check_crs_is_projected(cfg.inputs.crs)
-    crs = resolve_crs(cfg.inputs.crs, [r for r in records if r.kind == "points"])
+    crs = resolve_crs(cfg.inputs.crs, [r for r in records if r.kind == "points" or r.crs])
     check_crs_is_projected(crs)
     check_overlap(records)
     return CampusFrame(origin=choose_origin(records, cfg.inputs.origin), crs=crs)

@@ -11,14 +11,18 @@ from storage.errors import InputError
 from storage.inputs import Discovery, InputFile, assign_source_ids, discover
 from tasks.batches import balanced_batches
 from tasks.config import CampusConfig
+from tasks.scan.placement import check_productions
 
 MESH_READ_WEIGHT = 20.0  # a mesh is read whole and sampled: ~20x the cost of a cloud header per byte
 
 
 def scan_files(cfg: CampusConfig) -> tuple[Discovery, dict[str, int], list[dict]]:
     """Discover the inputs of ``cfg``: (discovery, {path: stable source id}, one {"path", "kind", "source"}
-    per file, meshes first). Raises InputError when the configured labels file is missing."""
+    per file, meshes first). Raises InputError when the configured labels file is missing, and for a
+    ContextCapture production whose metadata is bad, missing or disagrees with the config
+    (:func:`tasks.scan.placement.check_productions`)."""
     found = discover(cfg.inputs.mesh, cfg.inputs.points)
+    check_productions(found.meshes, cfg)
     if cfg.inputs.labels and not Path(cfg.inputs.labels).is_file():
         raise InputError(cfg.inputs.labels, "labels file not found (inputs.labels in the config)")
     ids = assign_source_ids(list(found.meshes) + list(found.points))

@@ -31,11 +31,13 @@ def raw_vertices(path: Path) -> np.ndarray:
     return np.asarray(trimesh.load(path, process=False, force="mesh").vertices, np.float64)
 
 
-def salvage_mesh_bounds(path: Path, cfg: CampusConfig) -> tuple[list, list]:
-    """Bounds of the finite vertices of a mesh that failed validation (to know which tiles it hits)."""
+def salvage_mesh_bounds(path: Path, cfg: CampusConfig, offset=None) -> tuple[list, list]:
+    """Bounds of the finite vertices of a mesh that failed validation (to know which tiles it hits).
+    offset: the file's (3,) world offset (:mod:`tasks.scan.placement`), default ``inputs.mesh_offset``."""
     try:
         v = raw_vertices(path)
-        v = v[np.isfinite(v).all(axis=1)] * cfg.inputs.units_scale + np.asarray(cfg.inputs.mesh_offset)
+        offset = cfg.inputs.mesh_offset if offset is None else offset
+        v = v[np.isfinite(v).all(axis=1)] * cfg.inputs.units_scale + np.asarray(offset, np.float64)
         if len(v):
             return v.min(axis=0).tolist(), v.max(axis=0).tolist()
     except Exception:  # noqa: BLE001 - best effort; unknown bounds block no tile

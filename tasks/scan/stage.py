@@ -12,6 +12,10 @@ A file that cannot be read is still scanned: its record carries the error and, w
 where it lies (a LAS header, the finite vertices of a broken mesh), its bounds, so that exactly the
 tiles it covers are blocked (:mod:`tasks.scan.salvage`). A file whose bounds are unknown blocks no tile
 and makes the campus incomplete.
+
+A tile of a ContextCapture production is placed by its ``metadata.xml`` (:mod:`tasks.scan.placement`):
+its record's CRS is the production's SRS, and its fingerprint covers the metadata too, so an edited
+SRSOrigin re-scans and re-ingests every tile of the production.
 """
 
 from __future__ import annotations
@@ -23,11 +27,13 @@ import numpy as np
 
 from storage.errors import InputError
 from storage.inputs import InputFile, fingerprint
+from storage.manifest import combine_fingerprints
 from storage.mesh_io import read_mesh
 from storage.pointcloud_io import read_header
 from storage.surface_samples import samples_path, write_surface_samples
 from storage.workdir import WorkDir
 from tasks.config import CampusConfig
+from tasks.scan.placement import MeshPlacement, mesh_placement
 from tasks.scan.salvage import salvage_cloud_bounds, salvage_mesh_bounds
 from tasks.units import Done, run_unit
 
@@ -46,13 +52,14 @@ def surface_samples(vertices: np.ndarray, faces: np.ndarray, spacing_m: float, s
     return xyz, nrm.astype(np.float32)
 
 
-def _scan_mesh(rec: InputFile, cfg: CampusConfig, wd: WorkDir) -> list[str]:
+def _scan_mesh(rec: InputFile, cfg: CampusConfig, wd: WorkDir, placement: MeshPlacement) -> list[str]:
     path = Path(rec.path)
+    rec.crs = placement.crs
     try:
-        mesh = read_mesh(path, offset=cfg.inputs.mesh_offset, units_scale=cfg.inputs.units_scale)
+        mesh = read_mesh(path, offset=placement.offset, units_scale=cfg.inputs.units_scale)
     except InputError as e:
         rec.error = str(e)
-        rec.lo, rec.hi = salvage_mesh_bounds(path, cfg)
+        rec.lo, rec.hi = salvage_mesh_bounds(path, cfg, placement.offset)
         return []
     if mesh.n_faces == 0:
         rec.error = str(InputError(path, "the mesh has no faces"))
@@ -84,18 +91,26 @@ def _scan_points(rec: InputFile, cfg: CampusConfig) -> None:
 def run_scan_file(path: str, kind: str, source: int, cfg: CampusConfig, wd: WorkDir) -> dict:
     """Scan one input file (skipped while its content is unchanged). Returns the unit summary with the
     file's :class:`InputFile` record as JSON under ``"record"``."""
+    placement = None
     try:
         fp = fingerprint(path)
-    except OSError as e:
-        rec = InputFile(source, path, kind, "", error=str(InputError(path, f"cannot read ({e.strerror})")))
+        if kind == "mesh":
+            placement = mesh_placement(path, cfg)
+            if placement.metadata:
+                fp = combine_fingerprints([fp, fingerprint(placement.metadata)])
+    except (OSError, InputError) as e:
+        err = e if isinstance(e, InputError) else InputError(path, f"cannot read ({e.strerror})")
+        rec = InputFile(source, path, kind, "", error=str(err))
         return {"unit": f"{source:08x}", "status": "done", "record": rec.to_json(), "skipped": False}
 
     def work() -> Done:
         rec = InputFile(source, str(path), kind, fp)
-        outputs = _scan_mesh(rec, cfg, wd) if kind == "mesh" else _scan_points(rec, cfg) or []
+        outputs = _scan_mesh(rec, cfg, wd, placement) if kind == "mesh" else _scan_points(rec, cfg) or []
         if rec.error:
             log.info("input problem: %s", rec.error)  # reported once, in the run summary
         return Done(outputs=outputs, summary={"record": rec.to_json()})
 
     params = cfg.stage_params("scan") | {"kind": kind, "path": str(path)}
+    if placement is not None:
+        params["placement"] = placement.to_json()
     return run_unit(wd, "scan", f"{source:08x}", fp, params, work)
