@@ -30,7 +30,7 @@ class InputsConfig(_Model):
     labels: str | None = Field(None, description="patch labels: a synth defects.json or a CSV of bad patch ids (i,j,k[,label]); ids are world-anchored, so a CSV stays valid when the campus grows")
     origin: tuple[float, float, float] | None = Field(None, description="campus origin (world metres) of the float32 offsets; default: the inputs' minimum x/y corner snapped to 1 km, z = 0")
     images: str | None = Field(None, description="folder of the vehicle camera images that texture rebuilt regions; default: an 'images' folder beside the first mesh input when it holds a cameras.json")
-    cameras: str | None = Field(None, description="cameras.json: OpenCV pinhole poses per image {'frame': 'MLS' | 'mesh', 'frame_origin': [x, y, z], 'cameras': [{'image', 'K', 'R', 't', 'width', 'height'}]}, X_cam = R (X_world - frame_origin) + t; default: images/cameras.json")
+    cameras: str | None = Field(None, description="camera poses of the images (OpenCV model with radial-tangential distortion), by name: a COLMAP text model (its sparse folder, cameras.txt or images.txt), a ContextCapture/iTwin BlocksExchange .xml, or a cameras.json {'frame': 'MLS' | 'mesh', 'frame_origin': [x, y, z], 'cameras': [{'image', 'K', 'R', 't', 'width', 'height', 'dist'?: [k1, k2, p1, p2, k3]}]}, X_cam = R (X_world - frame_origin) + t. COLMAP and BlocksExchange poses are read as world coordinates in the campus CRS, in the mesh's frame (the photogrammetry that made it); MLS-frame cameras need a cameras.json with 'frame': 'MLS'. Image paths are relative to inputs.images (default: the camera file's folder; for COLMAP also ../images and ../../images); default: images/cameras.json")
 
 
 class RegistrationConfig(_Model):

@@ -17,59 +17,41 @@ al. 1992). Here the choice is automatic and seam-aware:
    original mesh texture (``face_color``) and have NaN uv.
 
 Frames: campus-local metres; cameras follow OpenCV (x right, y down, z forward; pixel (u, v) = column,
-row at pixel centres); atlas uv follow OBJ (origin bottom-left).
+row at pixel centres; radial-tangential lens distortion applied, ``storage.cameras``); atlas uv follow OBJ
+(origin bottom-left).
 """
 
 from __future__ import annotations
 
-from dataclasses import dataclass
-
 import maxflow
 import numpy as np
+
+from storage.cameras import Camera
 
 from tasks.repair.atlas import NO_VIEW, Atlas, build_atlas
 from tasks.repair.chart import edges_of, undirected_key
 
 
-@dataclass(frozen=True)
-class CameraView:
-    """One image. K: (3, 3); R: (3, 3) world(campus-local)-to-camera; t: (3,); image: path."""
-
-    image: str
-    K: np.ndarray
-    R: np.ndarray
-    t: np.ndarray
-    width: int
-    height: int
-
-    @property
-    def centre(self) -> np.ndarray:
-        return -self.R.T @ self.t
-
-    def project(self, xyz: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-        """(n, 3) -> ((n, 2) pixel (u, v), (n,) depth along the optical axis)."""
-        xc = np.asarray(xyz, np.float64) @ self.R.T + self.t
-        z = xc[:, 2]
-        with np.errstate(divide="ignore", invalid="ignore"):
-            uv = (xc[:, :2] / z[:, None]) @ self.K[:2, :2].T + self.K[:2, 2]
-        return uv, z
+# A view is a storage.cameras.Camera: K, distortion (k1, k2, p1, p2, k3), R world(campus-local)-to-camera,
+# t, width, height, image path; its project() applies the OpenCV radial-tangential distortion.
+CameraView = Camera
 
 
-def cameras_to_frame(entries: list[dict], m: np.ndarray, folder: str) -> list[CameraView]:
-    """cameras.json entries -> views in the frame X' = m[:3,:3] X + m[:3,3] (m a 4x4 similarity s R | b).
+def cameras_to_frame(cams: list[Camera], m: np.ndarray, folder: str | None = None) -> list[Camera]:
+    """Cameras moved to the frame X' = m[:3,:3] X + m[:3,3] (m a 4x4 similarity s R_m | b).
 
-    A camera maps X to x_c = R X + t; with X = A^-1 (X' - b) / ... the same pixels come from
-    R' = R R_m^T and t' = s t - R' b (the depth scales by s, pixels do not change).
+    A camera maps X to x_c = R X + t; with X = R_m^T (X' - b) / s the same pixels come from
+    R' = R R_m^T and t' = s t - R' b (the depth scales by s, pixels do not change; distortion acts on
+    x_c / z_c, so it is kept as is). folder: prefixed to each image path when given.
     """
     a, b = np.asarray(m, np.float64)[:3, :3], np.asarray(m, np.float64)[:3, 3]
     s = np.cbrt(np.linalg.det(a))
     rm = a / s
     out = []
-    for e in entries:
-        r, t = np.asarray(e["R"], np.float64), np.asarray(e["t"], np.float64)
-        r2 = r @ rm.T
-        out.append(CameraView(f"{folder}/{e['image']}", np.asarray(e["K"], np.float64), r2, s * t - r2 @ b,
-                              int(e["width"]), int(e["height"])))
+    for c in cams:
+        r2 = c.R @ rm.T
+        image = f"{folder}/{c.image}" if folder is not None else c.image
+        out.append(Camera(image, c.K, r2, s * c.t - r2 @ b, c.width, c.height, c.dist))
     return out
 
 

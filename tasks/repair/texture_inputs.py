@@ -2,20 +2,24 @@
 occupancy voxels (occluders), and the original mesh textures at reduced size (the colour of faces no image
 sees).
 
-The images and ``cameras.json`` are a config input: ``repair.texture.images`` / ``repair.texture.cameras``
-(or ``inputs.images`` / ``inputs.cameras`` when the config has them); without either, an ``images``
-folder beside the first mesh input is used when it holds a cameras.json (the synth layout).
+The images and the camera file are a config input: ``repair.texture.images`` / ``repair.texture.cameras``
+(or ``inputs.images`` / ``inputs.cameras`` when the config has them); the camera file may be a cameras.json,
+a COLMAP text model (its folder or images.txt) or a ContextCapture BlocksExchange .xml (``storage.cameras``).
+Without either, an ``images`` folder beside the first mesh input is used when it holds a cameras.json (the
+synth layout).
 """
 
 from __future__ import annotations
 
-import json
+import warnings
 from collections.abc import Callable
+from dataclasses import replace
 from pathlib import Path
 
 import numpy as np
 
 from storage.atomic import atomic_path
+from storage.cameras import Camera, CameraSet, read_cameras
 from storage.errors import InputError
 from storage.patch_store import PatchStore
 from storage.store_state import store_fingerprint
@@ -23,47 +27,87 @@ from tasks.config import CampusConfig
 
 
 def camera_paths(cfg: CampusConfig) -> tuple[Path | None, Path | None]:
-    """(images folder, cameras.json) from ``repair.texture`` (or ``inputs.images`` / ``inputs.cameras``
-    when the config has them), else an ``images`` folder beside the first mesh input (synth layout)."""
+    """(images folder, camera file) from ``repair.texture`` (or ``inputs.images`` / ``inputs.cameras``
+    when the config has them), else an ``images`` folder beside the first mesh input (synth layout) and its
+    cameras.json. A COLMAP sparse folder is returned as its images.txt (a file, for fingerprints)."""
     tc = cfg.repair.texture
     images = getattr(cfg.inputs, "images", None) or tc.images
     cams = getattr(cfg.inputs, "cameras", None) or tc.cameras
-    if images is None and cfg.inputs.mesh:
+    if images is None and cams is None and cfg.inputs.mesh:
         guess = Path(cfg.inputs.mesh[0]).parent / "images"
         images = str(guess) if (guess / "cameras.json").exists() else None
     if cams is None and images is not None:
         cams = str(Path(images) / "cameras.json")
-    return (Path(images) if images else None), (Path(cams) if cams else None)
+    cam_path = Path(cams) if cams else None
+    if cam_path is not None and cam_path.is_dir():
+        cam_path = cam_path / "images.txt"
+    return (Path(images) if images else None), cam_path
 
 
-def load_cameras(cfg: CampusConfig, doc: dict, frame) -> list:
-    """Every camera of cameras.json in the campus frame ([] when there are none).
+def _configured(cfg: CampusConfig) -> bool:
+    return bool(getattr(cfg.inputs, "cameras", None) or cfg.repair.texture.cameras)
 
-    cameras.json: {"frame": "MLS" | "mesh", "frame_origin": [x, y, z] world, "cameras": [{"image", "K",
-    "R", "t", "width", "height"}]} with X_cam = R (X_world - frame_origin) + t. MLS-frame poses go
-    through the campus registration (campus.json), mesh-frame poses only through the origin shift.
+
+def _image_folders(cs: CameraSet, path: Path, images: Path | None) -> list[Path]:
+    """Where relative image paths are looked up: the images folder when configured; else the camera
+    file's folder, and for a COLMAP model (``<project>/sparse/0``) also ``../images`` and ``../../images``."""
+    if images is not None:
+        return [images]
+    out = [path.parent]
+    if cs.fmt == "colmap":
+        out += [path.parent.parent / "images", path.parent.parent.parent / "images"]
+    return out
+
+
+def _resolve_images(cams: list[Camera], path: Path, folders: list[Path]) -> list[Camera]:
+    """Cameras with their image path resolved; cameras whose image is missing are dropped with one warning
+    line (InputError when none is found)."""
+    def resolve(name: str) -> Path | None:
+        cands = [Path(name)] if Path(name).is_absolute() else [f / name for f in folders]
+        return next((c for c in cands if c.is_file()), None)
+
+    found = [(c, resolve(c.image)) for c in cams]
+    kept = [replace(c, image=str(p)) for c, p in found if p is not None]
+    missing = [c.image for c, p in found if p is None]
+    where = ", ".join(str(f) for f in folders)
+    if not kept:
+        raise InputError(path, f"none of its {len(cams)} images was found (looked in {where}; first: "
+                               f"{missing[0]!r}); set inputs.images to their folder")
+    if missing:
+        warnings.warn(f"{path}: {len(missing)} of {len(cams)} camera images not found in {where} "
+                      f"(first: {missing[0]!r}); those cameras are not used for texturing", stacklevel=2)
+    return kept
+
+
+def load_cameras(cfg: CampusConfig, doc: dict, frame) -> list[Camera]:
+    """Every camera of the camera file in the campus frame ([] when there is none).
+
+    Formats (``storage.cameras.read_cameras``): cameras.json, a COLMAP text model, a BlocksExchange XML.
+    cameras.json: {"frame": "MLS" | "mesh", "frame_origin": [x, y, z] world, "cameras": [...]} with
+    X_cam = R (X_world - frame_origin) + t. COLMAP and BlocksExchange poses are world coordinates in the
+    campus CRS in the mesh's frame (frame "mesh", frame_origin 0). MLS-frame poses go through the campus
+    registration (campus.json), mesh-frame poses only through the origin shift. Raises InputError naming
+    the file when it is broken, its CRS differs from the campus's, or none of its images exists.
     """
     from tasks.repair.texture import cameras_to_frame
 
     images, path = camera_paths(cfg)
-    if path is None or not path.exists():
+    if path is None or (not path.exists() and not _configured(cfg)):
         return []
-    try:
-        cj = json.loads(path.read_text())
-        entries = cj["cameras"]
-        fo = np.asarray(cj.get("frame_origin", [0.0, 0.0, 0.0]), np.float64)
-    except (OSError, ValueError, KeyError) as e:
-        raise InputError(path, f"not a cameras.json ({e})") from None
+    cs = read_cameras(path)
+    crs = getattr(frame, "crs", None)
+    if cs.crs and crs and cs.crs.upper().startswith("EPSG:") and cs.crs.upper() != str(crs).upper():
+        raise InputError(path, f"cameras are in {cs.crs}, the campus in {crs}: export them in the campus CRS")
+    fo = np.asarray(cs.frame_origin, np.float64)
     oc = np.asarray(frame.origin, np.float64)
     m = np.eye(4)
-    if str(cj.get("frame", "MLS")).lower() == "mls":
+    if cs.frame == "MLS":
         reg = np.asarray(doc["registration"]["matrix"], np.float64)
         m[:3, :3] = reg[:3, :3]
         m[:3, 3] = reg[:3, :3] @ (fo - oc) + reg[:3, 3]
     else:
         m[:3, 3] = fo - oc
-    cams = cameras_to_frame(entries, m, str(images or path.parent))
-    return [c for c in cams if Path(c.image).is_file()]  # a camera whose image is missing is no candidate
+    return _resolve_images(cameras_to_frame(cs.cameras, m), path, _image_folders(cs, path, images))
 
 
 def occupancy(tile_dir: Path, cache: Path, voxel_m: float) -> np.ndarray:

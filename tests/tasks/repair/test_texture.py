@@ -80,13 +80,13 @@ def test_seam_term_removes_flicker():
 
 def test_cameras_follow_the_registration():
     cam = camera_at(np.array([5.0, 1.0, 2.0]), [0, 0, 1], "x")
-    entry = {"image": "x.jpg", "K": K.tolist(), "R": cam.R.tolist(), "t": cam.t.tolist(), "width": 1000, "height": 1000}
+    cam = CameraView("x.jpg", K, cam.R, cam.t, 1000, 1000, np.array([-0.1, 0.02, 0.001, -0.002, 0.003]))
     m = np.eye(4)
     c, s = np.cos(0.3), np.sin(0.3)
     m[:3, :3] = 1.01 * np.array([[c, -s, 0], [s, c, 0], [0, 0, 1]])
     m[:3, 3] = [10.0, -4.0, 0.5]
-    moved = cameras_to_frame([entry], m, "imgs")[0]
+    moved = cameras_to_frame([cam], m, "imgs")[0]
     p = np.array([[0.3, 0.2, 1.1], [-1.0, 0.5, 2.0]])
     p2 = p @ m[:3, :3].T + m[:3, 3]
     np.testing.assert_allclose(moved.project(p2)[0], cam.project(p)[0], atol=1e-6)
-    assert moved.image == "imgs/x.jpg"
+    assert moved.image == "imgs/x.jpg" and (moved.dist == cam.dist).all()
