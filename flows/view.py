@@ -3,7 +3,8 @@
     /                 -> redirect to the viewer page
     /viewer/...       -> the repository's viewer/ folder (index.html, main.js)
     /node_modules/... -> viewer/node_modules (three, 3d-tiles-renderer, installed by ``npm ci`` in viewer/)
-    /output/...       -> WORKDIR/output (tileset.json, content/, overview.glb, georef.json)
+    /output/...       -> WORKDIR/output (tileset.json, content/, overview.glb, georef.json, and points/: the
+                         thinned MLS points overlay, shown by the page's "MLS points" checkbox)
 
 The server binds 127.0.0.1 only and serves files read-only; nothing is fetched from the internet.
 """

@@ -90,6 +90,50 @@ tiles.addEventListener('load-model', ({ scene: model }) => {
 });
 tiles.addEventListener('load-error', (e) => state.errors.push(String(e.error || e)));
 
+// The MLS points overlay (output/points/tileset.json, written by the export when the tiles have stores):
+// a second tileset in the same ECEF frame, kept aligned by copying the mesh tiles' group matrix (the
+// ReorientationPlugin recentres that group) every frame. Loaded only while its checkbox is on.
+const pointsUrl = params.get('points') || new URL('points/tileset.json', new URL(tilesetUrl, location.href)).pathname;
+const pointsBox = document.getElementById('points');
+const pointSize = Number(params.get('pointSize') || 2);
+state.points = { probed: false, available: false, models: 0, count: 0, shown: false };
+let points = null;
+pointsBox.checked = params.get('showPoints') === '1';
+fetch(pointsUrl, { method: 'HEAD' }).then((r) => {
+  state.points.probed = true;
+  if (!r.ok) { pointsBox.disabled = true; pointsBox.parentElement.title = 'no points overlay: re-run the export'; return; }
+  state.points.available = true;
+  points = new TilesRenderer(pointsUrl);
+  points.errorTarget = tiles.errorTarget;
+  points.setCamera(camera);
+  points.setResolutionFromRenderer(camera, renderer);
+  points.group.matrixAutoUpdate = false;
+  points.addEventListener('load-model', ({ scene: model }) => {
+    state.points.models += 1;
+    model.traverse((o) => {
+      if (!o.isPoints) return;
+      o.material.size = pointSize; o.material.sizeAttenuation = false; o.material.vertexColors = true;
+      state.points.count += o.geometry.getAttribute('position').count;
+    });
+  });
+  points.addEventListener('load-error', (e) => state.errors.push(String(e.error || e)));
+  scene.add(points.group);
+}).catch((e) => { state.points.probed = true; state.errors.push(`points overlay: ${e}`); });
+pointsBox.addEventListener('change', () => { settled = 0; state.ready = false; });
+
+function updatePoints() {
+  state.points.shown = !!points && pointsBox.checked;
+  if (!points) return pointsBox.checked && !state.points.probed ? 1 : 0;
+  points.group.visible = state.points.shown;
+  if (!state.points.shown) return 0;
+  tiles.group.updateMatrix();
+  points.group.matrix.copy(tiles.group.matrix);
+  points.group.matrixWorldNeedsUpdate = true;
+  points.update();
+  const s = points.stats;
+  return s.downloading + s.parsing + (s.queued || 0) + (state.points.models ? 0 : 1);
+}
+
 let framed = false;
 function frameCamera() {
   const sphere = new THREE.Sphere();
@@ -145,14 +189,16 @@ function loop() {
   controls.update();
   camera.updateMatrixWorld();
   tiles.update();
+  const pointsBusy = framed ? updatePoints() : 0;
   renderer.render(scene, camera);
   const s = tiles.stats;
-  const busy = s.downloading + s.parsing + (s.queued || 0);
+  const busy = s.downloading + s.parsing + (s.queued || 0) + pointsBusy;
   settled = framed && state.models > 0 && busy === 0 ? settled + 1 : 0;
   if (settled > 20 && !state.ready) state.ready = true;
   const f = state.faces;
   document.getElementById('status').textContent =
     `${state.models} tile contents loaded; their faces: good ${f.good} · bad ${f.bad} · rebuilt ${f.rebuilt} · unknown ${f.unknown}` +
+    (state.points.shown ? ` · ${state.points.count} MLS points` : '') +
     (busy ? ` · loading ${busy}` : '');
 }
 loop();

@@ -359,7 +359,8 @@ def glb_primitives(data: bytes) -> list[dict[str, np.ndarray]]:
                     arrays[name] = np.asarray(by_id[uid])
         else:
             arrays = {name: accessor_array(doc, binary, i) for name, i in prim["attributes"].items()}
-            arrays["indices"] = accessor_array(doc, binary, prim["indices"]).reshape(-1, 3)
+            if "indices" in prim:  # POINTS primitives (the MLS overlay) have none
+                arrays["indices"] = accessor_array(doc, binary, prim["indices"]).reshape(-1, 3)
         out.append(arrays)
     return out
 

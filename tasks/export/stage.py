@@ -10,6 +10,8 @@ Output (``work_dir/output``)::
     overview.glb                  the whole campus decimated, same ENU frame (y-up glTF)
     georef.json                   source CRS, origin, vertical datum, ENU origin, the PROJ operation and
                                   what was assumed
+    points/tileset.json, *.glb    the registered MLS points, thinned, as POINTS in the same frame (an
+                                  overlay for the viewer, ``points.py``; only when the tiles have stores)
     tileset.fingerprints.json     per node: input fingerprint, box, geometric error (for reruns)
     (work_dir/export/lod/*.npz    per node: the decimated mesh it passes to its parent)
 
@@ -39,6 +41,7 @@ from tasks.batches import balanced_batches
 from tasks.config import ExportConfig
 from tasks.export.georef import GeoRef, make_georef
 from tasks.export.nodes import NodeJob, build_node, content_hash, leaf_fingerprint
+from tasks.export.points import write_points_overlay
 from tasks.export.tree import EXPORT_VERSION, QuadNode, QuadTree, plan_quadtree, tileset_json
 from tasks.units import record_step
 
@@ -161,6 +164,7 @@ def run_export(work_dir: str | Path, config: ExportConfig | None = None, tiles: 
                      children=(("root", {"key": root.key}),))])
     tileset = _write_tileset(out, tileset_json(tree, nodes, georef), georef, nodes)
     _remove_stale(out, cache, nodes)
+    points = write_points_overlay(wd.root / "tiles", out / "points", list(tiles), georef)  # the MLS overlay
     leaves_built = [k for k in built if k.startswith("L0_")]
     return {
         "tiles": len(tiles), "nodes": len(nodes), "built": built, "reused": reused,
@@ -170,6 +174,7 @@ def run_export(work_dir: str | Path, config: ExportConfig | None = None, tiles: 
         "texture_bytes": int(sum(rec.get("texture_bytes", 0) for rec in nodes.values())),
         "root_geometric_error_m": nodes[root.key]["geometricError"], "seconds": time.perf_counter() - t0,
         "tileset": str(tileset), "overview": str(out / "overview.glb"), "georef": str(out / "georef.json"),
+        "points": points,
     }  # fmt: skip
 
 

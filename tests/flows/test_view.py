@@ -81,3 +81,56 @@ def test_headless_screenshot_shows_the_buildings(tiny_export, tmp_path):
     assert green.mean() > 0.05 and (red.mean() + blue.mean()) > 0.002, (green.mean(), red.mean(), blue.mean())
     DOCS_PNG.parent.mkdir(exist_ok=True)
     shutil.copyfile(shot, DOCS_PNG)
+
+
+def _points_overlay_like_export(work: Path) -> int:
+    """Write output/points/ as the export does, from the leaf contents' vertices (the tiny export has no
+    patch stores): every point "no face" (magenta). Returns the number of points."""
+    from tasks.export.content import box_from_bounds
+    from tasks.export.georef import gltf_to_enu
+    from tasks.export.gltf import glb_positions
+    from tasks.export.points import build_points_glb, points_tileset_json
+
+    out = work / "output"
+    transform = json.loads((out / "tileset.json").read_text())["root"]["transform"]
+    (out / "points").mkdir(exist_ok=True)
+    boxes, n = {}, 0
+    for leaf in sorted((out / "content" / "tiles").glob("*.glb")):
+        pos = glb_positions(leaf.read_bytes())[::7]
+        enu = gltf_to_enu(pos)
+        boxes[leaf.stem] = box_from_bounds(enu.min(axis=0), enu.max(axis=0))
+        (out / "points" / leaf.name).write_bytes(build_points_glb(pos, np.full(len(pos), 2, np.int8)))
+        n += len(pos)
+    (out / "points" / "tileset.json").write_text(json.dumps(points_tileset_json(boxes, transform)))
+    return n
+
+
+def test_headless_viewer_overlays_the_points_tileset(tiny_export, tmp_path):
+    _tools_or_fail()
+    from PIL import Image
+
+    from tasks.export.check import check_tileset
+
+    work = tmp_path / "work"
+    shutil.copytree(tiny_export[0], work)
+    n = _points_overlay_like_export(work)
+    assert check_tileset(work / "output" / "points") == []
+    shots = {}
+    server = start_viewer(work)
+    try:
+        for show in ("0", "1"):
+            shot = tmp_path / f"points{show}.png"
+            run = subprocess.run(["node", str(VIEWER_DIR / "screenshot.mjs"), server.url + f"&showPoints={show}&pointSize=3",
+                                  str(shot), "1024", "700", "120000"], check=False, capture_output=True, text=True,
+                                 timeout=180)  # fmt: skip
+            assert run.returncode == 0, run.stderr[-2000:]
+            result = json.loads(run.stdout)
+            assert result["ready"] and not result["state"]["errors"], result
+            shots[show] = (result["state"]["points"], np.asarray(Image.open(shot).convert("RGB")).astype(np.int32)[150:])
+    finally:
+        server.stop()
+    off, on = shots["0"][0], shots["1"][0]
+    assert on["available"] and on["shown"] and on["models"] == 6 and on["count"] == n
+    assert off["available"] and not off["shown"] and off["models"] == 0  # not loaded while hidden
+    magenta = [((rgb[..., 0] > 150) & (rgb[..., 2] > 120) & (rgb[..., 1] < 90)).mean() for _, rgb in shots.values()]
+    assert magenta[0] < 0.001 and magenta[1] > 0.01, magenta
