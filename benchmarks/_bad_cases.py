@@ -132,6 +132,19 @@ def _degenerate_faces(root: Path) -> None:
     _obj_edit(root, "middle.obj", edit)
 
 
+def _broken_cameras(root: Path) -> None:
+    """A COLMAP text model whose images.txt was cut mid-line (a copy interrupted)."""
+    from storage.camera_formats import write_colmap
+    from storage.cameras import Camera
+
+    cam = Camera("IMG_0001.JPG", np.array([[1000.0, 0, 511.5], [0, 1000.0, 383.5], [0, 0, 1]]), np.eye(3),
+                 np.zeros(3), 1024, 768, np.array([-0.1, 0.01, 0.0, 0.0, 0.0]))
+    write_colmap(root / "sparse", [cam, cam])
+    p = root / "sparse" / "images.txt"
+    p.write_text(p.read_text()[:-30])
+    set_cfg(root, **{"inputs.cameras": "sparse"})
+
+
 def _unit(fn):
     """Wrap a mutation that returns nothing."""
     def wrapped(root: Path):
@@ -175,6 +188,8 @@ CASES = [
     Case("no-overlap", "MLS strips of another site", _unit(_no_overlap), 2, "do not overlap"),
     Case("wrong-units", "metre data declared as US feet", _unit(_feet), 2, "do not overlap"),
     Case("labels-missing", "a labels file that does not exist", _unit(_labels_missing), 2, "labels file not found"),
+    Case("broken-cameras", "a camera file cut mid-line (COLMAP images.txt)", _unit(_broken_cameras), 2,
+         "images.txt: line 4: expected IMAGE_ID"),
     Case("config-typo", "a typo in a config key", _unit(lambda r: set_cfg(r, **{"tiling.tile_sise_m": 50})), 2,
          "did you mean 'tile_size_m'"),
     Case("broken-yaml", "a YAML syntax error",

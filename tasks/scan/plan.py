@@ -7,6 +7,7 @@ from __future__ import annotations
 
 from pathlib import Path
 
+from storage.cameras import read_cameras
 from storage.errors import InputError
 from storage.inputs import Discovery, InputFile, assign_source_ids, discover
 from tasks.batches import balanced_batches
@@ -25,6 +26,8 @@ def scan_files(cfg: CampusConfig) -> tuple[Discovery, dict[str, int], list[dict]
     check_productions(found.meshes, cfg)
     if cfg.inputs.labels and not Path(cfg.inputs.labels).is_file():
         raise InputError(cfg.inputs.labels, "labels file not found (inputs.labels in the config)")
+    if cfg.inputs.cameras:  # a broken camera file stops the run before any work, not in the last stage
+        read_cameras(cfg.inputs.cameras)
     ids = assign_source_ids(list(found.meshes) + list(found.points))
     files = [{"path": p, "kind": "mesh", "source": ids[p]} for p in found.meshes] + \
             [{"path": p, "kind": "points", "source": ids[p]} for p in found.points]
