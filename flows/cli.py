@@ -27,7 +27,8 @@ from pathlib import Path
 def _cmd_synth(a) -> int:
     from synth.generate import generate
 
-    out = generate(a.preset, seed=a.seed, out=a.out, overwrite=a.overwrite, scale=a.scale, mls_density=a.mls_density)
+    out = generate(a.preset, seed=a.seed, out=a.out, overwrite=a.overwrite, scale=a.scale, mls_density=a.mls_density,
+                   coarse_mesh=a.coarse_mesh)
     print(f"synthetic campus '{a.preset}' (seed {a.seed}) written to {out}")
     return 0
 
@@ -140,6 +141,9 @@ def build_parser() -> argparse.ArgumentParser:
     s.add_argument("--scale", type=float, default=1.0, help="campus preset: side length multiplier")
     s.add_argument("--mls-density", type=float, default=None,
                    help="MLS scanner rate as a fraction of the real one (1.0 = real density; default: the preset's)")
+    s.add_argument("--coarse-mesh", action="store_true",
+                   help="write a LoD2-like block model (big faces, no recesses or balconies; labelled) instead of "
+                        "the MVS mesh, co-registered with the MLS")
     s.set_defaults(func=_cmd_synth)
 
     r = _config_command(sub, "run", "reprocess a campus described by a YAML config", _cmd_run)

@@ -208,6 +208,7 @@ class _SynthRun:
     cameras: list = field(default_factory=list)
     n_defects: int = 0
     cache: dict[tuple[int, int], Scene] = field(default_factory=dict)
+    coarse_mesh: bool = False  # write a LoD2-like block model (synth.coarse) instead of the MVS mesh
 
     @property
     def defects_part(self) -> Path:
@@ -220,20 +221,24 @@ class _SynthRun:
 
 
 def generate(preset: str = "tiny", seed: int = 0, out: str | Path = "synth-out", overwrite: bool = False,
-             scale: float = 1.0, mls_density: float | None = None) -> Path:
+             scale: float = 1.0, mls_density: float | None = None, coarse_mesh: bool = False) -> Path:
     """Generate a synthetic campus into ``out``; returns ``out``. See the module docstring.
 
     mls_density: the MLS scanner rate as a fraction of the real one (1.0 = real density); None keeps
-    the preset's (demo 0.1)."""
+    the preset's (demo 0.1). coarse_mesh: the mesh is a LoD2-like block model of the buildings
+    (:mod:`synth.coarse`; defects.json labels where the truth departs from it) and the MLS is
+    co-registered with it (identity registration), as a city model and a georeferenced scan are."""
     p = get_preset(preset, scale, mls_density)
     out = Path(out).absolute()
     _prepare_out(out, overwrite)
     t_start = time.perf_counter()
     r_reg, = streams(seed, 1)
     truth_reg = random_registration(r_reg)  # MLS local -> mesh local
+    if coarse_mesh:
+        truth_reg = np.eye(4)
     perturb = np.linalg.inv(truth_reg)  # mesh local -> MLS local
     nx, ny = int(np.ceil(p.extent_m[0] / p.tile_m)), int(np.ceil(p.extent_m[1] / p.tile_m))
-    run = _SynthRun(out, p, seed, perturb, nx, ny)
+    run = _SynthRun(out, p, seed, perturb, nx, ny, coarse_mesh=coarse_mesh)
     run.defects_part.parent.mkdir(parents=True, exist_ok=True)
     for ix in range(nx):
         for iy in range(ny):
@@ -258,7 +263,12 @@ def _write_tile(run: _SynthRun, ix: int, iy: int) -> None:
     r_mvs, r_tex, r_traj, r_mls, r_cam = streams(run.seed * 7919 + ix * 131 + iy + 1, 5)
     scene = run.scene_at(ix, iy)
     name = f"Tile_{ix:+04d}_{iy:+04d}" if p.tiled_mesh else "mvs"
-    mvs, tile_defects = make_mvs_mesh(r_mvs, scene, MvsParams(edge_facade_m=p.mvs_edge_m))
+    if run.coarse_mesh:
+        from .coarse import make_coarse_mesh
+
+        mvs, tile_defects = make_coarse_mesh(scene)
+    else:
+        mvs, tile_defects = make_mvs_mesh(r_mvs, scene, MvsParams(edge_facade_m=p.mvs_edge_m))
     for d in tile_defects:
         d["id"] = f"{ix}_{iy}_{d['id']}"
         d["mesh_file"] = f"mesh/{name}/{name}.obj" if p.tiled_mesh else "mesh/mvs.obj"
@@ -306,6 +316,7 @@ def _write_campus_files(run: _SynthRun, truth_reg: np.ndarray, scale: float) -> 
     _assemble_defects(out / "truth" / "defects.json", run.defects_part)
     write_json_atomic(out / "truth" / "scene.json", {"preset": p.name, "seed": seed, "scale": scale,
                                                      "mls_density": p.mls_density_scale,
+                                                     **({"coarse_mesh": True} if run.coarse_mesh else {}),
                                                      "extent_m": list(p.extent_m), "buildings": run.buildings,
                                                      "stats": {k: v for k, v in run.stats.items() if k != "scan_seconds"}})
     write_campus_yaml(out, p, mesh_inputs, seed)

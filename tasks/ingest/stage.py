@@ -24,8 +24,14 @@ from tasks.config import CampusConfig
 from tasks.geometry.cells import partition_cells
 from tasks.geometry.tiling import group_by_tile
 from tasks.geometry.triangles import face_normals
-from tasks.ingest.columns import (face_columns, point_columns, split_mesh_faces, to_campus, vertex_ids,
-                                  weld_vertex_index)
+from tasks.ingest.columns import (
+    face_columns,
+    point_columns,
+    split_mesh_faces,
+    to_campus,
+    vertex_ids,
+    weld_vertex_index,
+)
 from tasks.ingest.plan import LAS_SUFFIXES, IngestUnit
 from tasks.scan import mesh_placement
 from tasks.units import Done, run_unit

@@ -1,0 +1,60 @@
+"""A coarse city model (the synth's LoD2-like block model, co-registered with the MLS) is graded: its
+metres-long faces are split at ingest, so the patches it crosses hold faces.
+
+Registration is ``off`` here (the inputs are co-registered, as a city model and a georeferenced scan
+are): the registration stage is being reworked separately, and this test is about ingest and grading.
+"""
+
+from __future__ import annotations
+
+import json
+
+import numpy as np
+
+from flows.campus import InlineExecutor, reprocess
+from storage.mesh_io import read_mesh
+from storage.patch_store import PatchStore
+from synth.generate import WORLD_ORIGIN, generate
+from tasks.config import CampusConfig
+
+
+def _surface_keys(tri: np.ndarray, grid, step: float = 0.1) -> np.ndarray:
+    """Patch keys a surface crosses: cells of a barycentric lattice of ~``step`` m on every triangle."""
+    keys = []
+    for t in tri:
+        k = max(1, int(np.ceil(np.linalg.norm(t - t[[1, 2, 0]], axis=1).max() / step)))
+        i, j = np.meshgrid(np.arange(k + 1), np.arange(k + 1), indexing="ij")
+        ok = i + j <= k
+        a, b = i[ok][:, None] / k, j[ok][:, None] / k
+        p = t[0] + a * (t[1] - t[0]) + b * (t[2] - t[0])
+        keys.append(grid.pack(grid.cells_world(p)))
+    return np.unique(np.concatenate(keys))
+
+
+def test_coarse_block_model_patches_are_graded(tmp_path):
+    src = generate("tiny", seed=7, out=tmp_path / "campus", coarse_mesh=True)
+    assert json.loads((src / "truth" / "scene.json").read_text())["coarse_mesh"] is True
+    cfg = CampusConfig.from_yaml(src / "campus.yaml", {
+        "work_dir": str(tmp_path / "work"), "runner": "inline", "registration": {"mode": "off"},
+        "repair.enabled": False, "report.enabled": False})
+    reprocess(cfg, InlineExecutor())
+    grid = cfg.grid()
+    mesh = read_mesh(src / "mesh" / "mvs.obj", offset=WORLD_ORIGIN)
+    tri = mesh.vertices[mesh.faces]
+    assert np.linalg.norm(tri - tri[:, [1, 2, 0]], axis=2).max() > 10  # the input is coarse indeed
+    crossed = _surface_keys(tri, grid)
+    keys, graded, with_points = [], [], []
+    for td in sorted((tmp_path / "work" / "tiles").iterdir()):
+        st = PatchStore(td)
+        p, g = st.patches(), st.side("grades")
+        keys.append(p["patch"])
+        with_points.append(p["n_points"] > 0)
+        graded.append(g["grade"] >= 0)
+    keys, graded, with_points = map(np.concatenate, (keys, graded, with_points))
+    both = with_points & np.isin(keys, crossed)  # patches holding points and the model's surface
+    assert both.sum() > 500
+    share = graded[both].mean()
+    assert share >= 0.9, f"only {share:.1%} of {both.sum()} patches with points and surface are graded"
+    # without the split, faces would reach only the patches of their centroids
+    centroid_keys = np.unique(grid.pack(grid.cells_world(tri.mean(axis=1))))
+    assert np.isin(keys[both], centroid_keys).mean() < 0.2
