@@ -145,6 +145,21 @@ def _broken_cameras(root: Path) -> None:
     set_cfg(root, **{"inputs.cameras": "sparse"})
 
 
+def _as_production(root: Path, srs: str | None) -> None:
+    """Move each mesh into a ContextCapture tile folder (mesh/Data/Tile_+00k_+000/); with ``srs``, write
+    mesh/metadata.xml placing it at the configured mesh_offset (then removed from the config)."""
+    o = _cfg(root)["inputs"]["mesh_offset"]
+    for k, p in enumerate(sorted((root / "mesh").glob("*.obj"))):
+        name = f"Tile_+{k:03d}_+000"
+        (root / "mesh" / "Data" / name).mkdir(parents=True)
+        p.rename(root / "mesh" / "Data" / name / f"{name}.obj")
+    if srs is not None:
+        (root / "mesh" / "metadata.xml").write_text(
+            f'<?xml version="1.0" encoding="utf-8"?><ModelMetadata version="1"><SRS>{srs}</SRS>'
+            f"<SRSOrigin>{o[0]!r},{o[1]!r},{o[2]!r}</SRSOrigin></ModelMetadata>")
+    set_cfg(root, **{"inputs.mesh_offset": [0.0, 0.0, 0.0]})
+
+
 def _unit(fn):
     """Wrap a mutation that returns nothing."""
     def wrapped(root: Path):
@@ -187,6 +202,10 @@ CASES = [
     Case("mesh-10km-off", "the mesh 10 km off (wrong mesh_offset)", _unit(_mesh_10km_off), 2, "do not overlap"),
     Case("no-overlap", "MLS strips of another site", _unit(_no_overlap), 2, "do not overlap"),
     Case("wrong-units", "metre data declared as US feet", _unit(_feet), 2, "do not overlap"),
+    Case("production-no-metadata", "a tiled production without metadata.xml (and no mesh_offset)",
+         _unit(lambda r: _as_production(r, None)), 2, "without metadata.xml"),
+    Case("production-unknown-srs", "a production whose metadata.xml has an ENU SRS",
+         _unit(lambda r: _as_production(r, "ENU:24.51,117.65")), 2, "unknown SRS"),
     Case("labels-missing", "a labels file that does not exist", _unit(_labels_missing), 2, "labels file not found"),
     Case("broken-cameras", "a camera file cut mid-line (COLMAP images.txt)", _unit(_broken_cameras), 2,
          "images.txt: line 4: expected IMAGE_ID"),
