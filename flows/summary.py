@@ -69,8 +69,9 @@ def summarise(wd: WorkDir, wall_s: float, failed: dict, outliers: dict, since: f
         "failed": failed,
         "incomplete": list(incomplete),
         "skipped_files": [list(s) for s in skipped_files],
-        "registration": {k: reg.get(k) for k in ("method", "scale", "fitness", "reused", "check")
-                         if k in reg},
+        "registration": {k: reg.get(k) for k in ("method", "scale", "fitness", "reused", "check", "warning",
+                                                 "verdict", "displacement_p50_m", "displacement_max_m",
+                                                 "distance_before_m", "distance_after_m") if k in reg},
         "outliers": outliers,
         "grades": grades_summary(wd),
     }
@@ -112,6 +113,8 @@ def format_summary(s: dict) -> str:
     reg = s.get("registration") or {}
     if reg:
         lines.append("registration: " + reg.get("method", "?") + (" (reused)" if reg.get("reused") else ""))
+        if reg.get("warning"):
+            lines.append("warning: " + reg["warning"])
     for name, c in (s.get("stages") or {}).items():
         lines.append(f"{name}: {c['run']} run, {c['skipped']} unchanged (skipped), {c['failed']} failed")
     lines.append(f"tiles: {len(s['tiles_done'])} done, {len(s['tiles_empty'])} empty, "

@@ -151,6 +151,10 @@ def write_campus_yaml(out: Path, preset: SynthPreset, mesh_inputs: list[str], se
         "work_dir": f"../ms3d-work/synth-{preset.name}-s{seed}",
         "inputs": {"mesh": mesh_inputs, "points": ["mls"], "crs": CRS,
                    "mesh_offset": list(WORLD_ORIGIN), "labels": "truth/defects.json"},
+        # the perturbation's prior (random_registration): scale within 0.4 %, and yaw 3 deg about the frame
+        # origin plus 2.5 m moves points up to ~6 % of their distance from it, plus 3 m
+        "registration": {"max_scale_error": 0.005,
+                         "max_displacement_m": round(3.0 + 0.06 * float(np.hypot(*preset.extent_m)), 1)},
     }
     write_bytes_atomic(out / "campus.yaml", yaml.safe_dump(cfg, sort_keys=False).encode())
 

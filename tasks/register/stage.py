@@ -3,7 +3,11 @@
 ``registration.mode``:
 
 - ``auto``: register (SAC-IA + Scale-ICP, :mod:`tasks.register.align`) when the inputs or the parameters
-  changed since the recorded transform; otherwise reuse it.
+  changed since the recorded transform; otherwise reuse it. The estimate is applied only when it beats
+  the transform in place (the recorded one, else the identity) on held-out points, within the scale
+  prior (:mod:`tasks.register.guard`); otherwise that transform stays, and one warning line says why
+  (also when the fit fails and a transform is recorded: the run goes on with it). ``registration.strict``
+  turns a flagged registration into an error.
 - ``pinned``: reuse the recorded transform (``registration.json`` of the work dir, or
   ``registration.matrix`` of the config) whatever the inputs do, so a changed or added input redoes
   only its own tiles. This is the mode for scheduled reprocessing once a campus is registered.
@@ -96,7 +100,8 @@ def _recorded(wd: WorkDir) -> dict | None:
 
 
 def _estimate(records: list[InputFile], frame: CampusFrame, cfg: CampusConfig, wd: WorkDir) -> dict:
-    from tasks.register.align import check_coregistered_samples, register_to_samples
+    from tasks.register.align import check_coregistered_samples
+    from tasks.register.guard import guarded_register
 
     src = mls_sample(records, cfg, frame)
     tgt, nrm = mesh_target(records, wd, frame)
@@ -107,7 +112,13 @@ def _estimate(records: list[InputFile], frame: CampusFrame, cfg: CampusConfig, w
                         "(set registration.mode: auto)", check)
         return {"matrix": np.eye(4).tolist(), "scale": 1.0, "method": "identity (registration off)",
                 "check": check.to_json()}
-    return register_to_samples(src, tgt, nrm, cfg.registration).to_json()
+    recorded = _recorded(wd)
+    if recorded is not None and recorded.get("frame_origin", frame.to_json().get("origin")) != frame.to_json().get("origin"):
+        recorded = None  # recorded in another campus frame: not comparable
+    reg = guarded_register(src, tgt, nrm, cfg.registration, recorded) | {"frame_origin": frame.to_json().get("origin")}
+    if reg["warning"]:
+        log.warning("%s", reg["warning"])
+    return reg
 
 
 def run_register(records: list[InputFile], frame: CampusFrame, cfg: CampusConfig, wd: WorkDir) -> dict:
@@ -133,7 +144,8 @@ def run_register(records: list[InputFile], frame: CampusFrame, cfg: CampusConfig
     def work() -> Done:
         reg = _estimate(records, frame, cfg, wd)
         write_json_atomic(wd.root / REGISTRATION_FILE, reg)
-        return Done(outputs=[REGISTRATION_FILE], summary={k: reg.get(k) for k in ("scale", "fitness", "method")})
+        return Done(outputs=[REGISTRATION_FILE], summary={k: reg.get(k) for k in (
+            "scale", "fitness", "method", "displacement_p50_m", "displacement_max_m", "warning")})
 
     res = run_unit(wd, "register", "campus", fp, cfg.stage_params("register"), work)
     if res["status"] == "failed":

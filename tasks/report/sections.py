@@ -59,6 +59,12 @@ def inputs_section(campus: dict, root: Path, truth: Path | None) -> Section:
             [[reg.get("method"), parts["scale"], parts["rotation_deg"],
               ", ".join(f"{v:.3f}" for v in parts["translation_m"]), reg.get("fitness"), reg.get("inlier_rmse_m"),
               reg.get("coarse_fitness"), reg.get("n_source"), reg.get("seconds"), reg.get("reused")]])  # fmt: skip
+        if "verdict" in reg:  # tasks.register.guard: what the applied transform does at the data
+            body += table(["verdict", "displacement p50 (m)", "displacement max (m)", "distance before (m)",
+                           "distance after (m)"], [[reg["verdict"].get("reason"), reg.get("displacement_p50_m"),
+                           reg.get("displacement_max_m"), reg.get("distance_before_m"), reg.get("distance_after_m")]])
+            if reg.get("warning"):
+                body += f"<p><b>warning:</b> {esc(reg['warning'])}</p>"
         if truth is not None and (truth / "truth" / "registration.json").exists():
             err = registration_error_m(reg["matrix"], truth, np.asarray(frame["origin"]), campus)
             body += (f"<p>Against the synth campus's true transform: the recovered one moves the campus's corners "
