@@ -74,7 +74,16 @@ def summarise(wd: WorkDir, wall_s: float, failed: dict, outliers: dict, since: f
                                                  "distance_before_m", "distance_after_m") if k in reg},
         "outliers": outliers,
         "grades": grades_summary(wd),
+        "input_warnings": input_warnings(wd),
     }
+
+
+def input_warnings(wd: WorkDir) -> list[str]:
+    """What the readers worked around in the inputs of campus.json (``InputFile.warnings``), one line each."""
+    import json
+
+    doc = json.loads(wd.campus_json.read_text()) if wd.campus_json.exists() else {}
+    return [w for rec in doc.get("inputs") or [] for w in rec.get("warnings") or []]
 
 
 def grades_summary(wd: WorkDir) -> dict:
@@ -124,6 +133,7 @@ def format_summary(s: dict) -> str:
         lines.append(f"skipped {len(s['skipped_files'])} file(s) in input folders: "
                      + ", ".join(f"{p.rsplit('/', 1)[-1]} ({why})" for p, why in s["skipped_files"][:5])
                      + (" ..." if len(s["skipped_files"]) > 5 else ""))
+    lines += [f"warning: {w}" for w in s.get("input_warnings") or []]
     lines += [w for w in [unknown_warning(s.get("grades"))] if w]
     lines.append(f"wall {s['wall_seconds']:.1f} s, sum of task times {s['task_seconds']:.1f} s")
     out = s.get("output") or {}

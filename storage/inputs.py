@@ -58,7 +58,8 @@ class InputFile:
 
     source: stable id (see module doc); path: absolute; kind: "points" | "mesh"; fingerprint: content
     fingerprint; count: points or faces; lo/hi: world bounds (mesh after offset and units scale), empty
-    when unknown; crs: of a LAS header; error: why the file cannot be used ("" when fine).
+    when unknown; crs: of a LAS header; error: why the file cannot be used ("" when fine); warnings: what
+    its reader worked around (``MeshData.warnings``: dropped faces, a missing texture), one line each.
     """
 
     source: int
@@ -70,6 +71,7 @@ class InputFile:
     hi: list[float] = field(default_factory=list)
     crs: str | None = None
     error: str = ""
+    warnings: list[str] = field(default_factory=list)
 
     @property
     def name(self) -> str:

@@ -26,6 +26,8 @@ class MeshData:
     face_colors / vertex_colors: (m, 3) / (n, 3) uint8 RGB or None.
     n_degenerate_dropped, n_duplicate_dropped: faces removed on reading; n_nonmanifold_edges: edges
         shared by more than two of the kept faces (kept, only counted).
+    warnings: one line per problem the reader worked around ("<file>: dropped 3 of 134,116 faces: ...",
+        "<file>: material library ... not found; ..."), each naming the file; the caller reports them.
     """
 
     vertices: np.ndarray
@@ -40,6 +42,7 @@ class MeshData:
     n_duplicate_dropped: int = 0
     n_nonmanifold_edges: int = 0
     embedded_textures: dict[str, np.ndarray] = field(default_factory=dict)
+    warnings: list[str] = field(default_factory=list)
 
     @property
     def n_faces(self) -> int:
@@ -56,7 +59,7 @@ class MeshData:
     @staticmethod
     def concat(meshes: Iterable[MeshData], source: str = "") -> MeshData:
         """One mesh of all ``meshes``: face indices and texture indices shifted, identical texture
-        references merged, drop/non-manifold counts summed. A colour array survives only if every
+        references merged, drop/non-manifold counts summed, warnings joined. A colour array survives only if every
         part has one; UVs of parts without any are zero with face_texture -1."""
         meshes = list(meshes)
         textures: dict[str, int] = {}
@@ -90,6 +93,7 @@ class MeshData:
             n_duplicate_dropped=sum(m.n_duplicate_dropped for m in meshes),
             n_nonmanifold_edges=sum(m.n_nonmanifold_edges for m in meshes),
             embedded_textures={k: v for m in meshes for k, v in m.embedded_textures.items()},
+            warnings=[w for m in meshes for w in m.warnings],
         )
 
 
@@ -107,6 +111,24 @@ def degenerate_faces(vertices: np.ndarray, faces: np.ndarray, min_area_m2: float
     v0 = vertices[f[:, 0]]
     area = 0.5 * np.linalg.norm(np.cross(vertices[f[:, 1]] - v0, vertices[f[:, 2]] - v0), axis=1)
     return repeated | ~(area >= min_area_m2)
+
+
+def unusable_faces(vertices: np.ndarray, faces: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Faces no reader can use: ((m,) bool out of range, (m,) bool touching a NaN/inf vertex).
+
+    vertices: (n, 3) float64; faces: (m, 3) int64. A face with an index < 0 or >= n is out of range (and
+    not also counted as NaN); the others touch a non-finite vertex if any of their three does.
+
+    >>> v = np.array([[0.0, 0, 0], [1, 0, 0], [0, 1, 0], [np.nan, 0, 0]])
+    >>> out, nan = unusable_faces(v, np.array([[0, 1, 2], [0, 1, 3], [0, 1, 9], [-1, 1, 3]]))
+    >>> out.tolist(), nan.tolist()
+    ([False, False, True, True], [False, True, False, False])
+    """
+    out = ((faces < 0) | (faces >= len(vertices))).any(axis=1)
+    finite = np.isfinite(vertices).all(axis=1)
+    safe = np.where(out[:, None], 0, faces)
+    nan = ~out & ~finite[safe].all(axis=1) if len(vertices) else np.zeros(len(faces), bool)
+    return out, nan
 
 
 def duplicate_faces(faces: np.ndarray) -> np.ndarray:
@@ -133,4 +155,5 @@ def count_nonmanifold_edges(faces: np.ndarray) -> int:
     return int((counts > 2).sum())
 
 
-__all__ = ["DEGENERATE_AREA_M2", "MeshData", "count_nonmanifold_edges", "degenerate_faces", "duplicate_faces"]
+__all__ = ["DEGENERATE_AREA_M2", "MeshData", "count_nonmanifold_edges", "degenerate_faces", "duplicate_faces",
+           "unusable_faces"]

@@ -1,17 +1,22 @@
 """Mesh readers (OBJ+MTL, PLY, GLB/glTF, folders of tiles) and OBJ / PLY writers.
 
 Readers form a registry keyed by extension (``READERS``). Each returns the file's faces in file order,
-after the same checks: missing file, no faces, NaN/inf vertices (counted), face indices out of range,
-missing MTL or texture image, corrupt or truncated GLB all raise :class:`storage.errors.InputError`
-naming the file. Degenerate faces (a repeated vertex id, or area < 1e-12 m²) and duplicate faces
-(same three vertex ids) are dropped and counted; non-manifold edges are only counted.
+after the same checks. They degrade where a user's tool would (trimesh, MeshLab): faces that touch a
+NaN/inf vertex or index a vertex out of range are dropped, and a missing MTL or texture image leaves
+its faces untextured, each with one line in ``MeshData.warnings`` naming the file and the counts
+("dropped 3 of 134,116 faces: ..."). A file is refused with :class:`storage.errors.InputError` naming
+it only when nothing usable remains: missing, empty, no (usable) faces, corrupt or truncated GLB.
+Degenerate faces (a repeated vertex id, or area < 1e-12 m²) and duplicate faces (same three vertex
+ids) are dropped and counted; non-manifold edges are only counted.
 
 OBJ + MTL reading and writing live in :mod:`storage.obj_io` (own parser, see there), ``MeshData`` and
 the face checks in :mod:`storage.mesh_data`; all are re-exported here. PLY and glTF go through trimesh
 (``process=False``).
 
 Coordinates: ``vertices`` are float64 WORLD metres = file coordinates * ``units_scale`` + ``offset``
-(``offset`` is e.g. ContextCapture's SRSOrigin when the tiles are stored relative to it).
+(``offset`` is e.g. ContextCapture's SRSOrigin when the tiles are stored relative to it). glTF is Y-up
+by specification: its positions go through each mesh node's world transform (node matrix or TRS, down
+the node hierarchy of the default scene), then to Z-up as (x, y, z)_zup = (x, -z, y), before the offset.
 UVs follow the OBJ convention (origin bottom-left, v up).
 """
 
@@ -32,33 +37,49 @@ from .mesh_data import (
     count_nonmanifold_edges,
     degenerate_faces,
     duplicate_faces,
+    unusable_faces,
 )
 from .obj_io import read_obj, write_obj
 
 
-def _finish(path: Path, mesh: MeshData, offset, units_scale: float) -> MeshData:
-    """Validate a mesh in file coordinates, move it to world metres, drop and count bad faces."""
+def _drop_unusable(path: Path, mesh: MeshData) -> MeshData:
+    """Drop the faces that index vertices out of range or touch a NaN/inf vertex, with one warning line;
+    InputError when no face is left. The non-finite vertices, then unreferenced, are set to a kept
+    face's first vertex, so vertex indices (and ids) stay those of the file and every vertex is finite."""
     v, f = mesh.vertices, mesh.faces
-    bad = ~np.isfinite(v).all(axis=1)
-    if bad.any():
-        raise InputError(path, f"{int(bad.sum()):,} of {len(v):,} vertices are NaN or infinite")
     if len(f) == 0:
         raise InputError(path, "empty mesh (no faces)")
-    out = (f < 0) | (f >= len(v))
+    out, nan = unusable_faces(v, f)
+    if not (out.any() or nan.any()):
+        return mesh
+    n_nan_v = int((~np.isfinite(v).all(axis=1)).sum())
+    why = ([f"{int(nan.sum()):,} touch NaN or infinite vertices ({n_nan_v:,} of {len(v):,} vertices)"]
+           if nan.any() else [])
     if out.any():
-        rows = np.flatnonzero(out.any(axis=1))
-        raise InputError(
-            path,
-            f"{len(rows):,} faces index vertices out of range (mesh has {len(v):,} vertices; first bad face "
-            f"#{rows[0]} = {f[rows[0]].tolist()})",
-        )
-    mesh.vertices = v * float(units_scale) + np.asarray(offset, dtype=np.float64)
-    degenerate = degenerate_faces(mesh.vertices, f)
+        first = int(np.flatnonzero(out)[0])
+        why.append(f"{int(out.sum()):,} index vertices out of range (the mesh has {len(v):,} vertices; first "
+                   f"bad face #{first} = {f[first].tolist()})")
+    keep = ~(out | nan)
+    if not keep.any():
+        raise InputError(path, f"no usable face: of {len(f):,} faces " + " and ".join(why))
+    mesh = mesh.select_faces(keep)
+    if n_nan_v:
+        mesh.vertices = np.where(np.isfinite(v).all(axis=1)[:, None], v, v[mesh.faces[0, 0]])
+    mesh.warnings = [*mesh.warnings, f"{path}: dropped {int((~keep).sum()):,} of {len(f):,} faces: " + "; ".join(why)]
+    return mesh
+
+
+def _finish(path: Path, mesh: MeshData, offset, units_scale: float) -> MeshData:
+    """Validate a mesh in file coordinates, move it to world metres, drop and count bad faces."""
+    mesh = _drop_unusable(path, mesh)
+    n_usable = mesh.n_faces
+    mesh.vertices = mesh.vertices * float(units_scale) + np.asarray(offset, dtype=np.float64)
+    degenerate = degenerate_faces(mesh.vertices, mesh.faces)
     mesh = mesh.select_faces(~degenerate)
     duplicate = duplicate_faces(mesh.faces)
     mesh = mesh.select_faces(~duplicate)
     if mesh.n_faces == 0:
-        raise InputError(path, f"all {len(f):,} faces are degenerate or duplicates")
+        raise InputError(path, f"all {n_usable:,} faces are degenerate or duplicates")
     mesh.n_degenerate_dropped = int(degenerate.sum())
     mesh.n_duplicate_dropped = int(duplicate.sum())
     mesh.n_nonmanifold_edges = count_nonmanifold_edges(mesh.faces)
@@ -104,7 +125,20 @@ def _natural_key(name: str):
     return [int(t) if t.isdigit() else t for t in re.split(r"(\d+)", name)]
 
 
+def y_up_to_z_up(xyz: np.ndarray) -> np.ndarray:
+    """glTF's Y-up frame to ms3d's Z-up one: (x, y, z) -> (x, -z, y), a rotation of +90 deg about x.
+
+    xyz: (n, 3) float64 -> (n, 3) float64.
+
+    >>> y_up_to_z_up(np.array([[1.0, 2.0, 3.0]])).tolist()
+    [[1.0, -3.0, 2.0]]
+    """
+    return np.stack([xyz[:, 0], -xyz[:, 2], xyz[:, 1]], axis=1)
+
+
 def _read_gltf(path: Path) -> MeshData:
+    """The meshes of the default scene, each through its node's world transform (trimesh's scene graph
+    composes node matrices / TRS down the hierarchy), then Y-up -> Z-up; faces in node-name order."""
     import trimesh
 
     if path.suffix.lower() == ".glb":
@@ -120,7 +154,7 @@ def _read_gltf(path: Path) -> MeshData:
         if not isinstance(geom, trimesh.Trimesh) or len(geom.faces) == 0:
             continue
         faces = np.asarray(geom.faces, np.int64)
-        vertices = trimesh.transform_points(np.asarray(geom.vertices, np.float64), transform)
+        vertices = y_up_to_z_up(trimesh.transform_points(np.asarray(geom.vertices, np.float64), transform))
         part = MeshData(vertices=vertices, faces=faces)
         visual = geom.visual
         if visual.kind == "texture" and visual.uv is not None and len(visual.uv):
@@ -265,4 +299,5 @@ __all__ = [
     "texture_image",
     "write_obj",
     "write_ply",
+    "y_up_to_z_up",
 ]

@@ -24,7 +24,9 @@ from .obj_statements import fast_statements, resolve_ids, seen_before_faces, slo
 
 def read_obj(path: Path) -> MeshData:
     """Faces (polygons fan-triangulated), per-corner UVs, vertex colours and MTL materials of an OBJ,
-    in file order and file coordinates. Missing MTL or texture images raise InputError.
+    in file order and file coordinates. A missing MTL or texture image, a face statement of fewer than 3
+    vertices or texture coordinate ids out of range are worked around (untextured faces, no triangle),
+    each with one line in ``MeshData.warnings``; vertex ids are checked by ``read_mesh``.
 
     Photogrammetry OBJs (blocks of v, vt and triangle f statements) are parsed block by block with a C
     CSV reader: 387 MB (2.9 M faces) in ~6 s against ~40 s line by line; any other OBJ line by line."""
@@ -38,8 +40,10 @@ def read_obj(path: Path) -> MeshData:
         raise InputError(path, f"malformed vertex statements ({xyzc.shape[1]} numbers each)")
     if vt.shape[1] > 2:
         vt = vt[:, :2]
-    if (counts < 3).any():
-        raise InputError(path, f"{int((counts < 3).sum())} face statements have fewer than 3 vertices")
+    warnings = []
+    if (counts < 3).any():  # such a statement gives no triangle (ntri 0 below)
+        warnings.append(f"{path}: dropped {int((counts < 3).sum()):,} of {len(counts):,} face statements: "
+                        "fewer than 3 vertices")
     negative = (raw_v < 0).any() or (raw_vt is not None and (raw_vt < 0).any())
 
     def seen(key: str) -> np.ndarray | None:
@@ -47,21 +51,22 @@ def read_obj(path: Path) -> MeshData:
 
     v_idx = resolve_ids(raw_v, seen("v"))
     # fan-triangulate polygons: corners (s, s+j, s+j+1) for j = 1 .. c-2
-    ntri = counts - 2
+    ntri = np.maximum(counts - 2, 0)
     tri_face = np.repeat(np.arange(len(counts)), ntri)
     j = np.arange(len(tri_face)) - np.repeat(np.cumsum(ntri) - ntri, ntri) + 1
     first = (np.cumsum(counts) - counts)[tri_face]
     corner = np.stack([first, first + j, first + j + 1], axis=1)
-    mesh = MeshData(vertices=xyzc[:, :3], faces=v_idx[corner] if len(corner) else np.zeros((0, 3), np.int64))
+    mesh = MeshData(vertices=xyzc[:, :3], faces=v_idx[corner] if len(corner) else np.zeros((0, 3), np.int64),
+                    warnings=warnings)
     if xyzc.shape[1] == 6:
         rgb = xyzc[:, 3:6]
         rgb = rgb * 255.0 if rgb.max() <= 1.0 else rgb  # 0..1 floats by convention, else 0..255
         mesh.vertex_colors = np.clip(np.round(rgb), 0, 255).astype(np.uint8)
+    bad_uv = np.zeros(len(corner), bool)
     if raw_vt is not None:
         vt_idx = resolve_ids(raw_vt, seen("vt"))[corner]
-        if (vt_idx >= len(vt)).any() or ((vt_idx < 0) & (raw_vt[corner] != 0)).any():
-            raise InputError(path, f"texture coordinate ids out of range (file has {len(vt):,} vt)")
-        valid = vt_idx >= 0  # corners without a vt get (0, 0)
+        bad_uv = ((vt_idx >= len(vt)) | ((vt_idx < 0) & (raw_vt[corner] != 0))).any(axis=1)
+        valid = (vt_idx >= 0) & ~bad_uv[:, None]  # corners without a vt get (0, 0)
         mesh.uv = np.zeros((*vt_idx.shape, 2), np.float32)
         mesh.uv[valid] = vt[vt_idx[valid]]
     material_ids: dict[str, int] = {}
@@ -71,6 +76,11 @@ def read_obj(path: Path) -> MeshData:
         run = np.searchsorted(faces_before_usemtl, np.arange(len(counts)), side="right") - 1
         tri_mat = ids[run][tri_face]  # run -1 (before any usemtl) picks the trailing -1
     apply_materials(path, mesh, st.mtllibs, material_ids, tri_mat)
+    if bad_uv.any():  # the geometry is fine: only the texture of these faces is lost
+        if mesh.face_texture is not None:
+            mesh.face_texture[bad_uv] = -1
+        mesh.warnings.append(f"{path}: {int(bad_uv.sum()):,} of {len(bad_uv):,} faces have texture coordinate "
+                             f"ids out of range (the file has {len(vt):,} vt); read untextured")
     return mesh
 
 

@@ -66,6 +66,7 @@ def _scan_mesh(rec: InputFile, cfg: CampusConfig, wd: WorkDir, placement: MeshPl
         return []
     used = mesh.vertices[np.unique(mesh.faces)]
     rec.count = int(mesh.n_faces)
+    rec.warnings = list(mesh.warnings)
     rec.lo, rec.hi = used.min(axis=0).tolist(), used.max(axis=0).tolist()
     xyz, normals = surface_samples(mesh.vertices, mesh.faces, cfg.registration.target_spacing_m, seed=rec.source)
     out = samples_path(wd, rec.source)
