@@ -136,6 +136,28 @@ def y_up_to_z_up(xyz: np.ndarray) -> np.ndarray:
     return np.stack([xyz[:, 0], -xyz[:, 2], xyz[:, 1]], axis=1)
 
 
+def _gltf_json(path: Path) -> dict:
+    """The JSON of a .gltf, or of a GLB's first chunk; {} if it cannot be parsed (trimesh then says why)."""
+    import json
+
+    try:
+        if path.suffix.lower() == ".gltf":
+            return json.loads(path.read_text())
+        with open(path, "rb") as f:
+            head = f.read(20)
+            return json.loads(f.read(struct.unpack("<I", head[12:16])[0]))
+    except (OSError, ValueError, struct.error):
+        return {}
+
+
+def _missing_gltf_images(path: Path) -> list[str]:
+    """External image files (``images[].uri``, not data URIs) the glTF names that do not exist."""
+    from urllib.parse import unquote
+
+    uris = [im.get("uri", "") for im in _gltf_json(path).get("images") or []]
+    return [u for u in uris if u and not u.startswith("data:") and not (path.parent / unquote(u)).is_file()]
+
+
 def _read_gltf(path: Path) -> MeshData:
     """The meshes of the default scene, each through its node's world transform (trimesh's scene graph
     composes node matrices / TRS down the hierarchy), then Y-up -> Z-up; faces in node-name order."""
@@ -147,7 +169,7 @@ def _read_gltf(path: Path) -> MeshData:
         scene = trimesh.load_scene(str(path), process=False)
     except Exception as err:
         raise InputError(path, f"corrupt or truncated glTF ({type(err).__name__}: {err})") from err
-    parts, images = [], {}
+    parts, images, n_untextured = [], {}, 0
     for node in sorted(scene.graph.nodes_geometry, key=_natural_key):
         transform, geom_name = scene.graph[node]
         geom = scene.geometry[geom_name]
@@ -166,12 +188,20 @@ def _read_gltf(path: Path) -> MeshData:
                 part.textures = [ref]
                 part.embedded_textures = {ref: np.asarray(image.convert("RGB"))}
                 part.face_texture = np.zeros(len(faces), np.int16)
+            else:
+                n_untextured += len(faces)
         elif visual.kind == "face":
             part.face_colors = np.asarray(visual.face_colors)[:, :3].astype(np.uint8)
         elif visual.kind == "vertex":
             part.vertex_colors = np.asarray(visual.vertex_colors)[:, :3].astype(np.uint8)
         parts.append(part)
-    return MeshData.concat(parts)
+    mesh = MeshData.concat(parts)
+    missing = _missing_gltf_images(path)
+    if missing:  # trimesh reads such a file without the image; say so
+        shown = ", ".join(missing[:3]) + (f" and {len(missing) - 3} more" if len(missing) > 3 else "")
+        mesh.warnings.append(f"{path}: texture image {shown} (glTF images) not found; {n_untextured:,} of "
+                             f"{mesh.n_faces:,} faces read untextured")
+    return mesh
 
 
 READERS: dict[str, Callable[[Path], MeshData]] = {

@@ -176,3 +176,23 @@ def test_glb_from_trimesh_with_a_node_transform(tmp_path):
     want = y_up_to_z_up(trimesh.transform_points(v, transform))
     np.testing.assert_allclose(mesh.vertices[mesh.faces], want[f], atol=1e-5)
     assert np.abs(mesh.vertices[mesh.faces] - v[f]).max() > 1.0  # the transform was not ignored
+
+
+def test_gltf_with_a_missing_external_image_reads_untextured_with_one_warning(tmp_path):
+    import trimesh
+    from PIL import Image
+
+    v, f = _grid(3)
+    material = trimesh.visual.material.SimpleMaterial(image=Image.fromarray(np.zeros((4, 4, 3), np.uint8)))
+    visual = trimesh.visual.TextureVisuals(uv=np.full((len(v), 2), 0.5), material=material)
+    files = trimesh.Scene([trimesh.Trimesh(v, f, visual=visual, process=False)]).export(file_type="gltf")
+    for name, data in files.items():
+        (tmp_path / name).write_bytes(data)
+    doc = json.loads((tmp_path / "model.gltf").read_text())
+    assert read_mesh(tmp_path / "model.gltf").warnings == []  # embedded image: fine
+    doc["images"] = [{"uri": "facade%20north.png", "mimeType": "image/png"}]
+    (tmp_path / "model.gltf").write_text(json.dumps(doc))
+    mesh = read_mesh(tmp_path / "model.gltf")
+    assert mesh.n_faces == len(f) and mesh.textures == []
+    assert mesh.warnings == [f"{tmp_path / 'model.gltf'}: texture image facade%20north.png (glTF images) not found; "
+                             f"8 of 8 faces read untextured"]
