@@ -167,6 +167,7 @@ def _tiles(run: _Run, inputs: dict) -> dict:
     """Partition (+ labels) every planned tile, fit the patch outliers, grade every pair (MS3DQE-Net),
     plan the bad regions over the campus, rebuild each region, merge each tile. Returns the outlier fit."""
     from tasks.ingest import input_tiles
+    from tasks.repair import pending_regions
 
     cfg, wd, ex, cj = run.cfg, run.wd, run.ex, run.cfg_json
     hints = input_tiles(inputs["records"], inputs["frame"], inputs["matrix"], cfg.grid())
@@ -184,8 +185,10 @@ def _tiles(run: _Run, inputs: dict) -> dict:
     drop_unplanned_records(wd, "classify", set(tiles))
     plan = ex.submit(regions_task, cj).result()
     run.note("regions", [plan], per_unit=False)
-    region_batches = balanced_batches(plan["regions"], plan["weights"], 4 * run.n_workers)
-    repairs = run.note("region", ex.map(repair_task, region_batches, "repair", cfg_json=cj).results())
+    todo, unchanged = pending_regions(plan["regions"], cfg, wd)  # one read of the plan and the records
+    weight = dict(zip(plan["regions"], plan["weights"]))
+    region_batches = balanced_batches(todo, [weight.get(k, 1.0) for k in todo], 4 * run.n_workers)
+    repairs = run.note("region", unchanged + ex.map(repair_task, region_batches, "repair", cfg_json=cj).results())
     merges = run.note("merge", ex.map(merge_task, batches, "merge", cfg_json=cj).results())
     drop_unplanned_records(wd, "merge", set(tiles))
     run.stages |= {"partition": parts, "classify": grades, "repair": repairs, "merge": merges}

@@ -15,8 +15,10 @@ class PrefectExecutor:
         self.progress = progress
         self.task_runs = 0  # submitted so far (each should be one task run on the API)
 
-    def map(self, tsk, batches: list, label: str, **consts) -> _Mapped:
-        futs = tsk.map(batches, **{k: unmapped(v) for k, v in consts.items()}) if batches else []
+    def map(self, tsk, batches: list, label: str, **consts) -> _Mapped | _Done:
+        if not batches:  # nothing to run (the planner skipped every unit): no task run, no progress bar
+            return _Done([])
+        futs = tsk.map(batches, **{k: unmapped(v) for k, v in consts.items()})
         self.task_runs += len(futs)
         return _Mapped(batches, futs, label, self.progress)
 
@@ -52,8 +54,6 @@ class _Done:
 
     def result(self):
         return self.value
-
-
 
 
 def _collect(batches: list[list], states: list, what: str) -> list[dict]:

@@ -120,10 +120,12 @@ def regions_task(cfg_json: dict) -> dict:
 @task(name="repair", cache_policy=NO_CACHE)
 def repair_task(region_keys: list[str], cfg_json: dict) -> list[dict]:
     """Repair a batch of regions (fuse -> mesh -> stitch -> texture), one summary each."""
+    from storage.region_plan import read_plan
     from tasks.repair import run_region
 
     cfg, wd = config_of(cfg_json)
-    return [run_region(k, cfg, wd) for k in region_keys]
+    plan = {r.key: r for r in read_plan(wd.root)}  # once per batch, not once per region
+    return [run_region(k, cfg, wd, plan) for k in region_keys]
 
 
 @task(name="merge", cache_policy=NO_CACHE)

@@ -12,6 +12,7 @@ from __future__ import annotations
 
 import hashlib
 import json
+import os
 import time
 from dataclasses import asdict, dataclass, field
 from pathlib import Path
@@ -62,16 +63,45 @@ def read_record(wd: WorkDir, stage: str, unit: str) -> ManifestRecord | None:
         return None
 
 
+def read_stage_records(wd: WorkDir, stage: str) -> dict[str, ManifestRecord]:
+    """Every readable record of ``stage`` in one pass over ``manifest.d/{stage}/``: {unit: record}.
+
+    The planner's one manifest read per stage (``tasks.units.pending_units``): a directory listing and
+    one small JSON read per record, no per-unit path probing. An unreadable record (foreign, or a
+    truncated file from outside ms3d) is left out, i.e. its unit is treated as not done.
+    """
+    out: dict[str, ManifestRecord] = {}
+    try:
+        entries = os.scandir(wd.manifest_dir / stage)
+    except (FileNotFoundError, NotADirectoryError):
+        return out
+    with entries:
+        for e in entries:
+            if e.name.startswith(".") or not e.name.endswith(".json"):
+                continue  # ".name.XXXX.tmp.json": a record being written (storage.atomic), not yet one
+            try:
+                with open(e.path, "rb") as f:
+                    rec = ManifestRecord(**json.loads(f.read()))
+            except (OSError, ValueError, TypeError):
+                continue
+            if rec.stage == stage:
+                out[rec.unit] = rec
+    return out
+
+
+def record_is_current(wd: WorkDir, rec: ManifestRecord | None, fingerprint: str, phash: str) -> bool:
+    """Whether ``rec`` marks its unit done (or empty) for these fingerprints, with every output on disk."""
+    if rec is None or rec.status not in ("done", "empty"):
+        return False
+    if rec.fingerprint != fingerprint or rec.params_hash != phash:
+        return False
+    return all((wd.root / o).exists() for o in rec.outputs)
+
+
 def is_done(wd: WorkDir, stage: str, unit: str, fingerprint: str, phash: str) -> ManifestRecord | None:
     """The done record of a unit when it matches the fingerprints and its outputs exist, else None."""
     rec = read_record(wd, stage, unit)
-    if rec is None or rec.status not in ("done", "empty"):
-        return None
-    if rec.fingerprint != fingerprint or rec.params_hash != phash:
-        return None
-    if not all((wd.root / o).exists() for o in rec.outputs):
-        return None
-    return rec
+    return rec if record_is_current(wd, rec, fingerprint, phash) else None
 
 
 def all_records(wd: WorkDir) -> list[ManifestRecord]:

@@ -20,7 +20,14 @@ from collections.abc import Callable
 from dataclasses import dataclass, field
 
 from storage.errors import EmptyTileError, InputError
-from storage.manifest import ManifestRecord, is_done, params_hash, write_record
+from storage.manifest import (
+    ManifestRecord,
+    is_done,
+    params_hash,
+    read_stage_records,
+    record_is_current,
+    write_record,
+)
 from storage.workdir import WorkDir
 
 STAGE_VERSIONS = {
@@ -125,6 +132,34 @@ def record_step(wd: WorkDir, stage: str, unit: str, work: Callable[[], dict], fi
     return {**out, "status": status}
 
 
+def skipped_summary(rec: ManifestRecord) -> dict:
+    """The unit summary of a unit skipped because ``rec`` (its current record) says it is done."""
+    return {**rec.summary, "unit": rec.unit, "status": rec.status, "skipped": True, "seconds": rec.seconds}
+
+
+def pending_units(wd: WorkDir, stage: str, fingerprints: dict[str, str], params: dict
+                  ) -> tuple[list[str], list[dict]]:
+    """Which units of ``stage`` must run, decided from ONE read of the stage's records.
+
+    fingerprints: {unit: input fingerprint}, computed by the stage exactly as its run function does;
+    params: the stage's parameter dict (as given to :func:`run_unit`). Returns (units to run, in the
+    order given; the :func:`skipped_summary` of every other unit). A unit runs unless its record is
+    current (:func:`storage.manifest.record_is_current`), so the plan skips exactly what
+    :func:`run_unit` would; run_unit still checks each unit it is given, so a wrong plan costs time,
+    never correctness.
+    """
+    ph = unit_params(stage, params)
+    records = read_stage_records(wd, stage)
+    run, skipped = [], []
+    for unit, fp in fingerprints.items():
+        rec = records.get(unit)
+        if record_is_current(wd, rec, fp, ph):
+            skipped.append(skipped_summary(rec))
+        else:
+            run.append(unit)
+    return run, skipped
+
+
 def run_unit(wd: WorkDir, stage: str, unit: str, fingerprint: str, params: dict,
              work: Callable[[], Done], on_fail: Callable[[], None] | None = None) -> dict:
     """Skip ``unit`` if done and unchanged, else run ``work`` and record the outcome.
@@ -136,7 +171,7 @@ def run_unit(wd: WorkDir, stage: str, unit: str, fingerprint: str, params: dict,
     ph = unit_params(stage, params)
     rec = is_done(wd, stage, unit, fingerprint, ph)
     if rec is not None:
-        return {**rec.summary, "unit": unit, "status": rec.status, "skipped": True, "seconds": rec.seconds}
+        return skipped_summary(rec)
     step = _Step()
     try:
         out = work()

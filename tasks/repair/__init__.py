@@ -9,6 +9,6 @@ invalidated by a change of its plan entry (patches, bad set, context), of a stor
 cameras file, or of ``repair.*`` / the grid.
 """
 
-from tasks.repair.stage import region_fingerprint, run_region
+from tasks.repair.stage import pending_regions, region_fingerprint, run_region
 
-__all__ = ["region_fingerprint", "run_region"]
+__all__ = ["pending_regions", "region_fingerprint", "run_region"]

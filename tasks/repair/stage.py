@@ -32,7 +32,7 @@ from storage.workdir import WorkDir, campus_frame, read_campus
 from tasks.config import CampusConfig
 from tasks.repair.region_io import RegionRead, read_region
 from tasks.repair.texture_inputs import camera_paths, image_loader, load_cameras, occupancy, reduced_texture
-from tasks.units import Done, run_unit
+from tasks.units import Done, pending_units, run_unit
 
 
 def _occupied_voxels(cfg: CampusConfig, wd: WorkDir, origin: np.ndarray, lo: np.ndarray, hi: np.ndarray,
@@ -67,15 +67,40 @@ def _texture_region(mesh, rr: RegionRead, cfg: CampusConfig, wd: WorkDir, frame,
     return texture_region(mesh, rr.input, cams, vox, tc, colors, image_loader(cams))
 
 
-def region_fingerprint(region: Region, wd: WorkDir, cfg: CampusConfig) -> str:
+def region_fingerprint(region: Region, wd: WorkDir, cfg: CampusConfig, memo: dict | None = None) -> str:
     """What a region's output depends on besides the parameters: its patch sets and grades (the plan
-    entry), the stores of its tiles, and the cameras file."""
+    entry), the stores of its tiles, and the cameras file. ``memo``: a dict shared by the regions of one
+    plan so each tile store and the cameras file is fingerprinted once (:func:`pending_regions`)."""
+    memo = {} if memo is None else memo
     parts = [json.dumps(region.to_json(), sort_keys=True)]
-    parts += [f"{t}:{store_fingerprint(wd.tile_dir(TileId.from_key(t)))}" for t in region.tiles]
-    _, cams = camera_paths(cfg)
-    if cfg.repair.texture.enabled and cams is not None and cams.exists():
-        parts.append(file_fingerprint(cams))
+    for t in region.tiles:
+        if t not in memo:
+            memo[t] = store_fingerprint(wd.tile_dir(TileId.from_key(t)))
+        parts.append(f"{t}:{memo[t]}")
+    if ("cameras",) not in memo:
+        _, cams = camera_paths(cfg)
+        memo[("cameras",)] = file_fingerprint(cams) if cfg.repair.texture.enabled and cams is not None \
+            and cams.exists() else None
+    if memo[("cameras",)] is not None:
+        parts.append(memo[("cameras",)])
     return combine_fingerprints(parts)
+
+
+def region_params(cfg: CampusConfig) -> dict:
+    """The parameters a region's record is keyed by: ``repair.*`` and the grid."""
+    return {"repair": cfg.repair.params(), "grid": cfg.grid().to_json()}
+
+
+def pending_regions(region_keys: list[str], cfg: CampusConfig, wd: WorkDir) -> tuple[list[str], list[dict]]:
+    """The regions of ``region_keys`` that must be repaired, from one read of the plan and of the region
+    records (``tasks.units.pending_units``): (keys to run, in the given order; summaries of the skipped).
+    A key the plan does not name is kept to run, so :func:`run_region` reports it."""
+    plan = {r.key: r for r in read_plan(wd.root)}
+    memo: dict = {}
+    fps = {k: region_fingerprint(plan[k], wd, cfg, memo) for k in region_keys if k in plan}
+    run, skipped = pending_units(wd, "region", fps, region_params(cfg))
+    todo = set(run)
+    return [k for k in region_keys if k in todo or k not in plan], skipped
 
 
 def _write_rebuilt(out_dir, geo, rr: RegionRead, colors: np.ndarray, atlas, cfg: CampusConfig, origin) -> list[str]:
@@ -102,19 +127,20 @@ def _summary(region: Region, rr: RegionRead, geo, status: str, t: tuple[float, f
             "peak_traced_mb": peak / 2**20}
 
 
-def run_region(region_id: str, cfg: CampusConfig, wd: WorkDir) -> dict:
+def run_region(region_id: str, cfg: CampusConfig, wd: WorkDir, plan: dict[str, Region] | None = None) -> dict:
     """Repair one region (fuse -> mesh -> stitch -> texture) and write ``regions/{region_id}/``.
 
     Skipped when its manifest record is done with the same fingerprint (:func:`region_fingerprint`)
-    and parameters (``cfg.repair.params()`` + the grid). Returns the unit summary: status, defect
+    and parameters (:func:`region_params`). ``plan``: {key: Region} of ``regions/regions.json`` when the
+    caller read it once for a batch (else it is read here). Returns the unit summary: status, defect
     type, counts, border gap, seconds per step, peak traced memory.
     """
-    plan = {r.key: r for r in read_plan(wd.root)}
+    plan = {r.key: r for r in read_plan(wd.root)} if plan is None else plan
     if region_id not in plan:
         return {"unit": region_id, "status": "failed", "error": f"region {region_id} is not in the plan "
                 "(regions/regions.json): run the regions stage first", "skipped": False}
     region = plan[region_id]
-    params = {"repair": cfg.repair.params(), "grid": cfg.grid().to_json()}
+    params = region_params(cfg)
     out_dir = region_dir(wd.root, region_id)
 
     def work() -> Done:
