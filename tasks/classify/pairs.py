@@ -53,6 +53,16 @@ class TilePairs:
     def __len__(self) -> int:
         return len(self.keys)
 
+    @property
+    def all_points(self) -> np.ndarray:
+        """(n, 3) float32 every point of the tile, in patch order (metres, campus-local)."""
+        return self._pts
+
+    @property
+    def all_triangles(self) -> np.ndarray:
+        """(m, 3, 3) float32 every face of the tile, in patch order."""
+        return self._tris
+
     def raw(self, idx) -> tuple[list, list, list, list]:
         """(points, tris, vids, open_edges) lists of the pairs ``idx``."""
         pts = [self._pts[self._pr[i, 0]:self._pr[i, 1]] for i in idx]

@@ -10,6 +10,11 @@
   mesh network. Both kinds are kept visible as unknown for the regions stage to decide (for example, to
   join a points-only patch to a neighbouring bad region). A patch with fewer than
   ``partition.min_faces`` faces or ``partition.min_points`` points counts the same way.
+- **Geometric evidence** (``classify.evidence``, on by default; :mod:`tasks.classify.evidence`): a
+  patch whose MLS points lie off the mesh is graded bad whatever the network says (its score is kept, so
+  such a grade can sit below the threshold), and a points-only patch against the mesh is bad rather than
+  unknown (score NaN): a city model looks clean to the network, yet lacks the recesses, balconies and
+  passages the scan shows.
 - **Resumable**: a tile is skipped when its manifest record matches the store's fingerprint (sizes and
   modification times of its three tables) and the parameters, which include the model's sha256: a new model
   or a re-partitioned tile grades again.
@@ -31,6 +36,7 @@ from storage.ids import TileId
 from storage.patch_store import PATCHES_FILE, PatchStore, side_table_path, write_side_table
 from storage.store_state import store_fingerprint
 from storage.workdir import STALE_FILE, WorkDir
+from tasks.classify.evidence import Evidence, offset_evidence, range_rows
 from tasks.classify.pairs import (
     empty_pair_set,
     gradable_mask,
@@ -100,6 +106,21 @@ def grade_pairs(model: LoadedModel, tp, batch_size: int, threshold: float) -> tu
     return scores, (scores >= threshold).astype(np.int8)
 
 
+def tile_evidence(tp, patches: dict, ccfg) -> Evidence:
+    """The geometric evidence (:func:`tasks.classify.evidence.offset_evidence`) over every patch of a tile
+    read as ``tp`` (:class:`tasks.classify.pairs.TilePairs`, which holds the whole tile's points and faces)."""
+    pts, tris = tp.all_points, tp.all_triangles
+    prow = range_rows(patches["point_start"], patches["point_stop"], len(pts))
+    frow = range_rows(patches["face_start"], patches["face_stop"], len(tris))
+    ok = prow >= 0
+    ijk = np.stack([patches["i"], patches["j"], patches["k"]], axis=1)
+    return offset_evidence(pts[ok].astype(np.float64), prow[ok], tris[frow >= 0].astype(np.float64), frow[frow >= 0],
+                           ijk, patches["n_faces"], off_surface_m=ccfg.evidence_off_surface_m,
+                           near_m=ccfg.evidence_near_m, quantile=ccfg.evidence_quantile,
+                           min_points=ccfg.evidence_min_points, min_off_points=ccfg.evidence_min_off_points,
+                           standing_normal_z=ccfg.evidence_standing_normal_z)
+
+
 def run_classify_tile(tile: TileId, cfg, wd: WorkDir) -> dict | None:
     """Grade every pair of one tile into ``grades.parquet``.
 
@@ -123,6 +144,8 @@ def run_classify_tile(tile: TileId, cfg, wd: WorkDir) -> dict | None:
     fp = store_fingerprint(tile_dir)
     params = {"model_hash": model.hash, "threshold": ccfg.threshold,
               "min_faces": cfg.partition.min_faces, "min_points": cfg.partition.min_points}
+    if ccfg.evidence:
+        params["evidence"] = {k: v for k, v in ccfg.model_dump().items() if k.startswith("evidence_")}
 
     def work() -> Done:
         t0 = time.perf_counter()
@@ -138,12 +161,18 @@ def run_classify_tile(tile: TileId, cfg, wd: WorkDir) -> dict | None:
             s, g = grade_pairs(model, tp, ccfg.batch_size, ccfg.threshold)
             score[tp.rows], grade[tp.rows] = s, g
         t_grade = time.perf_counter() - t1
+        ev = tile_evidence(tp, store.patches(), ccfg) if ccfg.evidence else None
+        if ev is not None:
+            grade[ev.bad] = 1
+        t_evidence = time.perf_counter() - t1 - t_grade
         write_side_table(tile_dir, "grades", {"patch": keys, "score": score, "grade": grade}, store.meta,
                          model_hash=model.hash, model=Path(model.path).name, profile=model.profile.name,
                          threshold=ccfg.threshold)
         summary = {"tile": tile.key, "n_patches": len(keys), "n_pairs": len(tp), "n_bad": int((grade == 1).sum()),
                    "n_unknown": int((grade == -1).sum()), "model_hash": model.hash,
-                   "read_seconds": t_read, "grade_seconds": t_grade,
+                   "n_evidence_bad": int(ev.bad.sum()) if ev is not None else 0,
+                   "n_missing_surface": int(ev.missing.sum()) if ev is not None else 0,
+                   "read_seconds": t_read, "grade_seconds": t_grade, "evidence_seconds": t_evidence,
                    "pairs_per_s": len(tp) / t_grade if t_grade > 0 and len(tp) else 0.0}
         return Done(outputs=[str(side_table_path(tile_dir, "grades").relative_to(wd.root))], summary=summary)
 

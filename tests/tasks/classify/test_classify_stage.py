@@ -21,7 +21,8 @@ def test_classify_grades_every_pair_then_skips_and_regrades_for_a_new_model(tiny
 
     cfg, wd = tiny_work
     h1 = _checkpoint(tmp_path / "m1.pt", 0)
-    cfg = cfg.model_copy(update={"classify": cfg.classify.model_copy(update={"enabled": True, "model": str(tmp_path / "m1.pt")})})
+    cfg = cfg.model_copy(update={"classify": cfg.classify.model_copy(update={"enabled": True, "model": str(tmp_path / "m1.pt"),
+                                                                                 "evidence": False})})
     tiles = wd.live_tiles()
     assert tiles
     n_pairs = 0
