@@ -72,12 +72,10 @@ def make_merged(input_dir: Path, work: Path, tile_size_m: float, seed: int = 0) 
     import yaml
 
     from storage.frame import CampusFrame
-    from storage.mesh_io import read_mesh
-    from synth.tile_meshes import fake_merged_workdir
+    from synth.tile_meshes import fake_merged_workdir, read_production
 
     cfg = yaml.safe_load((input_dir / "campus.yaml").read_text())
-    origin = tuple(cfg["inputs"]["mesh_offset"])
-    mesh = read_mesh(input_dir / "mesh", offset=origin)
+    mesh, origin = read_production(input_dir / "mesh")  # placed by mesh/metadata.xml
     frame = CampusFrame(origin=origin, crs=cfg["inputs"]["crs"], vertical_datum="ellipsoidal (WGS 84), synthetic")
     fake_merged_workdir(mesh, frame, work, tile_size_m=tile_size_m, seed=seed)
     return work, _footprint_km2(work, tile_size_m)

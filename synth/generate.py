@@ -2,14 +2,19 @@
 
 Layout of ``OUT``::
 
-    mesh/            the UAV/MVS-like mesh: OBJ + MTL + texture atlas PNGs (ContextCapture-style:
-                     local coordinates, SRS origin in metadata.xml); the campus preset writes one
-                     folder per tile (Tile_+000_+000/...)
+    mesh/            the UAV/MVS-like mesh, a ContextCapture-style production: metadata.xml (SRS,
+                     SRSOrigin) and OBJ + MTL + JPEG atlas per tile in local coordinates,
+                     Data/Tile_+000_+000/... (tiny, demo: synth.production); the campus preset
+                     writes one folder per
+                     generation tile (Tile_+000_+000/...); the coarse mesh is one mvs.obj
     mls/             the MLS scan, one LAZ per vehicle pass (LAS 1.4, RGB, GPS time, EPSG:32650),
                      in a frame perturbed from the mesh frame by a known similarity
-    images/          vehicle camera images and cameras.json (poses in the MLS frame)
+    images/          vehicle camera images (pinhole: no lens distortion rendered)
+    sparse/0/        their poses as a COLMAP text model (cameras.txt with zero distortion, images.txt),
+                     world coordinates of the mesh frame
     truth/           truth_mesh.ply (float64 world), truth_faces.npz (class/building per face),
-                     registration.json, defects.json, scene.json, manifest.json (sha256 of every file)
+                     registration.json, defects.json (samples; face indices per tile file in
+                     "mesh_faces"), scene.json, manifest.json (sha256 of every file)
     campus.yaml      an ``ms3d run`` config for these inputs
 """
 
@@ -31,6 +36,7 @@ from storage.mesh_io import write_obj, write_ply
 from storage.pointcloud_io import LasChunkWriter, PointChunk
 
 from .presets import SynthPreset, get_preset
+from .production import write_colmap_model
 from .scene import FaceClass, Mesh, OccluderClass, Scene
 
 log = logging.getLogger("ms3d.synth")
@@ -39,6 +45,7 @@ WORLD_ORIGIN = (589_000.0, 2_712_000.0, 15.0)  # UTM zone 50N (Zhangzhou, Fujian
 CRS = "EPSG:32650"
 VERTICAL_DATUM = "ellipsoidal (WGS 84), synthetic"
 LAS_DATE = _dt.date(2026, 1, 1)  # fixed: identical seeds give identical bytes
+COLMAP_MODEL = "sparse/0"  # the cameras' COLMAP text model, as a COLMAP project lays it out
 
 # ASPRS classes for the simulated returns (truth classes -> LAS classification)
 _ASPRS_TRUTH = {FaceClass.GROUND: 2, FaceClass.ROAD: 11, FaceClass.WALL: 6, FaceClass.ROOF: 6,
@@ -145,12 +152,17 @@ def scan_to_laz(scene: Scene, trajs: list, path_for, perturb: np.ndarray, densit
     return paths
 
 
-def write_campus_yaml(out: Path, preset: SynthPreset, mesh_inputs: list[str], seed: int) -> None:
+def write_campus_yaml(out: Path, preset: SynthPreset, mesh_inputs: list[str], seed: int, cameras: bool = False
+                      ) -> None:
+    """campus.yaml: the mesh is placed by ``mesh/metadata.xml`` (no ``mesh_offset``); with ``cameras``, the
+    images and their COLMAP model are inputs."""
+    inputs = {"mesh": mesh_inputs, "points": ["mls"], "crs": CRS, "labels": "truth/defects.json"}
+    if cameras:
+        inputs.update(images="images", cameras=COLMAP_MODEL)
     cfg = {
         "name": f"synth-{preset.name}",
         "work_dir": f"../ms3d-work/synth-{preset.name}-s{seed}",
-        "inputs": {"mesh": mesh_inputs, "points": ["mls"], "crs": CRS,
-                   "mesh_offset": list(WORLD_ORIGIN), "labels": "truth/defects.json"},
+        "inputs": inputs,
         # the perturbation's prior (random_registration): scale within 0.4 %, and yaw 3 deg about the frame
         # origin plus 2.5 m moves points up to ~6 % of their distance from it, plus 3 m
         "registration": {"max_scale_error": 0.005,
@@ -260,6 +272,7 @@ def _write_tile(run: _SynthRun, ix: int, iy: int) -> None:
     roads (scanned against the tile and its neighbours: rays cross tile borders)."""
     from .cameras import render_cameras, write_images
     from .mvs import MvsParams, make_mvs_mesh
+    from .production import defect_faces_by_file, write_production
     from .trajectory import TrajectoryParams, build_trajectories
 
     out, p, nx, ny, stats = run.out, run.preset, run.nx, run.ny, run.stats
@@ -273,16 +286,22 @@ def _write_tile(run: _SynthRun, ix: int, iy: int) -> None:
         mvs, tile_defects = make_coarse_mesh(scene)
     else:
         mvs, tile_defects = make_mvs_mesh(r_mvs, scene, MvsParams(edge_facade_m=p.mvs_edge_m))
+    production = _production_tile_m(run) if not run.coarse_mesh else 0.0
+    if production:
+        tiles = write_production(out / "mesh", mvs, production, r_tex, lod_tile=p.lod_tile)
+    else:
+        write_mvs_tile(out / "mesh" / name if p.tiled_mesh else out / "mesh", name, mvs, r_tex)
     for d in tile_defects:
         d["id"] = f"{ix}_{iy}_{d['id']}"
-        d["mesh_file"] = f"mesh/{name}/{name}.obj" if p.tiled_mesh else "mesh/mvs.obj"
+        if production:  # face indices per tile file: {"mesh/Data/Tile_.../Tile_....obj": [...]}
+            d["mesh_faces"] = defect_faces_by_file(d.pop("faces", []), tiles)
+        else:
+            d["mesh_file"] = f"mesh/{name}/{name}.obj" if p.tiled_mesh else "mesh/mvs.obj"
     with open(run.defects_part, "a") as fp:
         for d in tile_defects:
             fp.write((",\n" if run.n_defects else "") + json.dumps(d, indent=None, default=_json_default))
             run.n_defects += 1
     del tile_defects
-    folder = out / "mesh" / name if p.tiled_mesh else out / "mesh"
-    write_mvs_tile(folder, name, mvs, r_tex)
     stats["mvs_faces"] = stats.get("mvs_faces", 0) + mvs.n_faces
     tname = f"truth_mesh_{name}" if p.tiled_mesh else "truth_mesh"
     write_ply(out / "truth" / f"{tname}.ply", scene.truth.vertices + origin, scene.truth.faces,
@@ -299,7 +318,18 @@ def _write_tile(run: _SynthRun, ix: int, iy: int) -> None:
                 run.perturb, p.mls_density_scale, r_mls, stats)
     if p.image_every_m > 0:
         imgs, cams = render_cameras(seen, trajs, every_m=p.image_every_m, size=p.image_size, rng=r_cam)
-        run.cameras += write_images(out / "images", imgs, cams, run.perturb, origin, prefix=f"{ix:02d}{iy:02d}_")
+        run.cameras += write_images(out / "images", imgs, cams, None, origin, prefix=f"{ix:02d}{iy:02d}_")
+
+
+def _production_tile_m(run: _SynthRun) -> float:
+    """The production tile grid (0: no production): the preset's, or the generation tile when the campus
+    has several generation tiles and the preset's grid does not divide them (tiles would collide)."""
+    p = run.preset
+    if p.tiled_mesh or p.production_tile_m <= 0:
+        return 0.0
+    if run.nx * run.ny == 1 or float(p.tile_m / p.production_tile_m).is_integer():
+        return p.production_tile_m
+    return p.tile_m
 
 
 def _write_campus_files(run: _SynthRun, truth_reg: np.ndarray, scale: float) -> None:
@@ -308,10 +338,8 @@ def _write_campus_files(run: _SynthRun, truth_reg: np.ndarray, scale: float) -> 
     out, p, seed = run.out, run.preset, run.seed
     mesh_inputs = ["mesh"]
     write_metadata_xml(out / "mesh")
-    if run.cameras:
-        write_json_atomic(out / "images" / "cameras.json", {"frame": "MLS", "frame_origin": list(WORLD_ORIGIN),
-                                                            "convention": "OpenCV: x right, y down, z forward; X_cam = R X_local + t, X_local = X_world - frame_origin",
-                                                            "cameras": run.cameras})
+    if run.cameras:  # the mesh frame, world coordinates: what the photogrammetry delivers
+        write_colmap_model(out / COLMAP_MODEL, run.cameras, WORLD_ORIGIN)
     write_json_atomic(out / "truth" / "registration.json", {
         "frame_origin": list(WORLD_ORIGIN), "crs": CRS,
         "matrix_mls_to_mesh": truth_reg.tolist(),
@@ -323,7 +351,7 @@ def _write_campus_files(run: _SynthRun, truth_reg: np.ndarray, scale: float) -> 
                                                      **({"coarse_mesh": True} if run.coarse_mesh else {}),
                                                      "extent_m": list(p.extent_m), "buildings": run.buildings,
                                                      "stats": {k: v for k, v in run.stats.items() if k != "scan_seconds"}})
-    write_campus_yaml(out, p, mesh_inputs, seed)
+    write_campus_yaml(out, p, mesh_inputs, seed, bool(run.cameras))
     write_manifest(out, {"preset": p.name, "seed": seed, "scale": scale, "mls_density": p.mls_density_scale})
 
 

@@ -9,7 +9,11 @@ from dataclasses import dataclass
 class SynthPreset:
     """extent_m: campus side lengths (x, y); tile_m: generation tile (bounded memory);
     mls_density_scale: multiplies the scanner's point rate (1.0 = RIEGL VMX-450-like, ~4,000 pts/m^2
-    at 10 m); image_every_m: camera spacing along the trajectory (0 = no images)."""
+    at 10 m); image_every_m: camera spacing along the trajectory (0 = no images); production_tile_m: the
+    ContextCapture tile grid the mesh is cut on (``mesh/Data/Tile_*/``, :mod:`synth.production`; 0 = one
+    ``mesh/mvs.obj``, or with ``tiled_mesh`` one folder per generation tile); lod_tile: a production tile that
+    also gets a coarser level of detail (readers keep the finest; off in the presets while the quality stage
+    reads every file of the mesh folder as the input mesh)."""
 
     name: str
     extent_m: tuple[float, float]
@@ -22,13 +26,17 @@ class SynthPreset:
     image_size: tuple[int, int]
     mvs_edge_m: float = 0.12
     tiled_mesh: bool = False
+    production_tile_m: float = 0.0
+    lod_tile: str | None = None
 
 
 PRESETS = {
     # one small building beside one road: seconds, for tests
-    "tiny": SynthPreset("tiny", (60.0, 50.0), 1, (2, 4), 60.0, 0.04, 2, 25.0, (240, 180), mvs_edge_m=0.15),
+    "tiny": SynthPreset("tiny", (60.0, 50.0), 1, (2, 4), 60.0, 0.04, 2, 25.0, (240, 180), mvs_edge_m=0.15,
+                        production_tile_m=50.0),
     # 4-8 buildings along three streets near real street-MLS density (~15 M points): the demo campus
-    "demo": SynthPreset("demo", (200.0, 100.0), 6, (1, 12), 200.0, 0.1, 2, 15.0, (1024, 768)),
+    "demo": SynthPreset("demo", (200.0, 100.0), 6, (1, 12), 200.0, 0.1, 2, 15.0, (1024, 768),
+                        production_tile_m=100.0),
     # >= 0.25 km^2, >= 40 buildings, ~1e8 points, generated tile by tile in bounded memory
     "campus": SynthPreset("campus", (520.0, 520.0), 44, (1, 12), 130.0, 0.06, 2, 0.0, (1024, 768),
                           tiled_mesh=True),

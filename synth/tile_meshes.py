@@ -91,3 +91,15 @@ def fake_merged_workdir(mesh: MeshData, frame: CampusFrame, work_dir: str | Path
     for tm in cut_tiles(mesh, frame, tile_size_m, np.random.default_rng(seed)):
         write_tile_mesh(wd.root / "tiles" / tm.tile, tm)
     return wd
+
+
+def read_production(mesh_root: str | Path):
+    """(MeshData in world metres, SRSOrigin (3,) tuple) of a synth mesh folder: every finest-LOD file of the
+    production ``mesh_root`` (its tiles concatenated; seam vertices stay doubled), placed by its
+    ``metadata.xml``."""
+    from storage.mesh_io import mesh_files, read_mesh
+    from storage.production import finest_lod, read_metadata
+
+    origin = read_metadata(Path(mesh_root) / "metadata.xml").origin
+    files, _ = finest_lod([str(p) for p in mesh_files(mesh_root)])
+    return MeshData.concat([read_mesh(f, offset=origin) for f in files], source=str(mesh_root)), origin

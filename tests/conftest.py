@@ -42,12 +42,10 @@ def tiny_merged(tiny_campus, tmp_path_factory):
     import yaml
 
     from storage.frame import CampusFrame
-    from storage.mesh_io import read_mesh
-    from synth.tile_meshes import fake_merged_workdir
+    from synth.tile_meshes import fake_merged_workdir, read_production
 
     cfg = yaml.safe_load((tiny_campus / "campus.yaml").read_text())
-    origin = tuple(cfg["inputs"]["mesh_offset"])
-    mesh = read_mesh(tiny_campus / "mesh", offset=origin)
+    mesh, origin = read_production(tiny_campus / "mesh")
     frame = CampusFrame(origin=origin, crs=cfg["inputs"]["crs"], vertical_datum="ellipsoidal (WGS 84), synthetic")
     return fake_merged_workdir(mesh, frame, tmp_path_factory.mktemp("merged") / "work", tile_size_m=25.0).root
 

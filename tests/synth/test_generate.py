@@ -7,9 +7,9 @@ import json
 import numpy as np
 import pytest
 
-from storage.mesh_io import read_mesh
 from storage.pointcloud_io import read_header, read_points
 from synth.generate import generate
+from synth.tile_meshes import read_production
 from tasks.quality.metrics import point_to_mesh_distance
 from tasks.quality.truth import load_truth
 
@@ -23,7 +23,8 @@ def test_same_seed_same_bytes_other_seed_differs(tiny_campus, tmp_path):
     assert _checksums(again) == _checksums(tiny_campus)
     other = generate("tiny", seed=2, out=tmp_path / "other")
     a, b = _checksums(tiny_campus), _checksums(other)
-    assert a["mesh/mvs.obj"] != b["mesh/mvs.obj"]
+    tile = "mesh/Data/Tile_+001_+000/Tile_+001_+000.obj"
+    assert a[tile] != b[tile]
     assert a["truth/truth_mesh.ply"] != b["truth/truth_mesh.ply"]
     assert any(a[k] != b.get(k) for k in a if k.startswith("mls/"))
 
@@ -57,7 +58,8 @@ def test_holes_have_no_mvs_faces(tiny_campus):
     holes = [d for d in defects if "hole" in d["type"]]
     assert holes, "the tiny preset injects holes"
     origin = np.asarray(json.loads((tiny_campus / "truth" / "registration.json").read_text())["frame_origin"])
-    mvs = read_mesh(tiny_campus / "mesh" / "mvs.obj", offset=origin)
+    mvs, meta_origin = read_production(tiny_campus / "mesh")
+    assert np.allclose(meta_origin, origin)
     cent = mvs.vertices[mvs.faces].mean(axis=1) - origin
     from scipy.spatial import cKDTree
 
