@@ -43,6 +43,8 @@ from tasks.register import fine as register_fine
 from tasks.register.base import (
     MIN_POINTS,
     PRE_CAP_FACTOR,
+    SANE_SCALE,
+    FitFailed,
     StepClock,
     apply_similarity,
     compare_transforms,
@@ -225,6 +227,18 @@ def register_to_samples(source_xyz: np.ndarray, target_xyz: np.ndarray, target_n
     return _register(src, tgt, nrm, cfg, rng, clock, t0)
 
 
+def _fitted_scale(matrix: np.ndarray) -> float:
+    """The scale of a fitted similarity; FitFailed when the fit collapsed (not a proper similarity, or a
+    scale outside :data:`SANE_SCALE`: Scale-ICP with no overlap can shrink the cloud onto one point)."""
+    try:
+        scale = decompose_similarity(matrix)[0]
+    except ValueError as e:
+        raise FitFailed(None, f"the fit collapsed ({e})") from None
+    if not SANE_SCALE[0] <= scale <= SANE_SCALE[1]:
+        raise FitFailed(None, f"the fit collapsed (scale {scale:.3g})")
+    return scale
+
+
 def _register(src, tgt, nrm, cfg: RegistrationConfig, rng, clock: StepClock, t0: float) -> RegistrationResult:
     """SAC-IA then Scale-ICP of the thinned source onto the surface samples (tgt, nrm)."""
     src_lo, src_hi = src.min(axis=0), src.max(axis=0)
@@ -254,7 +268,7 @@ def _register(src, tgt, nrm, cfg: RegistrationConfig, rng, clock: StepClock, t0:
     if fit < LOW_FITNESS:  # the stage's guard (tasks.register.guard) turns this into its one warning line
         log.info("only %.0f %% of the MLS points lie within %s m of the mesh after registration: check the "
                     "result (do the inputs overlap? is the mesh badly degraded?)", 100 * fit, FINE_DISTANCES_M[-1])
-    scale = decompose_similarity(matrix)[0]
+    scale = _fitted_scale(matrix)
     return RegistrationResult(
         matrix,
         float(scale),

@@ -15,6 +15,13 @@ import open3d as o3d
 from storage.errors import InputError
 
 MIN_POINTS = 100  # fewer finite points than this cannot be registered
+SANE_SCALE = (0.5, 2.0)  # a fitted scale outside this is a collapsed fit, not a measurement
+
+
+class FitFailed(InputError):
+    """The fit itself failed (ICP lost the overlap, the similarity collapsed), although the inputs are
+    readable and overlap: the registration guard keeps the transform in place and warns, instead of
+    ending the run (unless ``registration.strict``)."""
 PRE_CAP_FACTOR = 8  # random pre-cap (before voxelling) at this many times the final cap
 
 

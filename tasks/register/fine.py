@@ -12,9 +12,8 @@ import numpy as np
 import open3d as o3d
 from scipy.spatial import cKDTree
 
-from storage.errors import InputError
 from tasks.config import RegistrationConfig
-from tasks.register.base import apply_similarity, o3d_cloud, small_rotation
+from tasks.register.base import FitFailed, apply_similarity, o3d_cloud, small_rotation
 
 _reg = o3d.pipelines.registration
 
@@ -76,7 +75,7 @@ def plane_similarity_icp(
         dist, idx = tree.query(p, distance_upper_bound=max_distance_m, workers=-1)
         ok = np.isfinite(dist)
         if ok.sum() < 10:
-            raise InputError(
+            raise FitFailed(
                 None, f"ICP lost the overlap: {int(ok.sum())} source points within {max_distance_m} m"
             )
         p, q, nrm = p[ok], target_xyz[idx[ok]], target_normals[idx[ok]]

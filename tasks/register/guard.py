@@ -21,7 +21,7 @@ import numpy as np
 
 from storage.errors import InputError
 from tasks.config import RegistrationConfig
-from tasks.register.base import apply_similarity
+from tasks.register.base import FitFailed, apply_similarity
 from tasks.register.check import check_coregistered_samples
 
 
@@ -161,9 +161,10 @@ def judge_registration(identity: TransformScore, est: Estimate, cfg: Registratio
         return RegistrationVerdict("identity", f"kept the identity: it beats the recorded transform "
                                    f"({_m(identity.median_m)} vs {_m(inc.median_m)} m)", problems)
     kept = "kept the recorded transform" if inc_name == "recorded" else "kept the identity (inputs left in place)"
-    if est.error:
+    if est.error:  # the failure is the reason: said once, not again as a problem
         why = "the re-registration failed" if inc_name == "recorded" else "the estimate failed"
-    elif not usable:
+        return RegistrationVerdict(inc_name, f"{kept}: {why}: {est.error}", ())
+    if not usable:
         why = "the estimate is outside the scale prior"
     else:
         why = (f"the estimate does not clearly improve the held-out distance to the mesh ({_m(inc.median_m)} -> "
@@ -190,8 +191,9 @@ def guarded_register(source_xyz: np.ndarray, samples_xyz: np.ndarray, samples_no
     plus ``verdict`` (:meth:`RegistrationVerdict.to_json`), ``warning`` (one line or None),
     ``displacement_p50_m`` / ``displacement_max_m`` (what the chosen transform does to the sampled MLS
     points), ``distance_before_m`` / ``distance_after_m`` (held-out median under identity / the chosen
-    transform; ``..._p90_m`` likewise) and ``estimate`` (its figures). Raises InputError when the fit
-    fails with nothing recorded, or, with ``cfg.strict``, when anything is flagged.
+    transform; ``..._p90_m`` likewise) and ``estimate`` (its figures). Raises InputError when the inputs
+    cannot be registered with nothing recorded, or, with ``cfg.strict``, when anything is flagged (a failed
+    fit included); a failed fit (:class:`FitFailed`) with nothing recorded keeps the identity and warns.
     """
     from tasks.register.align import register_to_samples
 
@@ -205,15 +207,15 @@ def guarded_register(source_xyz: np.ndarray, samples_xyz: np.ndarray, samples_no
     try:
         result = register_to_samples(src[~held], samples_xyz, samples_normal, cfg)
     except InputError as e:
-        if rec_m is None:
+        if rec_m is None and not isinstance(e, FitFailed):  # the inputs themselves cannot be registered
             raise
-        est = Estimate(error=str(e))
+        est = Estimate(error=e.problem if isinstance(e, FitFailed) else str(e))
     else:
         est = Estimate(result.matrix, result.scale, result.fitness, result.coarse_fitness,
                        score_transform(result.matrix, hold, samples_xyz, samples_normal, cfg.seed),
                        displacement_at(result.matrix, src))
     verdict = judge_registration(identity, est, cfg, rec_score)
-    if cfg.strict and verdict.problems:
+    if cfg.strict and (verdict.problems or est.error):
         raise InputError(None, f"{verdict.warning} (registration.strict is set)")
     if verdict.chosen == "estimate":
         out, score, moved = result.to_json(), est.score, est.displacement_m

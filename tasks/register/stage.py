@@ -117,7 +117,7 @@ def _estimate(records: list[InputFile], frame: CampusFrame, cfg: CampusConfig, w
         recorded = None  # recorded in another campus frame: not comparable
     reg = guarded_register(src, tgt, nrm, cfg.registration, recorded) | {"frame_origin": frame.to_json().get("origin")}
     if reg["warning"]:
-        log.warning("%s", reg["warning"])
+        log.info("%s", reg["warning"])  # the run summary prints it: one line, not two
     return reg
 
 

@@ -62,10 +62,8 @@ def test_bad_inputs_fail_only_their_tiles(tmp_path, handmade_campus, prefect_api
     cfg = CampusConfig.from_yaml(handmade_campus(extra_stray=True))
     laz = tmp_path / "mls" / "west.laz"
     laz.write_bytes(laz.read_bytes()[: laz.stat().st_size // 2])  # truncated LAZ
-    obj = tmp_path / "mesh" / "middle.obj"
-    lines = obj.read_text().splitlines()
-    i = next(k for k, line in enumerate(lines) if line.startswith("v "))
-    lines[i] = "v nan 1.0 2.0"  # a mesh with a NaN vertex
+    obj = tmp_path / "mesh" / "middle.obj"  # a mesh with nothing usable: every face indexes a missing vertex
+    lines = ["f 999997 999998 999999" if line.startswith("f ") else line for line in obj.read_text().splitlines()]
     obj.write_text("\n".join(lines) + "\n")
 
     with pytest.raises(CampusRunFailed) as exc:
@@ -75,7 +73,7 @@ def test_bad_inputs_fail_only_their_tiles(tmp_path, handmade_campus, prefect_api
     assert failed, "bad inputs must fail their tiles"
     bad = st["bad_inputs"]
     assert any("truncated" in e and "west.laz" in k for k, e in bad.items())
-    assert any("NaN" in e and "middle.obj" in k for k, e in bad.items())
+    assert any("no usable face" in e and "middle.obj" in k for k, e in bad.items())
     assert any("west.laz" in e for e in failed.values()) and any("middle.obj" in e for e in failed.values())
     x = lambda k: int(k.split("_")[0]) * 20 - 500_000
     west = {k for k, e in failed.items() if "west.laz" in e}

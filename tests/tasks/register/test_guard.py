@@ -108,6 +108,31 @@ def test_a_failed_fit_keeps_the_recorded_transform(block, monkeypatch):
     assert guard.__all__
 
 
+def test_a_collapsed_fit_with_nothing_recorded_keeps_the_identity_and_warns(block, monkeypatch):
+    """Scale-ICP without overlap can shrink the cloud onto a point (seen on the synth tiny campus, seed 7,
+    after a failed coarse stage): the fit fails, not the inputs, so the data stay and one line says so."""
+    from tasks.register.align import _fitted_scale
+    from tasks.register.base import FitFailed
+
+    with pytest.raises(FitFailed, match="collapsed"):
+        _fitted_scale(np.diag([1e-6, 1e-6, 1e-6, 1.0]))
+    with pytest.raises(FitFailed, match="collapsed"):
+        _fitted_scale(np.diag([1.0, 1.0, -1.0, 1.0]))  # a reflection is no similarity
+    assert _fitted_scale(np.diag([1.001, 1.001, 1.001, 1.0])) == pytest.approx(1.001)
+
+    pts, tgt, nrm = block
+
+    def collapsed(*a, **k):
+        _fitted_scale(np.diag([1e-6, 1e-6, 1e-6, 1.0]))
+
+    monkeypatch.setattr("tasks.register.align.register_to_samples", collapsed)
+    reg = guarded_register(pts, tgt, nrm, RegistrationConfig())
+    assert reg["verdict"]["chosen"] == "identity" and reg["matrix"] == np.eye(4).tolist()
+    assert "the estimate failed: the fit collapsed" in reg["warning"] and reg["displacement_max_m"] == 0.0
+    with pytest.raises(InputError, match="collapsed.*registration.strict"):
+        guarded_register(pts, tgt, nrm, RegistrationConfig(strict=True))
+
+
 @pytest.mark.parametrize("text, mode", [("registration: {mode: off}\n", "off"), ("registration: {mode: on}\n", "auto"),
                                         ("registration:\n  mode: no\n", "off"), ("registration: {mode: 'off'}\n", "off")])
 def test_yaml_booleans_for_mode(tmp_path, text, mode):
