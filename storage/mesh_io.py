@@ -232,12 +232,17 @@ def read_mesh(path: str | Path, offset=(0.0, 0.0, 0.0), units_scale: float = 1.0
 
 
 def mesh_files(folder: str | Path) -> list[Path]:
-    """Mesh files under ``folder`` (recursively, sorted; hidden and temporary files skipped)."""
+    """Mesh files under ``folder`` (recursively, sorted; hidden and temporary files skipped); of a tiled
+    production, only the finest level of detail of each tile (:func:`storage.production.finest_lod`), as
+    input discovery reads it."""
+    from .production import finest_lod
+
     folder = Path(folder)
-    return sorted(
-        p for p in folder.rglob("*")
+    found = sorted(
+        str(p) for p in folder.rglob("*")
         if p.is_file() and p.suffix.lower() in READERS and not p.name.startswith(".")
     )  # fmt: skip
+    return [Path(p) for p in finest_lod(found)[0]]
 
 
 def iter_meshes(path: str | Path, offset=(0.0, 0.0, 0.0), units_scale: float = 1.0) -> Iterator[MeshData]:

@@ -83,3 +83,14 @@ def test_discovery_of_a_production_folder_keeps_the_finest_level(tmp_path):
     found = discover([str(root)], [str(tmp_path / "a.las")])
     assert [Path(p).name for p in found.meshes] == ["Tile_+000_+000_L19.obj"]
     assert [(Path(p).name, "L18" in why) for p, why in found.skipped] == [("Tile_+000_+000_L18.obj", True)]
+
+
+def test_a_mesh_folder_reads_only_the_finest_level(tmp_path):
+    """Readers of a whole mesh folder (the quality stage's input-mesh row) take what discovery takes."""
+    from storage.mesh_io import mesh_files
+
+    for name in ("Tile_+000_+000_L17.obj", "Tile_+000_+000_L18.obj"):
+        d = tmp_path / "Data" / "Tile_+000_+000"
+        d.mkdir(parents=True, exist_ok=True)
+        (d / name).write_text("v 0 0 0\nv 1 0 0\nv 0 1 0\nf 1 2 3\n")
+    assert [p.name for p in mesh_files(tmp_path)] == ["Tile_+000_+000_L18.obj"]
