@@ -98,8 +98,8 @@ def read_production(mesh_root: str | Path):
     production ``mesh_root`` (its tiles concatenated; seam vertices stay doubled), placed by its
     ``metadata.xml``."""
     from storage.mesh_io import mesh_files, read_mesh
-    from storage.production import finest_lod, read_metadata
+    from storage.production import read_metadata
 
     origin = read_metadata(Path(mesh_root) / "metadata.xml").origin
-    files, _ = finest_lod([str(p) for p in mesh_files(mesh_root)])
+    files = [str(p) for p in mesh_files(mesh_root)]  # the finest level of each tile
     return MeshData.concat([read_mesh(f, offset=origin) for f in files], source=str(mesh_root)), origin
