@@ -101,21 +101,24 @@ def _digest(parts: list[str]) -> str:
     return hashlib.sha256("|".join(parts).encode()).hexdigest()[:32]
 
 
-def _tile_points(tile_dir: Path, keep: int, seed: int) -> tuple[np.ndarray, np.ndarray]:
-    """(xyz (k, 3) float32 campus-local, status (k,) int8) of a seeded subset of a tile's points."""
+def _tile_points(tile_dir: Path, keep: int, seed: int, grades_mode: str) -> tuple[np.ndarray, np.ndarray]:
+    """(xyz (k, 3) float32 campus-local, status (k,) int8) of a seeded subset of a tile's points, coloured by
+    the grades repair acted on (``repair.grades``: :func:`storage.store_state.patch_grades`). Columns are
+    read one at a time, so memory is one column of the tile plus the subset."""
     import pyarrow.parquet as pq
 
     store = PatchStore(tile_dir)
     p = store.patches()
-    _, grade, _ = patch_grades(store, "auto")
-    table = pq.read_table(tile_dir / POINTS_FILE, columns=["x", "y", "z"])
-    idx = thin_indices(table.num_rows, keep, seed)
-    xyz = np.stack([table.column(c).to_numpy()[idx] for c in "xyz"], axis=1).astype(np.float32)
+    _, grade, _ = patch_grades(store, grades_mode)
+    idx = thin_indices(pq.ParquetFile(tile_dir / POINTS_FILE).metadata.num_rows, keep, seed)
+    xyz = np.empty((len(idx), 3), np.float32)
+    for j, c in enumerate("xyz"):
+        xyz[:, j] = pq.read_table(tile_dir / POINTS_FILE, columns=[c]).column(0).to_numpy()[idx]
     return xyz, point_status(p["point_stop"], grade, p["n_faces"], idx)
 
 
 def write_points_overlay(tiles_dir: Path, out_dir: Path, tiles: list[str], georef: GeoRef,
-                         budget: int = POINTS_BUDGET, seed: int = 0) -> dict:
+                         budget: int = POINTS_BUDGET, seed: int = 0, grades_mode: str = "auto") -> dict:
     """Write (or keep, when unchanged) ``out_dir/tileset.json`` and ``out_dir/{key}.glb`` from the stores of
     ``tiles`` under ``tiles_dir`` (see the module docstring). Returns {"tiles", "points", "written", "tileset"}."""
     with_points = [k for k in tiles if (tiles_dir / k / PATCHES_FILE).exists() and (tiles_dir / k / POINTS_FILE).exists()]
@@ -124,7 +127,7 @@ def write_points_overlay(tiles_dir: Path, out_dir: Path, tiles: list[str], geore
     if not counts:
         shutil.rmtree(out_dir, ignore_errors=True)
         return {"tiles": 0, "points": 0, "written": False, "tileset": None}
-    fp = _digest([str(POINTS_VERSION), str(budget), str(seed), json.dumps(georef.to_json(), sort_keys=True)]
+    fp = _digest([str(POINTS_VERSION), str(budget), str(seed), grades_mode, json.dumps(georef.to_json(), sort_keys=True)]
                               + [f"{k}:{store_fingerprint(tiles_dir / k, sides=('grades', 'labels'))}" for k in sorted(counts)])
     state = out_dir / "fingerprints.json"
     if state.exists() and json.loads(state.read_text()).get("fingerprint") == fp and (out_dir / "tileset.json").exists():
@@ -135,7 +138,7 @@ def write_points_overlay(tiles_dir: Path, out_dir: Path, tiles: list[str], geore
     boxes, kept = {}, 0
     for k in sorted(counts):
         keep = max(1, round(budget * counts[k] / total)) if total > budget else counts[k]
-        xyz, status = _tile_points(tiles_dir / k, keep, seed + zlib.crc32(k.encode()))
+        xyz, status = _tile_points(tiles_dir / k, keep, seed + zlib.crc32(k.encode()), grades_mode)
         enu = projector.local_to_enu(xyz)
         boxes[k] = box_from_bounds(enu.min(axis=0), enu.max(axis=0))
         write_bytes_atomic(out_dir / f"{k}.glb", build_points_glb(enu_to_gltf(enu), status))

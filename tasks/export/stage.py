@@ -164,7 +164,8 @@ def run_export(work_dir: str | Path, config: ExportConfig | None = None, tiles: 
                      children=(("root", {"key": root.key}),))])
     tileset = _write_tileset(out, tileset_json(tree, nodes, georef), georef, nodes)
     _remove_stale(out, cache, nodes)
-    points = write_points_overlay(wd.root / "tiles", out / "points", list(tiles), georef)  # the MLS overlay
+    grades_mode = (campus.get("config") or {}).get("repair", {}).get("grades", "auto")  # what repair acted on
+    points = write_points_overlay(wd.root / "tiles", out / "points", list(tiles), georef, grades_mode=grades_mode)
     leaves_built = [k for k in built if k.startswith("L0_")]
     return {
         "tiles": len(tiles), "nodes": len(nodes), "built": built, "reused": reused,

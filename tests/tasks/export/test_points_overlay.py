@@ -39,7 +39,7 @@ def _overlay_points(out):
 
 
 def test_overlay_holds_every_point_in_the_mesh_frame_coloured_by_grade(corner):
-    wd, bad, georef, tiles = corner
+    wd, _, georef, tiles = corner
     out = wd.root / "output" / "points"
     res = write_points_overlay(wd.root / "tiles", out, tiles, georef)
     stores = [PatchStore(wd.tile_dir(t)) for t in wd.live_tiles()]
@@ -73,6 +73,26 @@ def test_overlay_is_thinned_to_the_budget_and_rewritten_only_when_grades_change(
                                                 "grade": np.ones(len(keys), np.int8)}, s.meta)
     third = write_points_overlay(wd.root / "tiles", out, tiles, georef, budget=2000)
     assert third["written"] and third["points"] == res["points"]
+
+
+def test_overlay_colours_by_the_grades_repair_acted_on(corner):
+    """Grades that contradict the labels: the overlay follows ``repair.grades`` (one rule with regions and
+    merge), so "labels" shows the labels and "model" the grades."""
+    wd, _, georef, tiles = corner
+    stores = [PatchStore(wd.tile_dir(t)) for t in wd.live_tiles()]
+    for t, s in zip(wd.live_tiles(), stores):
+        keys = s.patches()["patch"]
+        write_side_table(wd.tile_dir(t), "grades", {"patch": keys, "score": np.full(len(keys), 0.9, np.float32),
+                                                    "grade": np.ones(len(keys), np.int8)}, s.meta)
+    n = sum(s.n_points for s in stores)
+    n_bad_labels = sum(int(s.patches()["n_points"][s.side("labels")["label"] == 1].sum()) for s in stores)
+    red = srgb_to_linear_u8(STATUS_COLOURS[[1]])[0]
+    out = wd.root / "output" / "points"
+    for mode, n_red in (("labels", n_bad_labels), ("model", n)):
+        res = write_points_overlay(wd.root / "tiles", out, tiles, georef, grades_mode=mode)
+        assert res["written"]  # a mode switch rewrites the overlay
+        assert (_overlay_points(out)[1] == red).all(axis=1).sum() == n_red
+    assert 0 < n_bad_labels < n
 
 
 def test_points_glbs_pass_the_gltf_validator(corner):
