@@ -8,8 +8,9 @@ and keeps the truth terrain (ground and road quads: a DTM), so only the building
 
 Labels: the truth surface (what the MLS sees) is sampled every ~``sample_step_m`` and a sample is a
 defect sample where it lies farther than ``depart_m`` from the block model: glass and reveals of
-windows and doors recessed more than ``depart_m`` ("recess"), balconies and ledges ("balcony"). One
-defect per (building, type), in the ``defects.json`` format :mod:`storage.labels` reads (``samples``
+windows and doors recessed more than ``depart_m`` ("recess"), balconies and ledges ("balcony"), the
+walls and ceiling of a ground-floor through-passage (:mod:`synth.passages`, "passage"; its floor is
+terrain, which the block model drops under its solid). One defect per (building, type), in the ``defects.json`` format :mod:`storage.labels` reads (``samples``
 in the mesh frame; ``faces`` is empty: labels go by samples). Visibility from the road is not
 modelled: a sample the MLS cannot see still labels its patch.
 
@@ -24,6 +25,7 @@ import numpy as np
 import open3d as o3d
 
 from .buildings import charts_of
+from .passages import in_passage
 from .scene import CLASS_COLOR, FaceClass, Mesh, Scene, soup_to_mesh
 
 # truth classes whose departure from the block model is a labelled defect, and its type
@@ -47,18 +49,20 @@ def _triangulate(polygon: np.ndarray) -> np.ndarray:
     return triangulate_polygon(polygon)
 
 
-def _terrain(truth: Mesh) -> Mesh:
-    """The truth faces of no building (ground, roads), vertices re-indexed."""
-    keep = truth.face_building < 0
+def _terrain(truth: Mesh, infos: list[dict]) -> Mesh:
+    """The truth faces of no building (ground, roads) but a passage's floor (the block is solid there),
+    vertices re-indexed; ``infos``: ``scene.meta['buildings']``."""
+    keep = (truth.face_building < 0) & (in_passage(truth.triangles().mean(axis=1), infos) < 0)
     used, faces = np.unique(truth.faces[keep], return_inverse=True)
     return Mesh(truth.vertices[used], faces.reshape(-1, 3).astype(np.int64), truth.face_class[keep],
                 truth.face_building[keep], truth.face_color[keep])
 
 
 def block_model(scene: Scene) -> Mesh:
-    """Terrain + each building's envelope charts as big triangles (classes WALL/ROOF/EAVE of the charts)."""
+    """Terrain + each building's envelope charts as big triangles (classes WALL/ROOF/EAVE of the charts);
+    solid through a passage (no floor, no walls, no ceiling)."""
     charts = charts_of(scene)
-    parts = [_terrain(scene.truth)]
+    parts = [_terrain(scene.truth, scene.meta.get("buildings", []))]
     for b in scene.buildings:
         soup = [(_triangulate(c.polygon), c.face_class, CLASS_COLOR[FaceClass(c.face_class)]) for c in charts[b.id]]
         parts.append(soup_to_mesh([s for s in soup if len(s[0])], b.id))
@@ -103,15 +107,22 @@ def departure_defects(scene: Scene, model: Mesh, params: CoarseParams = CoarsePa
     [{"id", "type", "building", "samples", "bbox", "faces": [], "depart_m"}], one per (building, type)."""
     truth = scene.truth
     cls_ok = np.isin(truth.face_class, np.array([int(c) for c in _DEFECT_TYPE], np.uint8))
-    pts, fid = _surface_samples(truth, (truth.face_building >= 0) & cls_ok, params.sample_step_m)
+    # a passage's walls and ceiling: its own type, whatever their class (WALL, EAVE)
+    tunnel = in_passage(truth.triangles().mean(axis=1), scene.meta.get("buildings", [])) == truth.face_building
+    tunnel &= truth.face_building >= 0
+    pts, fid = _surface_samples(truth, (truth.face_building >= 0) & (cls_ok | tunnel), params.sample_step_m)
     if not len(pts):
         return []
     far = _distance(model, pts) > params.depart_m
     pts, fid = pts[far], fid[far]
-    kind = np.array([_DEFECT_TYPE[FaceClass(c)] for c in truth.face_class[fid]]) if len(fid) else np.zeros(0, str)
+    names = np.array(["", *sorted(set(_DEFECT_TYPE.values())), "passage"])
+    code = np.zeros(256, np.int64)
+    for c, t in _DEFECT_TYPE.items():
+        code[int(c)] = int(np.flatnonzero(names == t)[0])
+    kind = np.where(tunnel[fid], "passage", names[code[truth.face_class[fid]]])
     out = []
     for bid in np.unique(truth.face_building[fid]):
-        for t in ("recess", "balcony"):
+        for t in ("recess", "balcony", "passage"):
             sel = (truth.face_building[fid] == bid) & (kind == t)
             if not sel.any():
                 continue

@@ -12,6 +12,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from .envelope import building_charts, edge_normals_2d, triangulate_polygon
+from .passages import passage_openings, plan_passage
 from .scene import CLASS_COLOR, Building, FaceClass, Mesh, soup_to_mesh
 
 _Z = np.array([0.0, 0.0, 1.0])
@@ -34,6 +35,9 @@ class FacadeParams:
     balcony_p: float = 0.3  # per window column and storey line
     balcony_depth_m: tuple[float, float] = (0.8, 1.5)
     ledge_depth_m: tuple[float, float] = (0.12, 0.3)
+    passage_p: float = 0.0  # per building: a ground-floor through-passage from the front facade (synth.passages)
+    passage_w_m: tuple[float, float] = (3.0, 5.0)
+    passage_h_m: tuple[float, float] = (3.0, 4.0)  # clamped to the ground storey (storey height - 0.25 m)
 
 
 def _wall_frame(a2, b2):
@@ -52,11 +56,13 @@ def _quads(P0, t, n, U, V, W, want) -> np.ndarray:
     return np.concatenate([c[:, [0, 1, 2]], c[:, [0, 2, 3]]])
 
 
-def _wall_with_openings(P0, t, n, L, H, openings, recess):
+def _wall_with_openings(P0, t, n, L, H, openings, recess, through=None):
     """Wall rectangle [0, L] x [0, H] with rectangular openings (k, 4) [u0, u1, v0, v1].
 
     The wall is a grid of quads around the openings; each opening has a GLASS pane ``recess`` m
-    behind the wall plane and FRAME reveals. Returns {FaceClass: triangles (m, 3, 3)}.
+    behind the wall plane and FRAME reveals. An opening flagged in ``through`` (k,) bool is a passage:
+    no pane; where its ``recess`` is > 0 its reveals that deep are the passage's WALL sides and EAVE
+    ceiling (no floor: the terrain runs through). Returns {FaceClass: triangles (m, 3, 3)}.
     """
     ub = np.unique(np.concatenate([[0.0, L], openings[:, :2].ravel()]))
     vb = np.unique(np.concatenate([[0.0, H], openings[:, 2:].ravel()]))
@@ -76,25 +82,40 @@ def _wall_with_openings(P0, t, n, L, H, openings, recess):
         return _quads(P0, t, n, U, V, np.repeat(w[:, None], 4, axis=1), np.broadcast_to(n, (len(i), 3)))
 
     out[FaceClass.WALL] = cells(cell < 0, np.zeros(int((cell < 0).sum())))
-    op = cell >= 0
+    thr = np.zeros(len(openings), bool) if through is None else np.asarray(through, bool)
+    thr_cell = (cell >= 0) & thr[np.maximum(cell, 0)] if len(openings) else np.zeros(cell.shape, bool)
+    op = (cell >= 0) & ~thr_cell
     out[FaceClass.GLASS] = cells(op, -recess[cell[op]])
     pad = np.pad(cell, 1, constant_values=-2)
     reveals = []
+    tunnel = {FaceClass.WALL: [], FaceClass.EAVE: []}
     for di, dj, want in ((-1, 0, t), (1, 0, -t), (0, -1, _Z), (0, 1, -_Z)):
         nb = pad[1 + di:pad.shape[0] - 1 + di, 1 + dj:pad.shape[1] - 1 + dj]
+        if dj >= 0 and thr_cell.any():  # passage sides and ceiling (the floor, dj < 0, is terrain)
+            i, j = I[thr_cell & (nb != cell)], J[thr_cell & (nb != cell)]
+            tunnel[FaceClass.WALL if di else FaceClass.EAVE].append(
+                _reveal_quads(P0, t, n, ub, vb, i, j, di, dj, -recess[cell[i, j]], want))
         m = op & (nb != cell)
-        i, j = I[m], J[m]
-        r = -recess[cell[m]]
-        if di:
-            u = ub[i] if di < 0 else ub[i + 1]
-            U, V = np.stack([u, u, u, u], 1), np.stack([vb[j], vb[j + 1], vb[j + 1], vb[j]], 1)
-        else:
-            v = vb[j] if dj < 0 else vb[j + 1]
-            U, V = np.stack([ub[i], ub[i + 1], ub[i + 1], ub[i]], 1), np.stack([v, v, v, v], 1)
-        W = np.stack([np.zeros_like(r), np.zeros_like(r), r, r], 1)
-        reveals.append(_quads(P0, t, n, U, V, W, np.broadcast_to(want, (len(i), 3))))
+        reveals.append(_reveal_quads(P0, t, n, ub, vb, I[m], J[m], di, dj, -recess[cell[m]], want))
     out[FaceClass.FRAME] = np.concatenate(reveals)
+    for cls, lst in tunnel.items():
+        tris = np.concatenate(lst) if lst else np.zeros((0, 3, 3))
+        tris = tris[0.5 * np.linalg.norm(np.cross(tris[:, 1] - tris[:, 0], tris[:, 2] - tris[:, 0]), axis=1) > 1e-9]
+        if len(tris):
+            out[cls] = np.concatenate([out[cls], tris]) if cls in out else tris
     return out
+
+
+def _reveal_quads(P0, t, n, ub, vb, i, j, di, dj, r, want) -> np.ndarray:
+    """Reveal quads of grid cells (i, j) on side (di, dj), from the wall plane to depth r (k,) (< 0: behind)."""
+    if di:
+        u = ub[i] if di < 0 else ub[i + 1]
+        U, V = np.stack([u, u, u, u], 1), np.stack([vb[j], vb[j + 1], vb[j + 1], vb[j]], 1)
+    else:
+        v = vb[j] if dj < 0 else vb[j + 1]
+        U, V = np.stack([ub[i], ub[i + 1], ub[i + 1], ub[i]], 1), np.stack([v, v, v, v], 1)
+    W = np.stack([np.zeros_like(r), np.zeros_like(r), r, r], 1)
+    return _quads(P0, t, n, U, V, W, np.broadcast_to(want, (len(i), 3)))
 
 
 def _box(P0, t, n, u, v, w, omit=("back",)) -> np.ndarray:
@@ -132,7 +153,8 @@ def _facade_layout(rng, L, storeys, sh, fp: FacadeParams, bp: dict, is_front: bo
 
 
 def building_mesh(rng, b: Building, info: dict, fp: FacadeParams, wall_rgb, roof_rgb) -> Mesh:
-    """Truth mesh of one building from its record and its ``meta['buildings']`` entry ``info``."""
+    """Truth mesh of one building from its record and its ``meta['buildings']`` entry ``info``; a
+    through-passage (``fp.passage_p``, :mod:`synth.passages`) is recorded as ``info["passage"]``."""
     charts = building_charts(b.footprint, b.height_m, b.roof, b.eave_overhang_m, info["pitch_deg"],
                              info["roof_thickness_m"])
     soup: dict[int, list] = {c: [] for c in FaceClass}
@@ -146,12 +168,16 @@ def building_mesh(rng, b: Building, info: dict, fp: FacadeParams, wall_rgb, roof
         if c.kind != "wall":
             soup[c.face_class].append(triangulate_polygon(c.polygon))
     sh, H = b.storey_height_m, b.height_m
+    passage = plan_passage(fp, b.footprint, info["bbox"], b.id, front_edge, sh)
+    if passage is not None:
+        info["passage"] = passage
     for i in range(len(b.footprint)):
         a2, b2 = b.footprint[i], b.footprint[(i + 1) % len(b.footprint)]
         P0, t, n, L = _wall_frame(a2, b2)
         ops, cols = _facade_layout(rng, L, b.storeys, sh, fp, info["_bp"], i == front_edge)
-        rec = np.full(len(ops), info["recess_m"])
-        for cls, tris in _wall_with_openings(P0, t, n, L, H, ops, rec).items():
+        ops, through, depth = passage_openings(passage, i, ops)
+        rec = np.where(through, depth, info["recess_m"])
+        for cls, tris in _wall_with_openings(P0, t, n, L, H, ops, rec, through).items():
             soup[cls].append(tris)
         poly = next(w.polygon for w in walls if np.allclose(w.polygon[:, :2].mean(0), (a2 + b2) / 2)
                     and np.allclose(w.normal, n))

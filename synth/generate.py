@@ -185,16 +185,20 @@ def write_manifest(out: Path, meta: dict) -> dict:
 # ----------------------------------------------------------------------------------- generation
 
 
-def _tile_scene(seed: int, preset: SynthPreset, ix: int, iy: int, n_tiles: int) -> Scene:
-    """The scene of generation tile (ix, iy): deterministic from (seed, ix, iy) alone."""
-    from .buildings import make_scene
+def _tile_scene(seed: int, preset: SynthPreset, ix: int, iy: int, n_tiles: int, passages: bool = False) -> Scene:
+    """The scene of generation tile (ix, iy): deterministic from (seed, ix, iy) alone; ``passages``: buildings
+    get ground-floor through-passages with the preset's ``coarse_passage_p`` (the coarse-mesh campus)."""
+    from dataclasses import replace
+
+    from .buildings import DEFAULT_FACADE, make_scene
 
     rng = np.random.default_rng([seed, 1000 + ix, 1000 + iy])
     x0, y0 = ix * preset.tile_m, iy * preset.tile_m
     extent = (x0, y0, min(x0 + preset.tile_m, preset.extent_m[0]), min(y0 + preset.tile_m, preset.extent_m[1]))
     n_b = int(np.ceil(preset.n_buildings / n_tiles))
     tid = (ix + 1) * 1000 + iy + 1
-    return make_scene(rng, extent, n_b, storeys=preset.storeys, first_building_id=tid * 100,
+    facade = replace(DEFAULT_FACADE, passage_p=preset.coarse_passage_p) if passages else DEFAULT_FACADE
+    return make_scene(rng, extent, n_b, storeys=preset.storeys, facade=facade, first_building_id=tid * 100,
                       first_occluder_id=tid * 10_000)
 
 
@@ -232,7 +236,8 @@ class _SynthRun:
 
     def scene_at(self, ix: int, iy: int) -> Scene:
         if (ix, iy) not in self.cache:
-            self.cache[(ix, iy)] = _tile_scene(self.seed, self.preset, ix, iy, self.nx * self.ny)
+            self.cache[(ix, iy)] = _tile_scene(self.seed, self.preset, ix, iy, self.nx * self.ny,
+                                               passages=self.coarse_mesh)
         return self.cache[(ix, iy)]
 
 
@@ -243,7 +248,8 @@ def generate(preset: str = "tiny", seed: int = 0, out: str | Path = "synth-out",
     mls_density: the MLS scanner rate as a fraction of the real one (1.0 = real density); None keeps
     the preset's (demo 0.1). coarse_mesh: the mesh is a LoD2-like block model of the buildings
     (:mod:`synth.coarse`; defects.json labels where the truth departs from it) and the MLS is
-    co-registered with it (identity registration), as a city model and a georeferenced scan are."""
+    co-registered with it (identity registration), as a city model and a georeferenced scan are; its truth
+    buildings get ground-floor through-passages (the preset's ``coarse_passage_p``) the block model lacks."""
     p = get_preset(preset, scale, mls_density)
     out = Path(out).absolute()
     _prepare_out(out, overwrite)

@@ -13,7 +13,8 @@ class SynthPreset:
     ContextCapture tile grid the mesh is cut on (``mesh/Data/Tile_*/``, :mod:`synth.production`; 0 = one
     ``mesh/mvs.obj``, or with ``tiled_mesh`` one folder per generation tile); lod_tile: a production tile that
     also gets a coarser level of detail (readers keep the finest; off in the presets while the quality stage
-    reads every file of the mesh folder as the input mesh)."""
+    reads every file of the mesh folder as the input mesh); coarse_passage_p: with ``--coarse-mesh``, each
+    building's chance of a ground-floor through-passage (:mod:`synth.passages`; without it, none)."""
 
     name: str
     extent_m: tuple[float, float]
@@ -28,6 +29,7 @@ class SynthPreset:
     tiled_mesh: bool = False
     production_tile_m: float = 0.0
     lod_tile: str | None = None
+    coarse_passage_p: float = 1.0
 
 
 PRESETS = {

@@ -1,5 +1,6 @@
 """Synthetic terrain: GROUND and ROAD quads on a grid cut at road edges and building outlines, none under
-buildings. Mesh frame, metres, float64, terrain at z = 0 (roads at ``road_z_m``)."""
+buildings but in their through-passages. Mesh frame, metres, float64, terrain at z = 0 (roads at
+``road_z_m``)."""
 
 from __future__ import annotations
 
@@ -10,9 +11,11 @@ from .scene import CLASS_COLOR, FaceClass, Mesh, soup_to_mesh
 
 def terrain_cells(extent, roads, infos: list[dict]):
     """The terrain grid: cell bounds xs (nx + 1,), ys (ny + 1,) cut at road edges and building bbox /
-    notch lines; road (nx, ny) bool: cell on a road; inside (nx, ny) bool: cell under a building."""
+    notch / passage lines; road (nx, ny) bool: cell on a road; inside (nx, ny) bool: cell under a
+    building (a through-passage's floor is not: the ground runs through)."""
     x0, y0, x1, y1 = extent
-    br = [r for inf in infos for r in [inf["bbox"]] + ([inf["cut"]] if inf["cut"] is not None else [])]
+    br = [r for inf in infos for r in [inf["bbox"]] + ([inf["cut"]] if inf["cut"] is not None else [])
+          + ([inf["passage"]["rect"]] if inf.get("passage") else [])]
     cuts = [[], []]
     for ax, c, hw in roads:
         cuts[ax] += [c - hw, c + hw]
@@ -31,6 +34,9 @@ def terrain_cells(extent, roads, infos: list[dict]):
         m = (cx > bx[0]) & (cx < bx[2]) & (cy > bx[1]) & (cy < bx[3])
         if inf["cut"] is not None:
             q = inf["cut"]
+            m &= ~((cx > q[0]) & (cx < q[2]) & (cy > q[1]) & (cy < q[3]))
+        if inf.get("passage"):  # the ground runs through a passage
+            q = inf["passage"]["rect"]
             m &= ~((cx > q[0]) & (cx < q[2]) & (cy > q[1]) & (cy < q[3]))
         inside |= m
     return xs, ys, road, inside
