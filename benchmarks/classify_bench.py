@@ -8,9 +8,11 @@ featurisation (points, faces, and the hand-made cues for a model that uses them)
 pairs/s, end to end and model only. The shipped networks (``ms3dqe_plus.pt``, ``ms3dqe.pt``) are timed too. The paper-size profile is timed
 on fewer pairs (its network is 10x wider and its inputs 20x larger) with a randomly initialised network
 unless ``--paper-model`` gives a checkpoint. The load average is printed: figures taken on a shared machine
-are lower bounds.
+are lower bounds. ``--cues`` also times the hand-made cue extraction alone (:func:`cue_rate`): all pairs of a
+batch at once, and one pair per call (the shape of the per-pair loop it replaced).
 
     .venv/bin/python benchmarks/classify_bench.py
+    .venv/bin/python benchmarks/classify_bench.py --work-dir W --model ms3d_model/weights/default.pt --cues --paper-pairs 0
     .venv/bin/python benchmarks/classify_bench.py --work-dir ms3d-work/demo --pairs 1024 --batch 64
 """
 
@@ -68,6 +70,27 @@ def bench(net, profile, tp, n_pairs: int, batch: int, uses_cues: bool) -> dict:
             "pairs_per_s": n / (t_feat + t_net), "net_pairs_per_s": n / t_net, "feat_pairs_per_s": n / t_feat}
 
 
+def cue_rate(tp, n_pairs: int, batch: int, repeats: int = 3) -> dict:
+    """Pairs per second of :func:`ms3d_model.cues.batch_cues` on the first ``n_pairs`` pairs of a tile, at
+    ``batch`` pairs per call and at one pair per call; the best of ``repeats`` runs each."""
+    import numpy as np
+
+    from ms3d_model.cues import batch_cues
+
+    idx = np.arange(min(n_pairs, len(tp)))
+    pts, tris, _, oe = tp.raw(idx)
+    keys = tp.keys[idx]
+
+    def run(b: int) -> float:
+        t = time.perf_counter()
+        for s in range(0, len(idx), b):
+            batch_cues(pts[s:s + b], tris[s:s + b], oe[s:s + b], keys[s:s + b])
+        return time.perf_counter() - t
+
+    best = {b: min(run(b) for _ in range(repeats)) for b in (batch, 1)}
+    return {"pairs": len(idx), "batched_pairs_per_s": len(idx) / best[batch], "single_pairs_per_s": len(idx) / best[1]}
+
+
 def main(argv=None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
     ap.add_argument("--work-dir", default=None)
@@ -78,6 +101,7 @@ def main(argv=None) -> int:
     ap.add_argument("--batch", type=int, default=64)
     ap.add_argument("--paper-batch", type=int, default=8)
     ap.add_argument("--threads", type=int, default=2)
+    ap.add_argument("--cues", action="store_true", help="also time the cue extraction alone")
     a = ap.parse_args(argv)
 
     import torch
@@ -112,14 +136,19 @@ def main(argv=None) -> int:
         pprof = get_profile("paper")
         torch.manual_seed(0)
         pnet = make_model(pprof).eval()
-    rows.append(("paper size", pprof, bench(pnet, pprof, tp, a.paper_pairs, a.paper_batch, net_uses_cues(pnet)),
-                 a.paper_batch))
+    if a.paper_pairs > 0:
+        rows.append(("paper size", pprof, bench(pnet, pprof, tp, a.paper_pairs, a.paper_batch, net_uses_cues(pnet)),
+                     a.paper_batch))
     print(f"{'profile':<18} {'points/faces':>13} {'batch':>5} {'pairs':>5} {'wall s':>7} {'CPU s':>7} "
           f"{'pairs/s':>8} {'net only':>9} {'featurise':>9}")
     for name, p, r, b in rows:
         print(f"{name:<18} {f'{p.max_points}/{p.max_faces}':>13} {b:>5} {r['pairs']:>5} {r['wall_s']:>7.1f} "
               f"{r['cpu_s']:>7.1f} {r['pairs_per_s']:>8.1f} {r['net_pairs_per_s']:>9.1f} {r['feat_pairs_per_s']:>9.1f}")
     print(f"paper (RTX 3090): 0.514 s per pair = {1 / 0.514:.2f} pairs/s")
+    if a.cues:
+        c = cue_rate(tp, a.pairs, a.batch)
+        print(f"cue extraction alone, {c['pairs']} pairs: {c['batched_pairs_per_s']:.0f} pairs/s at batch {a.batch}, "
+              f"{c['single_pairs_per_s']:.0f} pairs/s one pair per call")
     return 0
 
 

@@ -29,16 +29,20 @@ CUE_NAMES = (
 )
 N_CUES = len(CUE_NAMES)
 MAX_CUE_POINTS = 1024
+_PAIR_GAP_M = 1.0e6  # pairs sit this far apart on the k-d trees' fourth axis (a campus spans < 10 km)
 
 
 def closest_point_on_triangles(p: np.ndarray, tri: np.ndarray) -> np.ndarray:
     """Closest points on triangles, row by row (Ericson, Real-Time Collision Detection §5.1.5, vectorised).
 
-    p: (q, 3) float64 points; tri: (q, 3, 3) float64 triangles. Returns (q, 3) float64.
+    p: (q, 3) float64 points; tri: (q, 3, 3) float64 triangles. Returns (q, 3) float64. A degenerate
+    triangle (zero area: a segment or a point) gives the closest point on its longest side.
 
     >>> t = np.array([[[0., 0, 0], [1, 0, 0], [0, 1, 0]]] * 3)
     >>> closest_point_on_triangles(np.array([[.2, .2, 1], [2, 2, 0], [-1, -1, 0]]), t).round(6).tolist()
     [[0.2, 0.2, 0.0], [0.5, 0.5, 0.0], [0.0, 0.0, 0.0]]
+    >>> closest_point_on_triangles(np.array([[.5, 1, 0]]), np.array([[[0., 0, 0], [0, 0, 0], [2, 0, 0]]])).tolist()
+    [[0.5, 0.0, 0.0]]
     """
     a, b, c = tri[:, 0], tri[:, 1], tri[:, 2]
     ab, ac, ap = b - a, c - a, p - a
@@ -68,7 +72,22 @@ def closest_point_on_triangles(p: np.ndarray, tri: np.ndarray) -> np.ndarray:
         out = np.where(m[:, None], a + ab * t_ab[:, None], out)
     out = np.where(((d3 >= 0) & (d4 <= d3))[:, None], b, out)  # vertex b
     out = np.where(((d1 <= 0) & (d2 <= 0))[:, None], a, out)  # vertex a
+    flat = (np.cross(ab, ac) == 0).all(axis=1)  # Ericson's divisions are 0 / 0 there
+    if flat.any():
+        out[flat] = _closest_point_on_longest_side(p[flat], tri[flat])
     return out
+
+
+def _closest_point_on_longest_side(p: np.ndarray, tri: np.ndarray) -> np.ndarray:
+    """(q, 3) closest points of p (q, 3) on the longest side of degenerate triangles (q, 3, 3) (it spans
+    all three vertices, which are collinear)."""
+    start, end = tri, np.roll(tri, -1, axis=1)
+    length2 = ((end - start) ** 2).sum(2)
+    j = length2.argmax(axis=1)
+    rows = np.arange(len(p))
+    a, ab, l2 = start[rows, j], end[rows, j] - start[rows, j], length2[rows, j]
+    t = np.clip(np.divide(((p - a) * ab).sum(1), l2, out=np.zeros(len(p)), where=l2 > 0), 0.0, 1.0)
+    return a + ab * t[:, None]
 
 
 def open_edge_flags(vids: np.ndarray) -> np.ndarray:
@@ -76,77 +95,218 @@ def open_edge_flags(vids: np.ndarray) -> np.ndarray:
     return edge_neighbours(vids) == np.arange(len(vids))[:, None]
 
 
-def pair_cues(points: np.ndarray, tris: np.ndarray, open_edges: np.ndarray | None = None, seed: int = 0) -> np.ndarray:
-    """(N_CUES,) float32 cues of one pair (see :data:`CUE_NAMES`).
+def sorted_segments(values: np.ndarray, group: np.ndarray, n_groups: int) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Values sorted within their groups: (sorted (n,) float64, start (G,) int64, count (G,) int64).
 
-    points: (n, 3) metres; tris: (m, 3, 3) metres (n, m >= 1); open_edges: (m, 3) bool tile-level open
-    edges, or None (then the patch-local boundary stands in). Points beyond MAX_CUE_POINTS are subsampled
-    (seeded) for the point-to-mesh distances.
+    values: (n,) float64; group: (n,) int64 in [0, G). One argsort of ``value + group * span`` (span above
+    the values' range keeps the groups apart); the key's rounding can only swap values closer than
+    ~1e-16 x G x span, and the sorted array holds the original values. With a NaN or inf among the values,
+    a (slower, exact) lexsort.
     """
-    p_all = np.asarray(points, np.float64).reshape(-1, 3)
-    t = np.asarray(tris, np.float64).reshape(-1, 3, 3)
-    n, m = len(p_all), len(t)
-    rng = np.random.default_rng(seed)
-    p = p_all[rng.choice(n, MAX_CUE_POINTS, replace=False)] if n > MAX_CUE_POINTS else p_all
+    v = np.asarray(values, np.float64)
+    lo, hi = (float(v.min()), float(v.max())) if len(v) else (0.0, 0.0)
+    span = 2.0 * (hi - lo) + 1.0
+    finite = np.isfinite(span)
+    order = np.argsort((v - lo) + group * span, kind="stable") if finite else np.lexsort((v, group))
+    count = np.bincount(group, minlength=n_groups)
+    return v[order], np.concatenate([[0], np.cumsum(count)[:-1]]), count
+
+
+def percentile_of_sorted(seg: tuple, q: float) -> np.ndarray:
+    """(G,) float64 ``np.percentile(group, q)`` (linear) of every group of :func:`sorted_segments` (none empty)."""
+    sv, start, count = seg
+    t = (count - 1) * (q / 100.0)
+    lo = np.floor(t).astype(np.int64)
+    hi = np.minimum(lo + 1, count - 1)
+    frac = t - lo
+    a, b = sv[start + lo], sv[start + hi]
+    diff = b - a
+    return np.where(frac >= 0.5, b - diff * (1 - frac), a + diff * frac)  # numpy's two-sided lerp
+
+
+def median_of_sorted(seg: tuple) -> np.ndarray:
+    """(G,) float64 ``np.median`` of every group (mean of the two middle values for an even count)."""
+    sv, start, count = seg
+    return (sv[start + (count - 1) // 2] + sv[start + count // 2]) / 2
+
+
+def segment_percentile(values: np.ndarray, group: np.ndarray, n_groups: int, q: float) -> np.ndarray:
+    """(G,) float64 ``np.percentile(values[group == g], q)`` for every group g at once, no loop.
+
+    >>> segment_percentile(np.array([3., 1, 2, 10, 20]), np.array([0, 0, 0, 1, 1]), 2, 90).tolist()
+    [2.8, 19.0]
+    """
+    return percentile_of_sorted(sorted_segments(values, group, n_groups), q)
+
+
+def _segment_mean(values, group, count):
+    return np.bincount(group, values, minlength=len(count)) / count
+
+
+def _segment_max(values, start):
+    return np.maximum.reduceat(values, start)  # groups are contiguous and non-empty
+
+
+def _group_seeds(n_points, keys, seed):
+    # a per-pair seed only where it is used (pairs above MAX_CUE_POINTS subsample their points)
+    return [pair_seed(seed, int(k)) if n > MAX_CUE_POINTS else 0 for n, k in zip(n_points, keys)]
+
+
+def _cue_points(points: list, seeds: list) -> tuple[np.ndarray, np.ndarray]:
+    """The points the point -> mesh distances use: (q, 3) float64 and their (q,) pair index."""
+    sub = []
+    for p, s in zip(points, seeds):
+        if len(p) > MAX_CUE_POINTS:
+            p = p[np.random.default_rng(s).choice(len(p), MAX_CUE_POINTS, replace=False)]
+        sub.append(p)
+    return np.concatenate(sub), np.repeat(np.arange(len(sub)), [len(p) for p in sub])
+
+
+def _lifted(xyz: np.ndarray, group: np.ndarray) -> np.ndarray:
+    """(n, 4): xyz with the pair index far away on a fourth axis, so one k-d tree serves every pair and a
+    neighbour is never found in another pair (distances within a pair are unchanged: the fourth term is 0)."""
+    return np.concatenate([xyz, (group * _PAIR_GAP_M)[:, None].astype(np.float64)], axis=1)
+
+
+def _point_to_mesh(p, gp, t, gf, normals, centres, k_max) -> tuple[np.ndarray, np.ndarray]:
+    """Unsigned and signed distances (q,) float64 of points p (q, 3) to their pair's faces: exact distance to
+    the nearest of the (up to) k_max faces with the nearest centres.
+
+    The exact distance is computed for the nearest-centre face, then only for the candidates whose lower
+    bound (centre distance minus the face's radius, and the distance to its plane) is below it: the others
+    cannot be nearer, so the result equals computing them all (a tie keeps the earlier candidate either way).
+    """
+    k = min(k_max, int(np.bincount(gf).max()))
+    dc, fi = cKDTree(_lifted(centres, gf)).query(_lifted(p, gp), k=k, distance_upper_bound=_PAIR_GAP_M / 2)
+    fi, dc = np.asarray(fi).reshape(len(p), k), np.asarray(dc).reshape(len(p), k)
+    dist = np.full((len(p), k), np.inf)
+    dist[:, 0] = np.linalg.norm(closest_point_on_triangles(p, t[fi[:, 0]]) - p, axis=1)
+    valid = fi < len(t)  # a pair with fewer than k faces: the missing neighbours come back as len(t)
+    valid[:, 0] = False
+    row, col = np.nonzero(valid)
+    f = fi[row, col]
+    radius = np.linalg.norm(t - centres[:, None], axis=2).max(axis=1)
+    plane = np.abs(((p[row] - t[f, 0]) * normals[f]).sum(1))
+    keep = np.maximum(dc[row, col] - radius[f], plane) <= dist[row, 0] + 1e-9 * (1.0 + dist[row, 0])
+    row, col, f = row[keep], col[keep], f[keep]
+    dist[row, col] = np.linalg.norm(closest_point_on_triangles(p[row], t[f]) - p[row], axis=1)
+    rows = np.arange(len(p))
+    best = dist.argmin(axis=1)
+    d = dist[rows, best]
+    fbest = fi[rows, best]
+    near = closest_point_on_triangles(p, t[fbest])
+    signed = np.sign(((p - near) * normals[fbest]).sum(1)) * d
+    return d, signed
+
+
+def _point_normals(p_all, ga, counts, mesh_n) -> tuple[np.ndarray, np.ndarray]:
+    """(B, 3) least-variance direction of each pair's points and (B,) planarity (smallest eigenvalue over
+    the sum; 0 and the mesh normal below 3 points)."""
+    b = len(counts)
+    mean = np.stack([np.bincount(ga, p_all[:, i], minlength=b) for i in range(3)], 1) / counts[:, None]
+    x = p_all - mean[ga]
+    cov = np.empty((b, 3, 3))
+    for i in range(3):
+        for j in range(i, 3):
+            cov[:, i, j] = cov[:, j, i] = np.bincount(ga, x[:, i] * x[:, j], minlength=b)
+    cov /= np.maximum(counts - 1, 1)[:, None, None]
+    ev, evec = np.linalg.eigh(cov)
+    ok = counts >= 3
+    pt_n = np.where(ok[:, None], evec[:, :, 0], mesh_n)
+    planarity = np.where(ok, np.maximum(ev[:, 0], 0.0) / np.maximum(ev.sum(1), 1e-12), 0.0)
+    return pt_n, planarity
+
+
+def _cues(points: list, tris: list, open_edges: list | None, seeds: list) -> np.ndarray:
+    """(B, N_CUES) float32 cues of B pairs; seeds[b]: the subsampling seed of pair b."""
+    points = [np.asarray(p, np.float64).reshape(-1, 3) for p in points]
+    tris = [np.asarray(t, np.float64).reshape(-1, 3, 3) for t in tris]
+    n = np.array([len(p) for p in points], np.int64)
+    m = np.array([len(t) for t in tris], np.int64)
+    if (n == 0).any() or (m == 0).any():
+        raise ValueError("every pair needs at least one point and one face")
+    b = len(points)
+    p_all, t = np.concatenate(points), np.concatenate(tris)
+    ga, gf = np.repeat(np.arange(b), n), np.repeat(np.arange(b), m)
+    f_start = np.concatenate([[0], np.cumsum(m)[:-1]])
     cross = np.cross(t[:, 1] - t[:, 0], t[:, 2] - t[:, 0])
     area2 = np.linalg.norm(cross, axis=1)
     area = 0.5 * area2
     normals = np.divide(cross, area2[:, None], out=np.zeros_like(cross), where=area2[:, None] > 0)
     centres = t.mean(axis=1)
-    total_area = float(area.sum())
+    total_area = np.bincount(gf, area, minlength=b)
 
-    # point -> mesh: exact distance to the nearest of the k faces with the nearest centres
-    k = min(8, m)
-    _, fi = cKDTree(centres).query(p, k=k)
-    fi = np.asarray(fi).reshape(len(p), k)
-    q = closest_point_on_triangles(np.repeat(p, k, axis=0), t[fi.ravel()]).reshape(len(p), k, 3)
-    dist = np.linalg.norm(q - p[:, None], axis=2)
-    best = dist.argmin(axis=1)
-    d = dist[np.arange(len(p)), best]
-    fbest = fi[np.arange(len(p)), best]
-    signed = np.sign(((p - q[np.arange(len(p)), best]) * normals[fbest]).sum(1)) * d
+    p, gp = _cue_points(points, seeds)
+    n_cue = np.bincount(gp, minlength=b)
+    d, signed = _point_to_mesh(p, gp, t, gf, normals, centres, 8)
 
     # mesh -> points
-    dm, _ = cKDTree(p_all).query(centres, k=1)
-    w = area / total_area if total_area > 0 else np.full(m, 1.0 / m)
+    dm, _ = cKDTree(_lifted(p_all, ga)).query(_lifted(centres, gf), k=1, distance_upper_bound=_PAIR_GAP_M / 2)
+    w = np.where((total_area > 0)[gf], area / np.where(total_area > 0, total_area, 1.0)[gf], 1.0 / m[gf])
 
     # boundaries: edges of the patch without a neighbour in the patch, and tile-level open edges
-    nb = edge_neighbours(vertex_ids_from_coords(t.astype(np.float32)))
-    edge_len = np.linalg.norm(np.roll(t, -1, axis=1) - t, axis=2)  # (m, 3), edge j = v_j -> v_{j+1}
-    patch_open = nb == np.arange(m)[:, None]
-    tile_open = patch_open if open_edges is None else np.asarray(open_edges, bool)
+    nb = edge_neighbours(vertex_ids_from_coords(t.astype(np.float32)), gf)
+    edge_len = np.linalg.norm(np.roll(t, -1, axis=1) - t, axis=2)  # (M, 3), edge j = v_j -> v_{j+1}
+    patch_open = nb == np.arange(len(t))[:, None]
+    tile_open = patch_open if open_edges is None else np.concatenate([np.asarray(o, bool).reshape(-1, 3)
+                                                                      for o in open_edges])
 
     # normals and planarity
-    mean_n = (normals * area[:, None]).sum(0)
-    mean_len = np.linalg.norm(mean_n)
-    mesh_n = mean_n / mean_len if mean_len > 0 else np.array([0.0, 0.0, 1.0])
-    if n >= 3:
-        ev, evec = np.linalg.eigh(np.cov(p_all.T))
-        pt_n = evec[:, 0]
-        planarity = float(max(ev[0], 0.0) / max(ev.sum(), 1e-12))
-    else:
-        pt_n, planarity = mesh_n, 0.0
-    along_p = p_all @ mesh_n
-    along_m = t.reshape(-1, 3) @ mesh_n
+    mean_n = np.stack([np.bincount(gf, normals[:, i] * area, minlength=b) for i in range(3)], 1)
+    mean_len = np.linalg.norm(mean_n, axis=1)
+    mesh_n = np.where((mean_len > 0)[:, None], mean_n / np.where(mean_len > 0, mean_len, 1.0)[:, None], [0.0, 0.0, 1.0])
+    pt_n, planarity = _point_normals(p_all, ga, n, mesh_n)
+    along_p = (p_all * mesh_n[ga]).sum(1)
+    along_m = (t * mesh_n[gf][:, None]).sum(2).ravel()
+    gv = np.repeat(gf, 3)
 
+    def spread(v, g):
+        s = sorted_segments(v, g, b)
+        return percentile_of_sorted(s, 90) - percentile_of_sorted(s, 10)
+
+    sd, ss, sm = sorted_segments(d, gp, b), sorted_segments(signed, gp, b), sorted_segments(dm, gf, b)
     cues = [
-        np.log1p(n), np.log1p(m), total_area, np.log1p(n / max(total_area, 1e-3)),
-        d.mean(), np.median(d), np.percentile(d, 90), d.max(), (d > 0.05).mean(), (d > 0.15).mean(),
-        np.median(signed), signed.mean(),
-        dm.mean(), np.percentile(dm, 90), dm.max(), float(w[dm <= 0.10].sum()),
-        float(edge_len[patch_open].sum()), float(edge_len[tile_open].sum()), float(tile_open.sum()),
-        abs(float(pt_n @ mesh_n)), planarity, 1.0 - mean_len / max(total_area, 1e-12),
-        np.percentile(along_p, 90) - np.percentile(along_p, 10), np.percentile(along_m, 90) - np.percentile(along_m, 10),
-        float(w[np.abs(normals[:, 2]) > 0.9].sum()),
+        np.log1p(n), np.log1p(m), total_area, np.log1p(n / np.maximum(total_area, 1e-3)),
+        _segment_mean(d, gp, n_cue), median_of_sorted(sd), percentile_of_sorted(sd, 90),
+        _segment_max(d, np.concatenate([[0], np.cumsum(n_cue)[:-1]])),
+        _segment_mean((d > 0.05).astype(float), gp, n_cue), _segment_mean((d > 0.15).astype(float), gp, n_cue),
+        median_of_sorted(ss), _segment_mean(signed, gp, n_cue),
+        _segment_mean(dm, gf, m), percentile_of_sorted(sm, 90), _segment_max(dm, f_start),
+        np.bincount(gf, w * (dm <= 0.10), minlength=b),
+        np.bincount(gf, (edge_len * patch_open).sum(1), minlength=b),
+        np.bincount(gf, (edge_len * tile_open).sum(1), minlength=b),
+        np.bincount(gf, tile_open.sum(1), minlength=b),
+        np.abs((pt_n * mesh_n).sum(1)), planarity, 1.0 - mean_len / np.maximum(total_area, 1e-12),
+        spread(along_p, ga), spread(along_m, gv),
+        np.bincount(gf, w * (np.abs(normals[:, 2]) > 0.9), minlength=b),
     ]
-    return np.asarray(cues, np.float32)
+    return np.stack(cues, axis=1).astype(np.float32)
+
+
+def pair_cues(points: np.ndarray, tris: np.ndarray, open_edges: np.ndarray | None = None, seed: int = 0) -> np.ndarray:
+    """(N_CUES,) float32 cues of one pair (see :data:`CUE_NAMES`).
+
+    points: (n, 3) metres; tris: (m, 3, 3) metres (n, m >= 1); open_edges: (m, 3) bool tile-level open
+    edges, or None (then the patch-local boundary stands in). Points beyond MAX_CUE_POINTS are subsampled
+    (seeded by ``seed`` itself) for the point-to-mesh distances.
+    """
+    return _cues([points], [tris], None if open_edges is None else [open_edges], [seed])[0]
 
 
 def batch_cues(points: list[np.ndarray], tris: list[np.ndarray], open_edges: list[np.ndarray] | None,
                keys: np.ndarray, seed: int = 0) -> np.ndarray:
-    """(B, N_CUES) float32 cues of B pairs (one :func:`pair_cues` per pair; vectorised within each pair)."""
-    out = np.empty((len(points), N_CUES), np.float32)
-    for b in range(len(points)):
-        oe = None if open_edges is None else open_edges[b]
-        out[b] = pair_cues(points[b], tris[b], oe, pair_seed(seed, int(keys[b])))
-    return out
+    """(B, N_CUES) float32 cues of B pairs, all pairs at once (one k-d tree per kind for the batch).
+
+    points[b]: (n_b, 3) float, metres; tris[b]: (m_b, 3, 3) float, metres (n_b, m_b >= 1); open_edges[b]:
+    (m_b, 3) bool or None; keys: (B,) int64 patch keys (pair b subsamples with ``pair_seed(seed, keys[b])``).
+
+    >>> tris = np.array([[[0, 0, 0], [1, 0, 0], [1, 1, 0]], [[0, 0, 0], [1, 1, 0], [0, 1, 0]]], float)
+    >>> pts = np.array([[.25, .5, .2], [.75, .5, .2], [.5, .25, .2], [.5, .75, .2]])  # 0.2 m above the square
+    >>> c = dict(zip(CUE_NAMES, batch_cues([pts, pts - [0, 0, .2]], [tris, tris], None, np.array([1, 2])).T))
+    >>> [round(float(c[k][0]), 4) for k in ("p2m_median", "p2m_signed_mean", "mesh_area_m2", "patch_boundary_m")]
+    [0.2, 0.2, 1.0, 4.0]
+    >>> [round(float(c[k][1]), 4) for k in ("p2m_max", "coverage_10cm", "point_planarity")]
+    [0.0, 0.0, 0.0]
+    """
+    n = [len(p) for p in points]
+    return _cues(points, tris, open_edges, _group_seeds(n, np.asarray(keys, np.int64), seed))
