@@ -7,7 +7,7 @@ repair beat the block model there? (issue 15, 2)
    where the truth departs > 0.2 m from it), unless ``OUT/campus`` exists;
 2. the whole pipeline inline (registration off: the inputs are co-registered; report off);
 3. grading against the labels, over the labelled-bad patches that hold MLS points: recall and precision
-   of grade 1 (the network OR the geometric evidence, ``classify.evidence``). Labels go by truth samples
+   of grade 1, also per defect type (recess / balcony / passage) (the network OR the geometric evidence, ``classify.evidence``). Labels go by truth samples
    every 0.15 m, so two further figures read them at the points: *seen* recall (labelled-bad patches
    where >= 3 MLS points lie within 0.1 m of a defect sample: the scan shows the defect there) and how
    many "false" bad patches hold points on a labelled defect surface (within 0.1 m of a sample: the
@@ -54,20 +54,29 @@ def pinned_truth(src: Path) -> dict:
 
 
 def grading(src: Path, work: Path) -> dict:
-    """Recall / precision of grade 1 against the labels (module doc, step 3), and the bad / labelled cells."""
+    """Recall / precision of grade 1 against the labels (module doc, step 3), and the bad / labelled cells;
+    ``by_type``: per defect type (recess / balcony / passage) the labelled-bad patches with points that hold
+    samples of that type, the share graded 1, and the same over those where >= 3 points lie within 0.1 m of
+    its samples."""
     from scipy.spatial import cKDTree
 
     from storage.patch_store import PatchStore
     from storage.workdir import WorkDir, campus_frame, read_campus
+    from tasks.config import CampusConfig
 
     wd = WorkDir(work)
     origin = np.asarray(campus_frame(read_campus(wd)).origin, np.float64)
     defects = json.loads((src / "truth" / "defects.json").read_text())
     frame = np.asarray(defects.get("frame_origin", [0, 0, 0]), np.float64)
     samples = [np.asarray(d["samples"], np.float64).reshape(-1, 3) for d in defects["defects"]]
+    kinds = [d.get("type", "?") for d in defects["defects"]]
+    types = {t: np.concatenate([x for x, k in zip(samples, kinds) if k == t]) + frame - origin
+             for t in sorted(set(kinds))}
     samples = np.concatenate(samples) + frame - origin if samples else np.full((1, 3), 1e9)
     tree = cKDTree(samples)
+    trees = {t: cKDTree(x) for t, x in types.items()}
     keys, grade, label, npts, near = [], [], [], [], []
+    near_t = {t: [] for t in types}
     for t in wd.live_tiles():
         st = PatchStore(wd.tile_dir(t))
         p = st.patches()
@@ -80,12 +89,24 @@ def grading(src: Path, work: Path) -> dict:
         label.append(st.side("labels")["label"])
         npts.append(p["n_points"])
         near.append(np.bincount(row[np.isfinite(d[:len(row)])], minlength=len(p["patch"])))
+        for k, tr in trees.items():
+            d, _ = tr.query(xyz, distance_upper_bound=0.1)
+            near_t[k].append(np.bincount(row[np.isfinite(d[:len(row)])], minlength=len(p["patch"])))
     keys, grade, label, npts, near = map(np.concatenate, (keys, grade, label, npts, near))
     m = npts > 0
     lb, gb = (label == 1) & m, grade == 1
     tp, fp = int((lb & gb).sum()), int((gb & (label == 0)).sum())
     seen = lb & (near >= 3)
-    return {"labelled_bad": int((label == 1).sum()), "labelled_bad_with_points": int(lb.sum()),
+    grid = CampusConfig.from_yaml(src / "campus.yaml", {"work_dir": str(work)}).grid()
+    by_type = {}
+    for t, x in types.items():  # a patch holding samples of two types counts for both
+        lt = lb & np.isin(keys, np.unique(grid.pack(grid.cells_world(x + origin))))
+        st = lt & (np.concatenate(near_t[t]) >= 3)
+        by_type[t] = {"labelled_bad_with_points": int(lt.sum()), "graded_bad": int((lt & gb).sum()),
+                      "ungraded": int((lt & (grade < 0)).sum()),
+                      "recall": int((lt & gb).sum()) / max(int(lt.sum()), 1), "seen": int(st.sum()),
+                      "recall_seen": int((st & gb).sum()) / max(int(st.sum()), 1)}
+    return {"by_type": by_type, "labelled_bad": int((label == 1).sum()), "labelled_bad_with_points": int(lb.sum()),
             "graded_bad": int(gb.sum()), "recall": tp / max(int(lb.sum()), 1), "precision": tp / max(tp + fp, 1),
             "labelled_bad_seen": int(seen.sum()), "recall_seen": int((seen & gb).sum()) / max(int(seen.sum()), 1),
             "false_bad": fp, "false_bad_on_defect_surface": int((gb & (label == 0) & (near >= 3)).sum()),
@@ -123,6 +144,10 @@ def print_tables(g: dict, q: dict | None, mvs: dict | None) -> None:
     print(f"  recall over the {g['labelled_bad_seen']} labelled-bad patches whose points show the defect: {g['recall_seen']:.3f}")
     print(f"  'false' bad patches {g['false_bad']}, of which {g['false_bad_on_defect_surface']} hold points on a labelled "
           f"defect surface (its sample fell in the next patch)")
+    print("  per defect type | labelled bad with points | graded bad | ungraded (-1) | recall | seen | recall (seen)")
+    for t, r in g.get("by_type", {}).items():
+        print(f"    {t:8s} | {r['labelled_bad_with_points']} | {r['graded_bad']} | {r['ungraded']} | {r['recall']:.3f} | "
+              f"{r['seen']} | {r['recall_seen']:.3f}")
     if q:
         scopes = [s for s in ("campus", "labelled-bad cells", "graded-bad cells") if s in q["input"]]
         for s in scopes:
