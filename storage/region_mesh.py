@@ -14,11 +14,13 @@
 ``mesh.npz`` (numpy, uncompressed)::
 
     vertices      (n, 3) float32  metres, campus-local
-    vertex_id     (n,)   int64    >= 0: an original mesh vertex id at its original position (border
-                                  vertices: shared with the retained faces, weld by it); < 0: a new
-                                  vertex (MLS point, or a seam vertex moved onto the MLS surface),
-                                  unique within the region, not campus-wide
-    vertex_source (n,)   int8     0 original mesh vertex, 1 MLS point, 2 Poisson vertex
+    vertex_id     (n,)   int64    a campus id (storage.vertex_ids: input or split vertex) at its
+                                  original position (border vertices: shared with the retained faces,
+                                  weld by it); a local id: a new vertex (MLS point, input-surface
+                                  sample, or a seam vertex moved onto the MLS surface), unique within
+                                  the region, not campus-wide
+    vertex_source (n,)   int8     0 original mesh vertex, 1 MLS point, 2 Poisson vertex, 3 sample of
+                                  the input surface kept where the MLS saw nothing
     faces         (m, 3) int32    counter-clockwise seen from outside (like the input mesh)
     face_patch    (m,)   int64    patch key of each face's centroid (the partition's rule): the tile of
                                   a face is ``grid.tile_of_keys(face_patch)``

@@ -39,7 +39,7 @@ STAGE_VERSIONS = {
     "outliers": 2,   # v2: flags in outliers.parquet, not in patches.parquet
     "classify": 1,
     "regions": 1,
-    "region": 1,
+    "region": 2,     # v2: unseen zone surface kept (tasks.repair.fill)
     "merge": 2,      # v2: faces graded under repair.grades (the regions stage's rule), not grades-else-labels
 }
 

@@ -93,6 +93,10 @@ class MeshConfig(_Section):
                                       "chart surface are not triangulated")
     max_edge_m: float = Field(0.6, gt=0, description="rebuilt triangles with a longer 3D edge (a fold of the "
                               "chart) are dropped")
+    fill_step_m: float = Field(0.4, ge=0, description="where no fused point (kept vertex or accepted MLS point) "
+                               "and no replaced vertex lies within this distance, the zone's own surface is sampled "
+                               "at this spacing and triangulated with the fused points: a surface the MLS did not "
+                               "see keeps the input mesh (tasks.repair.fill); 0: fused points only (the paper)")
     stitch_tolerance_m: float = Field(0.01, gt=0, description="largest border gap accepted between the rebuilt "
                                       "mesh and the retained mesh")
     max_hole_loop_m: float = Field(40.0, gt=0, description="open boundary loops of the mesh shorter than this "

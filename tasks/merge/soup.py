@@ -13,6 +13,7 @@ import numpy as np
 
 from storage.region_mesh import RegionMesh
 from storage.tile_mesh import GRADE_BAD, NO_REGION, SOURCE_MESH, SOURCE_REBUILT, TileMesh
+from storage.vertex_ids import MISSING, is_campus_id, local_ids
 from tasks.merge.weld import face_keep_mask, weld_corners, weld_keys
 
 REBUILT_GREY = np.array([170, 170, 170], np.uint8)  # rebuilt faces with neither atlas nor colours
@@ -68,10 +69,10 @@ def store_soup(cols: dict[str, np.ndarray], grade: np.ndarray) -> FaceSoup:
     """
     xyz = np.stack([np.stack([cols[f"{a}{v}"] for a in "xyz"], axis=1) for v in range(3)], axis=1)
     keys = np.stack([cols[f"vid{v}"] for v in range(3)], axis=1).astype(np.int64, copy=False)
-    if (keys < 0).any():  # no ids: weld exactly coincident corners, in a key range of their own
-        missing = keys < 0
+    if (keys == MISSING).any():  # no ids: weld exactly coincident corners, in a key range of their own
+        missing = keys == MISSING
         keys = keys.copy()
-        keys[missing] = _position_keys(xyz[missing], -(1 << 62))
+        keys[missing] = _position_keys(xyz[missing], int(local_ids(np.zeros(1), "merge_position")[0]))
     uv = np.stack([np.stack([cols[f"{a}{v}"] for a in "uv"], axis=1) for v in range(3)], axis=1)
     finite = np.isfinite(uv).all(axis=(1, 2))
     texture = np.where(finite & (cols["texture"] >= 0), cols["texture"], -1).astype(np.int32)
@@ -85,13 +86,14 @@ def store_soup(cols: dict[str, np.ndarray], grade: np.ndarray) -> FaceSoup:
 
 def region_soup(r: RegionMesh, texture_index: int) -> FaceSoup:
     """The soup of one rebuilt region's faces. texture_index: its atlas in the merge's texture list
-    (ignored without an atlas). New vertices get keys ``-1 - (region << 32 | index)``: negative, so
-    never a campus vertex id (``source << 32 | index`` with source < 2**31), and distinct per region."""
+    (ignored without an atlas). Vertices without a campus id (:mod:`storage.vertex_ids`: new
+    ones) get keys ``-1 - (region << 32 | index)``: negative, never an input vertex id (``source << 32 |
+    index``), distinct per region (a split vertex's hashed id could meet one only by a 2**-62 chance)."""
     f = r.faces
     m = len(f)
     ids = np.full(len(r.vertices), -1, np.int64) if r.vertex_ids is None else r.vertex_ids
     own = -1 - ((np.int64(r.region) << 32) | np.arange(len(r.vertices), dtype=np.int64))
-    keys = np.where(ids >= 0, ids, own)[f]
+    keys = np.where(is_campus_id(ids), ids, own)[f]
     uv = np.zeros((m, 3, 2), np.float32) if r.corner_uv is None else r.corner_uv
     textured = np.full(m, r.atlas is not None) & np.isfinite(uv).all(axis=(1, 2))
     uv = np.where(textured[:, None, None], uv, np.float32(0)).astype(np.float32, copy=False)

@@ -21,6 +21,8 @@ from scipy.sparse import coo_matrix, csr_matrix
 from scipy.sparse.csgraph import connected_components
 from scipy.sparse.linalg import spsolve
 
+from tasks.repair.conformal import conformal_uv
+
 
 def edges_of(faces: np.ndarray) -> np.ndarray:
     """(m, 3) int faces -> (3m, 2) directed edges (v0 v1, v1 v2, v2 v0), face-major."""
@@ -271,6 +273,8 @@ class Chart:
     float64 disc coordinates; loop: (k,) boundary loop (indices into xyz), counter-clockwise in uv;
     zone_face: (m,) int64 index of the zone face (-1 for a fill face). A vertex may appear more than
     once (copies at a pinch or on the two sides of a seam); copies share their ``vertex``.
+    cuv: (n, 2) float64 conformal coordinates (metres, :func:`tasks.repair.conformal.conformal_uv`), or
+    None where that map folds: then the chart is triangulated in the disc.
     """
 
     xyz: np.ndarray
@@ -279,6 +283,7 @@ class Chart:
     uv: np.ndarray
     loop: np.ndarray
     zone_face: np.ndarray
+    cuv: np.ndarray | None = None
 
 
 @dataclass(frozen=True)
@@ -294,7 +299,7 @@ class ZoneTopology:
 
 
 def zone_charts(xyz: np.ndarray, zone_faces: np.ndarray, context_faces: np.ndarray, near_zone: np.ndarray,
-                max_hole_loop_m: float) -> ZoneTopology:
+                max_hole_loop_m: float, conformal: bool = True) -> ZoneTopology:
     """Split a region's zone into disc charts.
 
     xyz: (n, 3) float64 region vertex table (zone and context vertices); zone_faces (mz, 3) and
@@ -302,7 +307,8 @@ def zone_charts(xyz: np.ndarray, zone_faces: np.ndarray, context_faces: np.ndarr
     a mesh boundary through them is a hole of the zone rather than the edge of what was read.
     Boundary loops of zone + context shorter than ``max_hole_loop_m`` whose vertices are all near the
     zone and that touch a zone face are holes: filled (fan) and added to the zone. Each face
-    component of the result with one clean boundary loop becomes a :class:`Chart`.
+    component of the result with one clean boundary loop becomes a :class:`Chart` (with its conformal
+    map too when ``conformal``).
     """
     n = len(xyz)
     zone_faces = np.asarray(zone_faces, np.int64).reshape(-1, 3)
@@ -359,8 +365,9 @@ def zone_charts(xyz: np.ndarray, zone_faces: np.ndarray, context_faces: np.ndarr
             rejected.append(zf[sel][zf[sel] >= 0])
             continue
         uv = disc_parameterisation(vx[vo], fl, lps[0])
+        cuv = conformal_uv(vx[vo], fl, lps[0]) if conformal else None
         charts.append(Chart(xyz=vx[vo], vertex=np.where(vo < n, vo, -1), faces=fl, uv=uv, loop=lps[0],
-                            zone_face=zf[sel]))
+                            zone_face=zf[sel], cuv=cuv))
     rej = np.concatenate(rejected) if rejected else np.zeros(0, np.int64)
     return ZoneTopology(charts, rej, n_fill, fill_len, n_seams)
 

@@ -15,7 +15,10 @@ from dataclasses import dataclass, field
 import numpy as np
 from scipy.spatial import cKDTree
 
+from storage.vertex_ids import local_ids
+
 from tasks.repair.chart import zone_charts
+from tasks.repair.fill import SOURCE_FILL, unseen_samples
 from tasks.repair.defect_types import DefectEvidence, classify_evidence, repair_plan
 from tasks.repair.fuse import (
     FusionParams,
@@ -196,6 +199,11 @@ def repair_region_geometry(data: RegionInput, cfg) -> RegionGeometry:
     t3 = time.perf_counter()
     pts, src, pvert = _mesh_points(fused_xyz, np.concatenate([vn[kept_v], acc_n]), fused_src,
                                    np.r_[kept_v, np.full(len(acc), -1)], fc, mc, stats)
+    fill = unseen_samples(data.xyz, data.zone_faces, fused_xyz, data.xyz[zone_v[fr.replaced & ~locked]],
+                          step_m=mc.fill_step_m, reach_m=mc.max_map_distance_m)
+    stats["filled"] = len(fill)
+    pts, src = np.concatenate([pts, fill]), np.r_[src, np.full(len(fill), SOURCE_FILL, np.int8)]
+    pvert = np.r_[pvert, np.full(len(fill), -1)]
     vxyz, vids = seam_positions(data, zone_v, fr.replaced, acc, acc_n, topo)
     stats["seam_vertices_moved"] = int((vids != data.vertex_id).sum())
     mesh = rebuild_charts(topo.charts, vids, pts, src, pvert, max_map_distance_m=mc.max_map_distance_m,
@@ -235,5 +243,5 @@ def seam_positions(data: RegionInput, zone_v: np.ndarray, replaced: np.ndarray, 
         m, j = move[ok], j[ok]
         off = np.einsum("ij,ij->i", xyz[m] - acc[j], acc_n[j])
         xyz[m] -= off[:, None] * acc_n[j]
-        ids[m] = -(1 << 40) - m
+        ids[m] = local_ids(m, "seam")
     return xyz, ids

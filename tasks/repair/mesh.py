@@ -27,7 +27,10 @@ from dataclasses import dataclass, field
 import numpy as np
 from scipy.spatial import Delaunay, cKDTree
 
+from storage.vertex_ids import local_ids
+
 from tasks.repair.chart import Chart, boundary_edges, edges_of, undirected_key
+from tasks.repair.conformal import constrained_triangles
 
 METHODS = ("delaunay", "poisson")
 
@@ -36,9 +39,11 @@ METHODS = ("delaunay", "poisson")
 class RebuiltMesh:
     """A region's rebuilt surface.
 
-    xyz: (n, 3) float64 campus-local metres; vertex_id: (n,) int64 (>= 0: the original mesh vertex id,
-    welded to the retained mesh or kept in place; < 0: a new vertex, unique within the region);
-    faces: (m, 3) int64; source: (n,) int8 (0 original mesh vertex, 1 MLS point, 2 Poisson vertex);
+    xyz: (n, 3) float64 campus-local metres; vertex_id: (n,) int64 (a campus id, :mod:`storage.vertex_ids`:
+    the original mesh vertex, welded to the retained mesh or kept in place; a local id: a new vertex,
+    unique within the region);
+    faces: (m, 3) int64; source: (n,) int8 (0 original mesh vertex, 1 MLS point, 2 Poisson vertex, 3 sample of
+    the input surface where the MLS saw nothing: tasks.repair.fill);
     chart: (m,) int32 chart index of each face.
     """
 
@@ -118,6 +123,45 @@ def _inside_convex_ccw(poly: np.ndarray, pts: np.ndarray, eps: float) -> np.ndar
     return inside
 
 
+def _inside_polygon(poly: np.ndarray, pts: np.ndarray, eps: float) -> np.ndarray:
+    """Points inside a simple polygon (even-odd rule) and farther than eps from each of its edges."""
+    inside = np.zeros(len(pts), bool)
+    clear = np.ones(len(pts), bool)
+    for a, b in zip(poly, np.roll(poly, -1, axis=0)):
+        yi = (a[1] > pts[:, 1]) != (b[1] > pts[:, 1])
+        with np.errstate(divide="ignore", invalid="ignore"):
+            xc = a[0] + (pts[:, 1] - a[1]) * (b[0] - a[0]) / (b[1] - a[1])
+        inside ^= yi & (pts[:, 0] < xc)
+        d = b - a
+        t = np.clip(((pts - a) @ d) / max(float(d @ d), 1e-30), 0.0, 1.0)
+        clear &= np.linalg.norm(pts - (a + t[:, None] * d), axis=1) > eps
+    return inside & clear
+
+
+def _disc_points(buv: np.ndarray, bxyz: np.ndarray, puv: np.ndarray, keep: np.ndarray, pts: np.ndarray,
+                 loop: np.ndarray, conformal: bool) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+    """The kept points inside the boundary polygon (buv: convex disc, or the conformal polygon), joined to
+    the boundary: (kidx point indices, uv (q, 2), xyz (q, 3), index (q,) as triangulate_in_chart returns)."""
+    inside = np.zeros(0, bool)
+    if keep.any():
+        inside = _inside_polygon(buv, puv[keep], 1e-6) if conformal else _inside_convex_ccw(buv, puv[keep], 1e-9)
+    kidx = np.flatnonzero(keep)[inside]
+    uv_all = np.concatenate([buv, puv[kidx]])
+    xyz_all = np.concatenate([bxyz, pts[kidx]])
+    index = np.r_[loop, -(1 + kidx)]
+    # a triangulation of exactly coincident points would drop one: keep the first of each
+    _, first = np.unique(np.round(uv_all, 12), axis=0, return_index=True)
+    if len(first) < len(uv_all):
+        sel = np.union1d(np.sort(first), np.arange(len(loop)))
+        uv_all, xyz_all, index = uv_all[sel], xyz_all[sel], index[sel]
+    return kidx, uv_all, xyz_all, index
+
+
+def _disc_delaunay(uv: np.ndarray) -> np.ndarray:
+    """Delaunay triangles (t, 3) int64 of points in the unit disc whose hull is the boundary polygon."""
+    return Delaunay(uv).simplices.astype(np.int64)
+
+
 # ------------------------------------------------------------------------------------- surface methods
 
 def poisson_surface(xyz: np.ndarray, normals: np.ndarray, depth: int = 8, trim_quantile: float = 0.05,
@@ -174,33 +218,28 @@ def triangulate_in_chart(chart: Chart, pts: np.ndarray, *, max_map_distance_m: f
     stats = {"candidates": len(pts)}
     keep = np.zeros(len(pts), bool)
     puv = np.zeros((len(pts), 2))
+    fid, bary = np.zeros(len(pts), np.int64), np.zeros((len(pts), 3))
     if len(pts):
         fid, bary, dist = located if located is not None else ClosestPoint(chart.xyz, chart.faces).query(pts)
         ok = (fid >= 0) & (dist <= max_map_distance_m)
         foot = np.einsum("kc,kcd->kd", bary, chart.xyz[chart.faces[np.maximum(fid, 0)]])
-        puv = np.einsum("kc,kcd->kd", bary, chart.uv[chart.faces[np.maximum(fid, 0)]])
         loop_edges = np.c_[loop, np.roll(loop, -1)]
         samples = _segment_samples(chart.xyz, loop_edges, max(border_margin_m / 2, 1e-3))
         near_border = cKDTree(samples).query(foot, distance_upper_bound=border_margin_m)[0] < np.inf
         keep = ok & ~near_border
         stats["too_far"] = int((~ok).sum())
         stats["at_border"] = int((ok & near_border).sum())
-    buv = chart.uv[loop]
-    eps = 1e-9
-    inside = _inside_convex_ccw(buv, puv[keep], eps) if keep.any() else np.zeros(0, bool)
-    kidx = np.flatnonzero(keep)[inside]
-    uv_all = np.concatenate([buv, puv[kidx]])
-    xyz_all = np.concatenate([bxyz, pts[kidx]])
-    index = np.r_[loop, -(1 + kidx)]
-    # a Delaunay of exactly coincident disc points would drop one: keep the first of each
-    _, first = np.unique(np.round(uv_all, 12), axis=0, return_index=True)
-    if len(first) < len(uv_all):
-        sel = np.sort(first)
-        sel = np.union1d(sel, np.arange(len(loop)))
-        uv_all, xyz_all, index = uv_all[sel], xyz_all[sel], index[sel]
-    if len(uv_all) < 3:
-        return xyz_all, index, np.zeros((0, 3), np.int64), stats
-    tri = Delaunay(uv_all).simplices.astype(np.int64)
+    kidx, uv_all, xyz_all, index, tri = None, None, None, None, None
+    for cmap in ([chart.cuv] if chart.cuv is not None else []) + [chart.uv]:
+        conformal = cmap is not chart.uv
+        puv = np.einsum("kc,kcd->kd", bary, cmap[chart.faces[np.maximum(fid, 0)]]) if len(pts) else puv
+        kidx, uv_all, xyz_all, index = _disc_points(cmap[loop], bxyz, puv, keep, pts, loop, conformal)
+        if len(uv_all) < 3:
+            return xyz_all, index, np.zeros((0, 3), np.int64), stats
+        tri = constrained_triangles(uv_all, len(loop)) if conformal else _disc_delaunay(uv_all)
+        if tri is not None:
+            stats["conformal"] = int(conformal)
+            break
     a, b, c = (uv_all[tri[:, k]] for k in range(3))
     cross = (b[:, 0] - a[:, 0]) * (c[:, 1] - a[:, 1]) - (b[:, 1] - a[:, 1]) * (c[:, 0] - a[:, 0])
     tri = np.where((cross < 0)[:, None], tri[:, [0, 2, 1]], tri)
@@ -251,7 +290,7 @@ def rebuild_charts(charts: list[Chart], vertex_ids: np.ndarray, pts: np.ndarray,
         pidx = np.where(is_b, 0, -1 - index)
         pv, ps = np.r_[pts_vertex, -1], np.r_[pts_source, 0].astype(np.int8)  # pidx 0 is valid when pts is empty
         vtab = np.where(is_b, ch.vertex[np.where(is_b, index, 0)], pv[pidx])
-        vid = np.where(vtab >= 0, vertex_ids[np.maximum(vtab, 0)], -(2 + pidx))  # new: -(2 + point index)
+        vid = np.where(vtab >= 0, vertex_ids[np.maximum(vtab, 0)], local_ids(pidx, "rebuilt"))  # new vertices
         xs.append(xyz)
         ids.append(vid)
         fs.append(tri + base)

@@ -17,6 +17,7 @@ from storage.grid import PatchGrid
 from storage.ids import TileId
 from storage.patch_store import PatchStore
 from storage.region_plan import Region
+from storage.vertex_ids import MISSING, local_ids
 from tasks.regions import dilate
 from tasks.repair.geometry import RegionInput
 
@@ -81,9 +82,9 @@ def read_region(region: Region, grid: PatchGrid, tile_dir: Callable[[TileId], Pa
     cf = _concat_faces(ctx_parts)
     tri = np.concatenate([zf["tri"], cf["tri"]])
     vid = np.concatenate([zf["vid"], cf["vid"]])
-    if (vid < 0).any():  # a store without vertex ids: weld exactly coincident corners instead
+    if (vid == MISSING).any():  # a store without vertex ids: weld exactly coincident corners instead
         _, cid = np.unique(tri.reshape(-1, 3), axis=0, return_inverse=True)
-        vid = np.where(vid < 0, -2 - cid.reshape(vid.shape), vid)
+        vid = np.where(vid == MISSING, local_ids(cid.reshape(vid.shape), "region_position"), vid)
     uid, first, inv = np.unique(vid.ravel(), return_index=True, return_inverse=True)
     xyz = tri.reshape(-1, 3)[first].astype(np.float64)
     faces = inv.reshape(-1, 3).astype(np.int64)

@@ -1,0 +1,88 @@
+"""Rebuilt charts on coarse-like zones: conformal chart map + constrained Delaunay, the unseen surface
+kept, and the vertex-id namespace (split vertices are campus ids, new vertices never collide with them)."""
+
+import numpy as np
+
+from storage.vertex_ids import is_campus_id
+from tasks.repair.chart import zone_charts
+from tasks.repair.conformal import conformal_uv, constrained_triangles, signed_areas
+from tasks.repair.fill import unseen_samples
+from tasks.repair.mesh import rebuild_charts, triangle_areas
+
+
+def _band(length=30.0, height=3.0, nx=60, nz=6, y=0.0):
+    """A vertical wall band in the x-z plane at y, as a grid of (nx x nz) quads: (vertices, faces)."""
+    xs, zs = np.linspace(0, length, nx + 1), np.linspace(0, height, nz + 1)
+    v = np.array([[x, y, z] for x in xs for z in zs])
+    idx = lambda i, j: i * (nz + 1) + j  # noqa: E731
+    f = []
+    for i in range(nx):
+        for j in range(nz):
+            f += [[idx(i, j), idx(i + 1, j), idx(i + 1, j + 1)], [idx(i, j), idx(i + 1, j + 1), idx(i, j + 1)]]
+    return v, np.array(f, np.int64)
+
+
+def _longest_edges(xyz, faces):
+    t = xyz[faces]
+    return np.linalg.norm(t - np.roll(t, 1, axis=1), axis=2).max(axis=1)
+
+
+def test_conformal_map_of_a_planar_band_is_an_isometry():
+    v, f = _band()
+    topo = zone_charts(v, f, np.zeros((0, 3), np.int64), np.ones(len(v), bool), 40.0)
+    ch = topo.charts[0]
+    assert ch.cuv is not None
+    d3 = np.linalg.norm(ch.xyz[:, None] - ch.xyz[None], axis=2)
+    d2 = np.linalg.norm(ch.cuv[:, None] - ch.cuv[None], axis=2)
+    assert np.abs(d3 - d2).max() < 1e-6
+    assert (signed_areas(ch.cuv, ch.faces) > 0).all()
+    # the unit-disc map squeezes the 10:1 band: distances along it shrink far more than across
+    dd = np.linalg.norm(ch.uv[:, None] - ch.uv[None], axis=2)
+    ratio = dd[d3 > 1] / d3[d3 > 1]
+    assert ratio.max() / ratio.min() > 5
+
+
+def test_conformal_map_refuses_a_degenerate_chart():
+    v = np.array([[0, 0, 0], [1, 0, 0], [2, 0, 0]], float)  # a zero-area face
+    assert conformal_uv(v, np.array([[0, 1, 2]]), np.array([0, 1, 2])) is None
+
+
+def test_constrained_triangles_keep_the_boundary_and_stay_inside_an_l_shape():
+    loop = np.array([[0, 0], [4, 0], [4, 1], [1, 1], [1, 4], [0, 4]], float)
+    inner = np.array([[0.5, 0.5], [2.5, 0.5], [0.5, 2.5], [3.0, 3.0]])  # the last lies in the notch, outside
+    tri = constrained_triangles(np.concatenate([loop, inner]), len(loop))
+    assert tri is not None
+    assert 9 not in tri  # the outside point is left out
+    c = np.concatenate([loop, inner])[tri].mean(axis=1)
+    assert not ((c[:, 0] > 1) & (c[:, 1] > 1)).any()  # no triangle in the notch
+    edges = {tuple(sorted(e)) for t in tri.tolist() for e in ((t[0], t[1]), (t[1], t[2]), (t[2], t[0]))}
+    assert all(tuple(sorted((i, (i + 1) % 6))) in edges for i in range(6))
+    area = np.abs(signed_areas(np.concatenate([loop, inner]), tri)).sum()
+    assert abs(area - 7.0) < 1e-9
+
+
+def test_new_vertices_never_weld_onto_split_vertex_ids():
+    """Split vertices (ingest, long faces) carry ids <= -2; points of the rebuild must not take them."""
+    v, f = _band(nx=30, nz=3)
+    split_like = -2 - np.arange(len(v), dtype=np.int64)  # the small negative ids a weld-by-position gave
+    assert is_campus_id(split_like).all()
+    topo = zone_charts(v, f, np.zeros((0, 3), np.int64), np.ones(len(v), bool), 40.0)
+    g = np.stack(np.meshgrid(np.arange(0.25, 30, 0.5), np.arange(0.25, 3, 0.5)), -1).reshape(-1, 2)
+    pts = np.c_[g[:, 0], np.full(len(g), 0.05), g[:, 1]]
+    mesh = rebuild_charts(topo.charts, split_like, pts, np.ones(len(pts), np.int8), np.full(len(pts), -1),
+                          max_map_distance_m=0.5, border_margin_m=0.02, max_edge_m=0.8)
+    assert not is_campus_id(mesh.vertex_id[mesh.source == 1]).any()
+    assert _longest_edges(mesh.xyz, mesh.faces).max() < 1.5
+    assert abs(triangle_areas(mesh.xyz, mesh.faces).sum() - 90.0) < 1.0
+
+
+def test_unseen_half_of_a_zone_keeps_the_input_surface():
+    v, f = _band(length=10.0, height=3.0, nx=10, nz=3)
+    seen = np.array([[x, 0.2, z] for x in np.arange(0.05, 5, 0.1) for z in np.arange(0.05, 3, 0.1)])  # 0.2 m off
+    fill = unseen_samples(v, f, seen, np.zeros((0, 3)), step_m=0.4, reach_m=1.0)
+    assert len(fill) > 20
+    assert fill[:, 0].min() > 5.0 - 0.4 and np.allclose(fill[:, 1], 0.0)
+    # a replaced vertex is not put back: no sample near it
+    fill2 = unseen_samples(v, f, seen, np.array([[8.0, 0.0, 1.0]]), step_m=0.4, reach_m=1.0)
+    assert np.linalg.norm(fill2 - [8.0, 0.0, 1.0], axis=1).min() >= 0.4
+    assert len(unseen_samples(v, f, seen, np.zeros((0, 3)), step_m=0.0, reach_m=1.0)) == 0
