@@ -19,7 +19,9 @@ How it is built, per building and for the terrain:
 5. defects are injected (``synth.defects``), then low-frequency (a few cm) and high-frequency
    (mm) noise along the vertex normals, then the holes are cut.
 
-Occluders are not in this mesh. Frames and units: mesh frame, metres, float64.
+A building's through-passage (``synth.passages``) is opened in its facade charts and lined with its
+own wall and ceiling charts (:func:`synth.passages.passage_charts`), welded like the rest; defects are
+placed on the unsplit envelope. Occluders are not in this mesh. Frames and units: mesh frame, metres, float64.
 """
 
 from __future__ import annotations
@@ -33,6 +35,7 @@ from .buildings import charts_of
 from .defects import DefectParams, inject_defects, wall_records
 from .envelope import Chart, insert_points
 from .lattice import NeighbourMean, random_edge_flips, strip_chart, vertex_normals
+from .passages import passage_charts
 from .scene import CLASS_COLOR, FaceClass, Mesh, Scene
 
 DETAIL_CLASSES = (FaceClass.WALL, FaceClass.GLASS, FaceClass.FRAME, FaceClass.BALCONY)
@@ -110,11 +113,12 @@ def _split_for_strips(c: Chart, xs, ys) -> list[np.ndarray]:
         return [poly]
     pts = [np.array([x, y, 0.0]) for x in xs for y in ys]  # grid nodes; only those on the wall bottom matter
     bottom = poly[np.abs(poly[:, 2]) < 1e-9]
-    lo, hi = bottom[:, :2].min(axis=0) - 1e-9, bottom[:, :2].max(axis=0) + 1e-9
-    pts = np.array([q for q in pts if np.all(q[:2] >= lo) and np.all(q[:2] <= hi)])
-    if len(pts):
-        poly = insert_points(poly, pts)
-    if len(c.polygon) == 5:
+    if len(bottom):  # (pieces of a wall above a passage do not reach the ground)
+        lo, hi = bottom[:, :2].min(axis=0) - 1e-9, bottom[:, :2].max(axis=0) + 1e-9
+        pts = np.array([q for q in pts if np.all(q[:2] >= lo) and np.all(q[:2] <= hi)])
+        if len(pts):
+            poly = insert_points(poly, pts)
+    if len(c.polygon) == 5 and c.polygon[:, 2].max() > c.rect_height_m + 1e-9:
         apex = int(np.argmax(poly[:, 2]))
         k = len(poly)
         tri = poly[[(apex - 1) % k, apex, (apex + 1) % k]]
@@ -138,15 +142,17 @@ def _lattices(rng, scene: Scene, p: MvsParams):
     roads = [tuple(r) for r in scene.meta.get("roads", road_lines(scene.extent))]
     xs, ys, _, inside = terrain_cells(scene.extent, roads, scene.meta["buildings"])
     parts, charts, kinds, pclass, pbuild = [], [], [], [], []
+    info = {d["id"]: d for d in scene.meta["buildings"]}
     for bid, chs in charts_of(scene).items():
-        for c in chs:
+        footprint = next(b.footprint for b in scene.buildings if b.id == bid)
+        for c in passage_charts(chs, footprint, info[bid].get("passage")):
             inner = p.edge_roof_m if c.kind == "roof" else p.edge_facade_m
             for poly in _split_for_strips(c, xs, ys):
                 parts.append(strip_chart(poly, [eh] * len(poly), inner, rng, p.lattice_jitter))
                 kinds.append(c.normal if c.kind == "wall" else None)
                 pclass.append(int(c.face_class))
                 pbuild.append(bid)
-            charts.append((bid, c))
+        charts += [(bid, c) for c in chs]  # the unsplit envelope (defects are placed on it)
     n_building_parts = len(parts)
     if p.include_terrain:
         ge = p.edge_ground_m * np.sqrt(3) / 2

@@ -122,3 +122,72 @@ def in_passage(points: np.ndarray, infos: list[dict], tol: float = 1e-6) -> np.n
              & (points[:, 1] < r[3] + tol) & (points[:, 2] > -tol) & (points[:, 2] < p["height_m"] + tol))
         out[m] = d["id"]
     return out
+
+
+def _clip(poly: np.ndarray, g: np.ndarray, c: float) -> np.ndarray:
+    """The part of a convex planar polygon (k, 3) where ``p @ g + c >= 0`` (winding kept)."""
+    f = poly @ g + c
+    out = []
+    for i in range(len(poly)):
+        j = (i + 1) % len(poly)
+        if f[i] >= -1e-9:
+            out.append(poly[i])
+        if (f[i] > 1e-9 and f[j] < -1e-9) or (f[i] < -1e-9 and f[j] > 1e-9):
+            out.append(poly[i] + (poly[j] - poly[i]) * f[i] / (f[i] - f[j]))
+    return np.array(out, float)
+
+
+def passage_charts(charts: list, footprint: np.ndarray, passage: dict | None) -> list:
+    """Envelope charts (``synth.envelope.Chart``) of one building with its passage opened, for a lattice
+    mesh (the MVS simulator): each passage facade's wall chart cut into the pieces around the opening
+    (a gable-end wall's apex triangle apart), and the passage's two side walls (kind "wall", facing into
+    the passage) and ceiling (kind "soffit", EAVE) added; shared edges keep equal end points (corners at
+    the opening's top are inserted where a neighbouring piece only passes by), so the lattices weld."""
+    from .envelope import Chart, _oriented, edge_normals_2d, insert_points
+    from .scene import FaceClass
+
+    if passage is None:
+        return list(charts)
+    n2, h = edge_normals_2d(footprint), passage["height_m"]
+    out, tops = [], []
+    for c in charts:
+        edge = next((e for e in (passage["front_edge"], passage["back_edge"]) if c.kind == "wall"
+                     and np.allclose(c.normal[:2], n2[e]) and np.allclose(
+                         c.polygon[:, :2].mean(0), 0.5 * (footprint[e] + footprint[(e + 1) % len(footprint)]))), None)
+        if edge is None:
+            out.append(c)
+            continue
+        a = footprint[edge]
+        t2 = footprint[(edge + 1) % len(footprint)] - a
+        t = np.array([*(t2 / np.linalg.norm(t2)), 0.0])
+        u0, u1 = passage["front_u"] if edge == passage["front_edge"] else passage["back_u"]
+        s0 = float(np.array([*a, 0.0]) @ t)
+
+        def at(u, z, a=a, t=t):
+            return np.array([*(a + u * t[:2]), z])
+
+        H, poly = c.rect_height_m, c.polygon
+        tops += [at(u0, H), at(u1, H)]
+        if len(poly) == 5:  # gable end: the apex triangle stays whole, its base meets three pieces
+            k = int(np.argmax(poly[:, 2]))
+            tri = poly[[(k - 1) % 5, k, (k + 1) % 5]]
+            out.append(Chart(insert_points(tri, np.array([at(u0, H), at(u1, H)])), c.face_class, c.kind, 0.0))
+            poly = np.delete(poly, k, axis=0)
+        mid = _clip(_clip(poly, t, -s0 - u0), -t, s0 + u1)
+        out += [Chart(insert_points(_clip(poly, -t, s0 + u0), at(u0, h)[None]), c.face_class, "wall", H),
+                Chart(insert_points(_clip(poly, t, -s0 - u1), at(u1, h)[None]), c.face_class, "wall", H),
+                Chart(_clip(mid, np.array([0.0, 0.0, 1.0]), -h), c.face_class, "wall", H)]
+    # the soffit along a cut wall's top meets its pieces' corners there
+    out = [Chart(insert_points(c.polygon, np.array(tops)), c.face_class, c.kind, c.rect_height_m)
+           if c.kind == "soffit" and tops else c for c in out]
+    e = passage["front_edge"]
+    a = footprint[e]
+    t2 = (footprint[(e + 1) % len(footprint)] - a) / np.linalg.norm(footprint[(e + 1) % len(footprint)] - a)
+    d = -passage["depth_m"] * n2[e]
+    (u0, u1), z = passage["front_u"], np.zeros(4)
+    for u, inward in ((u0, t2), (u1, -t2)):
+        q = np.array([a + u * t2, a + u * t2 + d, a + u * t2 + d, a + u * t2])
+        out.append(Chart(_oriented(np.column_stack([q, [0, 0, h, h]]), [*inward, 0.0]), FaceClass.WALL, "wall", h))
+    q = np.array([a + u0 * t2, a + u1 * t2, a + u1 * t2 + d, a + u0 * t2 + d])
+    out.append(Chart(_oriented(np.column_stack([q, z + h]), [0, 0, -1.0]), FaceClass.EAVE, "soffit"))
+    return out

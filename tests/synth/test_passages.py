@@ -102,7 +102,22 @@ def test_coarse_labels_a_passage_inside_the_block_solid(tiny):
         assert not (in_passage(by[t], [info], tol=-1e-3) >= 0).any()
 
 
-def test_mvs_mesh_builds_over_a_passage(tiny):
-    mesh, _ = make_mvs_mesh(np.random.default_rng(0), tiny, MvsParams(edge_facade_m=0.3, defects=None))
+def _open_and_nonmanifold_edges(mesh) -> tuple[int, int]:
+    e = np.sort(np.concatenate([mesh.faces[:, [0, 1]], mesh.faces[:, [1, 2]], mesh.faces[:, [2, 0]]]), axis=1)
+    _, c = np.unique(e, axis=0, return_counts=True)
+    return int((c == 1).sum()), int((c > 2).sum())
+
+
+def test_mvs_mesh_opens_the_passage_and_stays_welded(tiny):
+    params = MvsParams(edge_facade_m=0.3, defects=None)
+    mesh, _ = make_mvs_mesh(np.random.default_rng(0), tiny, params)
+    info = tiny.meta["buildings"][0]
+    o, d, length = _axis_ray(info["passage"], info["front_normal"])
+    t, _ = TruthCaster(mesh, mesh.face_building >= 0).cast(o[None], d[None])
+    assert not t[0] < length  # the lattice follows the passage through the building
     c = mesh.triangles().mean(axis=1)
-    assert mesh.n_faces > 1000 and (in_passage(c, tiny.meta["buildings"], tol=0.01) >= 0).any()
+    inside = in_passage(c, tiny.meta["buildings"], tol=0.01) >= 0
+    assert {FaceClass.GROUND, FaceClass.WALL, FaceClass.EAVE} <= set(np.unique(mesh.face_class[inside]))
+    # the passage's charts weld to the facades, the soffit and the floor: the only border is the extent's
+    plain, _ = make_mvs_mesh(np.random.default_rng(0), _tile_scene(31, get_preset("tiny"), 0, 0, 1), params)
+    assert _open_and_nonmanifold_edges(mesh) == _open_and_nonmanifold_edges(plain)
