@@ -314,7 +314,7 @@ def _write_tile(run: _SynthRun, ix: int, iy: int) -> None:
               face_colors=scene.truth.face_color)
     _save_npz(out / "truth" / f"{tname}_faces.npz", face_class=scene.truth.face_class,
               face_building=scene.truth.face_building)
-    run.buildings += [_building_json(b) for b in scene.buildings]
+    run.buildings += [_building_json(b, d) for b, d in zip(scene.buildings, scene.meta["buildings"])]
     neigh = [run.scene_at(jx, jy) for jx in range(max(ix - 1, 0), min(ix + 2, nx))
              for jy in range(max(iy - 1, 0), min(iy + 2, ny))] if p.tiled_mesh else [scene]
     seen = _merge_scenes(neigh) if len(neigh) > 1 else scene
@@ -391,7 +391,8 @@ def _save_npz(path: Path, **arrays) -> None:
     write_bytes_atomic(path, buf.getvalue())
 
 
-def _building_json(b) -> dict:
+def _building_json(b, info: dict) -> dict:
+    """scene.json's record of one building; with a through-passage, its "passage" (``synth.passages``)."""
     return {"id": int(b.id), "footprint": np.asarray(b.footprint).round(4).tolist(), "storeys": int(b.storeys),
             "storey_height_m": float(b.storey_height_m), "roof": b.roof, "eave_overhang_m": float(b.eave_overhang_m),
-            "height_m": float(b.height_m)}
+            "height_m": float(b.height_m), **({"passage": info["passage"]} if info.get("passage") else {})}

@@ -121,3 +121,14 @@ def test_mvs_mesh_opens_the_passage_and_stays_welded(tiny):
     # the passage's charts weld to the facades, the soffit and the floor: the only border is the extent's
     plain, _ = make_mvs_mesh(np.random.default_rng(0), _tile_scene(31, get_preset("tiny"), 0, 0, 1), params)
     assert _open_and_nonmanifold_edges(mesh) == _open_and_nonmanifold_edges(plain)
+
+
+def test_coarse_synth_writes_the_passage_and_its_label(tmp_path):
+    import json
+
+    from synth.generate import generate
+
+    out = generate("tiny", seed=31, out=tmp_path / "c", coarse_mesh=True)
+    (b,) = json.loads((out / "truth" / "scene.json").read_text())["buildings"]
+    defects = json.loads((out / "truth" / "defects.json").read_text())["defects"]
+    assert "passage" in b and [d["building"] for d in defects if d["type"] == "passage"] == [b["id"]]
