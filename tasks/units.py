@@ -37,9 +37,9 @@ STAGE_VERSIONS = {
     "partition": 2,  # v2: store schema 2 (vertex ids, vertex patches, normals, side tables)
     "labels": 1,
     "outliers": 2,   # v2: flags in outliers.parquet, not in patches.parquet
-    "classify": 1,
+    "classify": 2,   # v2: points-only patches inside the solid are bad (evidence.inside_solid)
     "regions": 1,
-    "region": 2,     # v2: unseen zone surface kept (tasks.repair.fill)
+    "region": 2,     # v2: conformal charts, unseen zone surface kept, one vertex-id namespace
     "merge": 2,      # v2: faces graded under repair.grades (the regions stage's rule), not grades-else-labels
 }
 

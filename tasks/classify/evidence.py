@@ -11,7 +11,11 @@ read that directly from the distances of a patch's MLS points to the mesh (metre
   in front of it, a passage inside the solid);
 - **missing surface** (points but no faces): the patch's points lie off the mesh by the same test, yet
   within ``near_m`` of it: the patch sits against the modelled surface (a balcony in front of a wall),
-  not in open ground or trees far from any face.
+  not in open ground or trees far from any face;
+- **inside the solid** (points but no faces): at least ``inside_share`` of the patch's measured points
+  (and ``min_points``) are enclosed by the mesh (:func:`inside_solid`): a scanner cannot see inside a
+  solid, so the model lacks an opening there (a passage through a city model's block). Far from any
+  face, so the rule above cannot see it.
 
 Both need ``min_points`` counted points in the patch. The nearest face of a point counts when its patch
 is the point's patch or one of its 26-neighbours, or when it is within ``near_m`` (a balcony deeper
@@ -91,7 +95,7 @@ def offset_evidence(points: np.ndarray, point_row: np.ndarray, tris: np.ndarray,
                     ijk: np.ndarray, n_faces: np.ndarray | None = None, *, off_surface_m: float = 0.22,
                     near_m: float = 1.5, quantile: float = 0.95, min_points: int = 5,
                     max_points_per_patch: int = 200, standing_normal_z: float = 0.7,
-                    min_off_points: int = 3) -> Evidence:
+                    min_off_points: int = 3, inside_share: float = 0.5) -> Evidence:
     """The two evidence rules (module doc) over the U patches of a tile.
 
     points: (n, 3) float64 metres; point_row: (n,) int64 patch row of each point, sorted ascending;
@@ -126,8 +130,41 @@ def offset_evidence(points: np.ndarray, point_row: np.ndarray, tris: np.ndarray,
     n_far = np.bincount(rows[keep & (d > off_surface_m)], minlength=u)
     off = enough & (offset > off_surface_m) & (n_far >= min_off_points)
     missing = off & (n_faces == 0) & (offset <= near_m)
+    only = (n_faces == 0)[rows]
+    n_in = np.zeros(u, np.int64)
+    if inside_share <= 1 and only.any():
+        n_in = np.bincount(rows[only][inside_solid(points[sel][only], tris)], minlength=u)
+    missing |= (n_faces == 0) & (n_in >= min_points) & (n_in >= inside_share * n_meas)
     bad = (off & (n_faces > 0)) | missing
     return Evidence(offset.astype(np.float32), bad, missing)
 
 
-__all__ = ["Evidence", "offset_evidence", "range_rows"]
+def inside_solid(points: np.ndarray, tris: np.ndarray, min_votes: int = 4) -> np.ndarray:
+    """(n,) bool: points the surface encloses. points: (n, 3) float64; tris: (m, 3, 3) float64 metres.
+
+    Parity of the surface crossings along five rays (+-x, +-y, +z; open3d, float32 around the points'
+    centre): odd = inside. A point needs ``min_votes`` odd rays, so one gap in the surface, or a thin
+    overhang above a point outside (one crossing straight up), does not make it inside. Orientation-free.
+
+    >>> import trimesh
+    >>> box = trimesh.creation.box(extents=(2, 2, 2)).triangles              # a 2 m cube about the origin
+    >>> inside_solid(np.array([[0.5, 0.4, 0.3], [1.5, 0.4, 0.3]]), box).tolist()
+    [True, False]
+    """
+    import open3d as o3d
+
+    if not (len(points) and len(tris)):
+        return np.zeros(len(points), bool)
+    c = points.mean(axis=0)
+    scene = o3d.t.geometry.RaycastingScene()
+    v = (tris.reshape(-1, 3) - c).astype(np.float32)
+    scene.add_triangles(o3d.core.Tensor(v), o3d.core.Tensor(np.arange(len(v), dtype=np.uint32).reshape(-1, 3)))
+    p = (points - c).astype(np.float32)
+    votes = np.zeros(len(points), np.int64)
+    for d in ((1, 0, 0), (-1, 0, 0), (0, 1, 0), (0, -1, 0), (0, 0, 1)):
+        rays = np.c_[p, np.tile(np.asarray(d, np.float32), (len(p), 1))]
+        votes += scene.count_intersections(o3d.core.Tensor(rays)).numpy().astype(np.int64) % 2
+    return votes >= min_votes
+
+
+__all__ = ["Evidence", "inside_solid", "offset_evidence", "range_rows"]

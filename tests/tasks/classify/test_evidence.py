@@ -83,3 +83,23 @@ def test_things_standing_on_the_ground_do_not_count():
 
 def test_range_rows():
     assert range_rows(np.array([0, 2, 2]), np.array([2, 2, 5]), 6).tolist() == [0, 0, 2, 2, 2, -1]
+
+
+def test_points_inside_a_closed_block_are_bad_outside_unknown():
+    """A passage through a city model's solid block: points deep inside it (farther from every face than
+    evidence_near_m) are graded bad; the same points outside a block stay unknown."""
+    import trimesh
+
+    block = trimesh.creation.box(extents=(20.0, 12.0, 9.0))
+    block.apply_translation((10.0, 6.0, 4.5))
+    tris = np.asarray(block.triangles, float)
+    passage = _grid_points(8.1, 10.2, 6.0, 0.3, 2.6)  # a wall of the passage 6 m inside the block
+    outside = passage + [0.0, 20.0, 0.0]
+    ev, cells = _evidence(np.concatenate([passage, outside]), tris)
+    bad, off = _verdict(ev, cells, passage[0])
+    assert bad
+    assert not _verdict(ev, cells, outside[0])[0]
+    r = np.flatnonzero((cells == PatchGrid(SIZE).cells_world(passage[:1])[0]).all(axis=1))[0]
+    assert ev.missing[r]
+    ev, cells = _evidence(np.concatenate([passage, outside]), tris, inside_share=2.0)  # rule off
+    assert not _verdict(ev, cells, passage[0])[0]
