@@ -108,8 +108,8 @@ def main(argv=None) -> int:
 
     from ms3d_model.profiles import get_profile
     from ms3d_model.train import load_checkpoint, make_model, net_uses_cues
-    from tasks.classify.stage import DEFAULT_MODEL
     from tasks.classify.pairs import read_tile_pairs
+    from tasks.classify.stage import DEFAULT_MODEL
 
     torch.set_num_threads(a.threads)
     wd = a.work_dir or next((str(p) for p in (ROOT / "ms3d-work" / "w42", ROOT / "ms3d-work" / "demo") if p.exists()), None)

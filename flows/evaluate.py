@@ -9,6 +9,10 @@ per-class precision / recall / F1, confusion matrix; its forward time per pair a
 batch size (network only, featurised inputs, as the paper times it) and its parameter count. The
 gradient-boosting baseline comes from the same training run (``ms3d train --suite``: its trees are
 stored as a TreeNet checkpoint) and is timed on its trees alone (cue extraction reported beside).
+
+Results are keyed by what each checkpoint *is* (``ms3d_model.report.model_kind``, from its architecture),
+not by the name it was passed under: ``ms3d evaluate --work-dir W`` scores the shipped default, the GBM
+trees, and reports them in the GBM row, never in MS3DQE-Net's. Every row names its checkpoint.
 """
 
 from __future__ import annotations
@@ -84,7 +88,7 @@ def evaluate(models: dict[str, str], eval_name: str, eval_wd: str, data: str = "
 
     from ms3d_model.metrics import classification_report
     from ms3d_model.net import kernel_response_stats, n_parameters
-    from ms3d_model.report import per_class, table3, table4
+    from ms3d_model.report import model_kind, model_label, per_class, table3, table4
     from ms3d_model.train import load_checkpoint, net_uses_cues, predict
     from tasks.classify import campus_pair_set
 
@@ -109,15 +113,23 @@ def evaluate(models: dict[str, str], eval_name: str, eval_wd: str, data: str = "
         rep.update({"parameters": n_par, "profile": prof.name, "path": str(path),
                     "max_points": prof.max_points, "max_faces": prof.max_faces, "predict_seconds": time.perf_counter() - t})
         rep["net"] = prof.net.to_json()
-        results[name] = rep
-        configs[name] = rep["net"]
-        if name == "ms3dqe":
+        rep["model"] = model_label(rep["net"], path)
+        key = _result_key(name, model_kind(rep["net"]), results)
+        if key != name:
+            log.info("%s was passed as %r but is a %s checkpoint: scored as %r", path, name,
+                     model_kind(rep["net"]), key)
+        rep["passed_as"] = name
+        results[key] = rep
+        configs[key] = rep["net"]
+        if key == "ms3dqe" and model_kind(rep["net"]) == "ms3dqe":
             from ms3d_model.dataset import to_batch
 
             kc = kernel_response_stats(net, to_batch(ps.feats.take(np.arange(min(64, len(ps))))))
-        log.info("%s: acc %.4f mAP %.4f", name, rep["acc"], rep["map"])
-    if "gbm" in results:
-        results["gbm"]["cue_seconds_per_pair"] = _cue_seconds_per_pair(eval_wd)
+        log.info("%s: acc %.4f mAP %.4f", rep["model"], rep["acc"], rep["map"])
+    trees = [k for k, r in results.items() if model_kind(r["net"]) == "gbm"]
+    cue_s = _cue_seconds_per_pair(eval_wd) if trees else float("nan")
+    for k in trees:
+        results[k]["cue_seconds_per_pair"] = cue_s
     for name, rep in (previous or {}).items():
         results.setdefault(name, rep)
         configs.setdefault(name, rep.get("net", {}))
@@ -127,10 +139,9 @@ def evaluate(models: dict[str, str], eval_name: str, eval_wd: str, data: str = "
     cases = {names[k]: v for k, v in results.items() if k in names}
     case_cfg = {names[k]: v for k, v in configs.items() if k in names}
     text = "\n\n".join([table3(results), table4(cases, case_cfg), per_class(results)])
-    if "gbm" in results:
+    if trees:
         text += (f"\n\nGBM time is the trees alone; its input, the hand-made cues, costs "
-                 f"{results['gbm']['cue_seconds_per_pair'] * 1000:.1f} ms per pair to extract (the networks' "
-                 "featurisation is not timed either).")
+                 f"{cue_s * 1000:.1f} ms per pair to extract (the networks' featurisation is not timed either).")
     if kc:
         text += "\n\nKernel-correlation responses of the trained MS3DQE-Net on held-out pairs:\n" + "\n".join(
             f"  {k:<14} mean {v['mean']:.3g}  median {v['median']:.3g}  >1e-3 {100 * v['frac_gt_1e-3']:.1f} %  "
@@ -141,6 +152,16 @@ def evaluate(models: dict[str, str], eval_name: str, eval_wd: str, data: str = "
         Path(out).parent.mkdir(parents=True, exist_ok=True)
         Path(out).write_text(json.dumps(res, indent=1, default=str))
     return res
+
+
+def _result_key(name: str, kind: str, results: dict) -> str:
+    """The key a checkpoint passed as ``name`` is reported under: ``name`` when it stands for the checkpoint's
+    kind, else the kind itself (unless taken: then the name, which the tables show as a row of its kind)."""
+    from ms3d_model.report import suite_kind
+
+    if suite_kind(name) == kind or kind in results:
+        return name
+    return kind
 
 
 def _cue_seconds_per_pair(work_dir: str, n: int = 256) -> float:

@@ -19,12 +19,12 @@ from ms3d_model.features import edge_neighbours, pair_seed, vertex_ids_from_coor
 
 
 def grid_wall(nx: int = 8, nz: int = 4, cell_m: float = 0.25, hole: tuple[int, int] | None = None):
-    """A vertical wall in the plane y = 0 (normals +y... see below): (tris (m, 3, 3) float64, vids (m, 3)).
+    """A vertical wall in the plane y = 0 (normals -y): (tris (m, 3, 3) float64, vids (m, 3)).
 
     Squares of ``cell_m`` over x in [0, nx * cell_m], z in [0, nz * cell_m], two triangles each, wound so the
     normal is -y (towards a scanner standing at y < 0). ``hole``: the (ix, iz) square left out."""
     tris, vids = [], []
-    vid = lambda i, k: i * (nz + 1) + k  # noqa: E731
+    vid = lambda i, k: i * (nz + 1) + k
     for i in range(nx):
         for k in range(nz):
             if hole == (i, k):
@@ -100,8 +100,8 @@ def test_a_hole_shows_as_open_edges_of_its_perimeter():
 
 def edge_boundary(full: np.ndarray, tris: np.ndarray) -> np.ndarray:
     """(m, 3) bool: edges of ``tris`` on the outer boundary of the complete wall ``full``."""
-    on_x = lambda v: np.isclose(v[..., 0], 0) | np.isclose(v[..., 0], full[..., 0].max())  # noqa: E731
-    on_z = lambda v: np.isclose(v[..., 2], 0) | np.isclose(v[..., 2], full[..., 2].max())  # noqa: E731
+    on_x = lambda v: np.isclose(v[..., 0], 0) | np.isclose(v[..., 0], full[..., 0].max())
+    on_z = lambda v: np.isclose(v[..., 2], 0) | np.isclose(v[..., 2], full[..., 2].max())
     a, b = tris, np.roll(tris, -1, axis=1)
     return (on_x(a) & on_x(b) & np.isclose(a[..., 0], b[..., 0])) | (on_z(a) & on_z(b) & np.isclose(a[..., 2], b[..., 2]))
 
@@ -179,7 +179,7 @@ def mixed_pairs(seed: int = 3):
     pairs = []
     for b in range(14):
         nx, nz = int(rng.integers(1, 7)), int(rng.integers(1, 4))
-        tris, vids = grid_wall(nx, nz, cell_m=float(rng.uniform(0.1, 0.4)))
+        tris, _ = grid_wall(nx, nz, cell_m=float(rng.uniform(0.1, 0.4)))
         tris = tris + rng.normal(0, 0.02, tris.shape)  # an MVS-like crumpled surface (welded ids are lost)
         tris = np.where(rng.random(tris.shape[:1])[:, None, None] < 0.1, tris[:, [0, 0, 1]], tris)  # degenerate
         n = [2, 5, 40, 700, 1500, 3000][b % 6]
