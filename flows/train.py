@@ -5,9 +5,12 @@ One command reproduces a shipped model::
     ms3d train --profile default --seeds 7 11 --out ms3d-work/train
 
 For each seed it generates the synth ``demo`` campus (``<data>/s{seed}``) and processes it with the campus
-flow (``<data>/w{seed}``) unless that was done before, featurises every labelled pair (cached under
-``<data>/cache``), splits 4:1 by area (:func:`ms3d_model.dataset.area_split`), and trains with the paper's
-optimiser settings. ``--work-dir`` adds campuses processed elsewhere (any labelled work dir). ``--suite``
+flow (``<data>/w{seed}``) unless that was done before, featurises every labelled pair once (per tile and then
+the whole set as one ``.npz`` keyed by the campuses' store fingerprints and the input sizes, under
+``<data>/cache``), splits 4:1 by area with a buffer of the largest defect's extent
+(:func:`ms3d_model.dataset.area_split`, :func:`ms3d_model.dataset.largest_defect_extent_m`), and trains
+many epochs from the cached tensors (the profile's optimiser, loss, selection and threshold choice:
+:mod:`ms3d_model.train`; ``--paper-training`` for the paper's). ``--work-dir`` adds campuses processed elsewhere (any labelled work dir). ``--suite``
 trains the networks of the paper's Tables 3 and 4 too (PointNet, MeshNet-style, MS3DQE-Net+, ablations
 (1)-(6)), each in ``OUT/<name>/``.
 
@@ -42,6 +45,7 @@ class TrainSpec:
     models: list[str] = field(default_factory=lambda: ["ms3dqe"])
     block_m: float = 20.0
     val_fraction: float = 0.2
+    buffer_m: float | None = None  # gap between training and validation; None: the largest defect's extent
     progress: bool = True
 
 
@@ -74,14 +78,37 @@ def prepare_campus(seed: int, data: str, preset: str = "demo") -> str:
     return str(work)
 
 
+def dataset_key(campuses: dict[str, str], profile) -> str:
+    """Identity of a featurised training set: each campus's name and its live tiles' store fingerprints
+    (labels included), the input sizes, seed and pair cap, and the cue names. 16 hex digits."""
+    import hashlib
+
+    from ms3d_model.cues import CUE_NAMES
+    from storage.store_state import store_fingerprint
+    from storage.workdir import WorkDir
+
+    spec = {"campuses": {name: {t.key: store_fingerprint(WorkDir(wd).tile_dir(t), ("labels",))
+                                for t in WorkDir(wd).live_tiles()} for name, wd in sorted(campuses.items())},
+            "sizes": [profile.max_points, profile.max_faces, profile.k_centre], "seed": profile.seed,
+            "max_pairs": profile.max_pairs, "cues": list(CUE_NAMES)}
+    return hashlib.sha256(json.dumps(spec, sort_keys=True).encode()).hexdigest()[:16]
+
+
 def load_pairs(campuses: dict[str, str], profile, cache_dir: str):
-    """All labelled pairs of the campuses ({name: work dir}) at the profile's input sizes."""
-    from ms3d_model.dataset import PairSet
+    """All labelled pairs of the campuses ({name: work dir}) at the profile's input sizes; featurised once and
+    cached as ``cache_dir/pairs_<dataset_key>.npz`` (a later run with the same inputs reads that file)."""
+    from ms3d_model.dataset import PairSet, load_pair_set, save_pair_set
     from tasks.classify import campus_pair_set
 
+    path = Path(cache_dir) / f"pairs_{dataset_key(campuses, profile)}.npz"
+    if path.exists():
+        log.info("featurised pairs from the cache %s", path)
+        return load_pair_set(path)
     parts = [campus_pair_set(wd, name, profile.max_points, profile.max_faces, profile.k_centre, profile.seed,
                              cache_dir, max_pairs=profile.max_pairs) for name, wd in campuses.items()]
-    return PairSet.concat([p for p in parts if len(p)])
+    pairs = PairSet.concat([p for p in parts if len(p)])
+    save_pair_set(pairs, path)
+    return pairs
 
 
 def train_one(name: str, switches: dict, spec: TrainSpec, pairs, train_mask, val_mask) -> dict:
@@ -106,27 +133,29 @@ def fit_tree_model(prof, tr, va, out: Path) -> dict:
     import torch
 
     from ms3d_model.gbm import fit_gbm, tree_arrays, tree_depth
-    from ms3d_model.metrics import classification_report
     from ms3d_model.net import build_net
-    from ms3d_model.train import predict, save_checkpoint
+    from ms3d_model.train import predict, save_checkpoint, validation_row
 
     t0, c0 = time.perf_counter(), time.process_time()
     clf = fit_gbm(tr.cues, tr.labels, seed=prof.seed)
     arrays = tree_arrays(clf)
     prof = replace(prof, net=replace(prof.net, tree_depth=tree_depth(arrays)))
     net = build_net(prof.net, {k: torch.from_numpy(v) for k, v in arrays.items()})
-    rep = classification_report(va.labels, predict(net, va, 1024)) | {"epoch": int(clf.n_iter_)}
+    _, rep = validation_row(va.labels, predict(net, va, 1024), prof.min_precision)  # threshold chosen as for nets
+    rep["epoch"] = int(clf.n_iter_)
     secs, cpu = time.perf_counter() - t0, time.process_time() - c0
-    h = save_checkpoint(out / "best.pt", net, prof, rep, [])
-    log.info("gbm: %d trees, val acc %.4f mAP %.4f, %.0f s", clf.n_iter_, rep["acc"], rep["map"], secs)
+    h = save_checkpoint(out / "best.pt", net, prof, rep, [], rep["threshold"])
+    log.info("gbm: %d trees, val AP(bad) %.4f mAP %.4f; threshold %.3f: P %.3f R %.3f, %.0f s", clf.n_iter_,
+             rep["ap_bad"], rep["map"], rep["threshold"], rep["precision_bad"], rep["recall_bad"], secs)
     return {"best": rep, "history": [], "parameters": int(arrays["feature"].size), "train_seconds": secs,
-            "train_cpu_seconds": cpu, "best_path": str(out / "best.pt"), "model_hash": h, "kernel_stats_init": {}}
+            "train_cpu_seconds": cpu, "best_path": str(out / "best.pt"), "model_hash": h, "kernel_stats_init": {},
+            "threshold": rep["threshold"]}
 
 
 def run_training(spec: TrainSpec, step=None) -> dict:
     """The whole training run; ``step(fn, *args)`` runs each step (a Prefect task's ``.fn`` or a submit)."""
 
-    from ms3d_model.dataset import area_split
+    from ms3d_model.dataset import area_split, largest_defect_extent_m
     from ms3d_model.profiles import get_profile
 
     step = step or (lambda fn, *a: fn(*a))
@@ -144,9 +173,14 @@ def run_training(spec: TrainSpec, step=None) -> dict:
         if cj.exists():
             size = json.loads(cj.read_text()).get("grid", {}).get("size_m", size)
             break
-    train_mask, val_mask = area_split(pairs.ijk, size, pairs.campus, spec.block_m, spec.val_fraction, prof.seed)
-    log.info("%d pairs (%.1f %% bad): %d train, %d validation, %d dropped at block borders", len(pairs),
-             100 * float(pairs.labels.mean()), train_mask.sum(), val_mask.sum(), len(pairs) - train_mask.sum() - val_mask.sum())
+    buffer_m = spec.buffer_m
+    if buffer_m is None:  # no defect on both sides; capped so a facade of touching defects cannot eat the campus
+        buffer_m = largest_defect_extent_m(pairs.ijk, pairs.labels, size, pairs.campus, cap_m=spec.block_m / 2)
+    train_mask, val_mask = area_split(pairs.ijk, size, pairs.campus, spec.block_m, spec.val_fraction, prof.seed,
+                                      buffer_m)
+    log.info("%d pairs (%.1f %% bad): %d train, %d validation, %d dropped in the %.1f m buffer", len(pairs),
+             100 * float(pairs.labels.mean()), train_mask.sum(), val_mask.sum(),
+             len(pairs) - train_mask.sum() - val_mask.sum(), buffer_m)
     t_feat = time.perf_counter() - t_data
     all_models = suite()
     results = {}
@@ -155,11 +189,11 @@ def run_training(spec: TrainSpec, step=None) -> dict:
             raise ValueError(f"unknown model {name!r}; choose from {sorted(all_models)}")
         results[name] = step(train_one, name, all_models[name], spec, pairs, train_mask, val_mask)
     summary = {"spec": asdict(spec), "campuses": campuses, "n_pairs": len(pairs), "n_train": int(train_mask.sum()),
-               "n_val": int(val_mask.sum()), "bad_fraction": float(pairs.labels.mean()),
+               "n_val": int(val_mask.sum()), "bad_fraction": float(pairs.labels.mean()), "buffer_m": float(buffer_m),
                "featurise_seconds": t_feat, "wall_seconds": time.perf_counter() - t0,
                "cpu_seconds": time.process_time() - c0,
                "models": {k: {kk: v[kk] for kk in ("best", "parameters", "train_seconds", "train_cpu_seconds",
-                                                   "best_path", "model_hash", "kernel_stats_init")}
+                                                   "best_path", "model_hash", "kernel_stats_init", "threshold")}
                           for k, v in results.items()}}
     Path(spec.out).mkdir(parents=True, exist_ok=True)
     (Path(spec.out) / f"summary_{'+'.join(spec.models)}.json").write_text(json.dumps(summary, indent=1, default=str))
@@ -184,7 +218,8 @@ def train_flow_fn():
         try:
             from prefect.artifacts import create_table_artifact
 
-            rows = [{"model": k, **{m: v["best"].get(m) for m in ("acc", "map", "epoch")},
+            rows = [{"model": k, **{m: v["best"].get(m) for m in ("acc", "map", "ap_bad", "threshold", "precision_bad",
+                                                                  "recall_bad", "epoch")},
                      "train_seconds": round(v["train_seconds"])} for k, v in summary["models"].items()]
             create_table_artifact(key="train-summary", table=rows, description=f"training run {spec_json['out']}")
         except Exception as e:  # noqa: BLE001 - an artifact is a convenience

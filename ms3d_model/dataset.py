@@ -5,8 +5,13 @@ frame, int16 indices: ~18 KB a pair at 256 faces and 512 points), their cues, la
 
 The split is by **area**, never by pair: the ground is cut into square blocks (``block_m``, world-anchored
 through the patch cells), whole blocks go to validation until it holds ``val_fraction`` of a campus's
-pairs, and training drops every patch with a neighbour cell (8-neighbourhood in plan, any height) in a
-validation block, so no two adjacent patches sit on both sides.
+pairs, and training drops every pair within ``buffer_m`` (plan distance, beyond touching) of a validation
+pair, so no defect sits on both sides: the buffer defaults to the plan extent of the largest connected bad
+region (:func:`largest_defect_extent_m`), not one patch.
+
+:class:`PairTensors` is a featurised set held as torch tensors once (compact dtypes), so training draws
+batches by indexing instead of converting arrays every step; :func:`save_pair_set` / :func:`load_pair_set`
+cache a whole featurised set as one ``.npz`` (training keys it by its inputs: ``flows.train.load_pairs``).
 """
 
 from __future__ import annotations
@@ -108,11 +113,14 @@ def to_batch(feats: PairFeatures | None, cues: np.ndarray | None = None, noise_m
 
 
 def area_split(ijk: np.ndarray, patch_size_m, campus: np.ndarray, block_m: float = 20.0,
-               val_fraction: float = 0.2, seed: int = 0) -> tuple[np.ndarray, np.ndarray]:
+               val_fraction: float = 0.2, seed: int = 0, buffer_m: float = 0.0) -> tuple[np.ndarray, np.ndarray]:
     """Split pairs 4:1 (``val_fraction``) by ground blocks: (train_mask, val_mask), (B,) bool each.
 
     ijk: (B, 3) int64 patch cells; patch_size_m: (3,) metres; campus: (B,) int campus index (each campus
     is split on its own, so every campus contributes to both sides). Deterministic in ``seed``.
+    buffer_m: a pair outside validation is dropped (in neither mask) when its cell's plan centre lies within
+    ``buffer_m`` + one cell diagonal of a validation cell's (0: only cells touching a validation cell,
+    diagonals included).
     """
     ijk = np.asarray(ijk, np.int64)
     sx, sy = float(patch_size_m[0]), float(patch_size_m[1])
@@ -134,11 +142,104 @@ def area_split(ijk: np.ndarray, patch_size_m, campus: np.ndarray, block_m: float
         val_blocks.append(blocks[order[:n_val]])
     val_blocks = np.concatenate(val_blocks) if val_blocks else np.zeros(0, np.int64)
     val = np.isin(key, val_blocks)
-    near = np.zeros(len(key), bool)
-    for di in (-1, 0, 1):
-        for dj in (-1, 0, 1):
-            near |= np.isin(block_key(ijk[:, 0] + di, ijk[:, 1] + dj), val_blocks)
-    return ~near, val
+    return ~val & ~_near_validation(ijk, (sx, sy), campus, val, buffer_m), val
+
+
+def _near_validation(ijk: np.ndarray, size_xy, campus: np.ndarray, val: np.ndarray, buffer_m: float) -> np.ndarray:
+    """(B,) bool: the cell's plan centre is within buffer_m + one cell diagonal of a validation cell's."""
+    from scipy.spatial import cKDTree
+
+    xy = (ijk[:, :2] + 0.5) * np.asarray(size_xy, np.float64)
+    reach = float(buffer_m) + float(np.hypot(*size_xy)) * (1 + 1e-9)
+    near = np.zeros(len(ijk), bool)
+    for c in np.unique(campus):
+        here, vmask = campus == c, (campus == c) & val
+        if vmask.any():
+            d, _ = cKDTree(xy[vmask]).query(xy[here], distance_upper_bound=reach)
+            near[here] = np.isfinite(d)
+    return near
+
+
+def largest_defect_extent_m(ijk: np.ndarray, labels: np.ndarray, patch_size_m, campus: np.ndarray | None = None,
+                            cap_m: float | None = None) -> float:
+    """Plan extent (metres) of the largest connected set of bad cells (26-neighbourhood), over all campuses:
+    max over components of max(x span, y span) of the cells' footprints. 0 without bad pairs; at most
+    ``cap_m`` when given (defects along a facade can touch and join into one long component).
+
+    >>> ijk = np.array([[0, 0, 0], [1, 0, 0], [2, 1, 1], [9, 9, 0]]); round(largest_defect_extent_m(ijk, np.array([1, 1, 1, 1]), (2.3, 1.0, 0.7)), 2)
+    6.9
+    """
+    from scipy import ndimage
+
+    ijk = np.asarray(ijk, np.int64)
+    bad = np.asarray(labels) == 1
+    campus = np.zeros(len(ijk), np.int64) if campus is None else np.asarray(campus, np.int64)
+    best = 0.0
+    for c in np.unique(campus[bad]):
+        cells = ijk[bad & (campus == c)]
+        lo = cells.min(0)
+        grid = np.zeros(cells.max(0) - lo + 1, bool)
+        grid[tuple((cells - lo).T)] = True
+        lab, n = ndimage.label(grid, structure=np.ones((3, 3, 3), bool))
+        for sl in ndimage.find_objects(lab):
+            span = max((sl[0].stop - sl[0].start) * float(patch_size_m[0]), (sl[1].stop - sl[1].start) * float(patch_size_m[1]))
+            best = max(best, span)
+    return min(best, cap_m) if cap_m is not None else best
+
+
+@dataclass
+class PairTensors:
+    """A :class:`PairSet`'s network inputs as torch tensors, converted once (float16 / int16 as stored):
+    points (B, N, 3), centres / normals (B, F, 3), corners (B, F, 18), face_nbr (B, F, 3), centre_knn
+    (B, F, K), scale (B,) float32 metres per pair unit, cues (B, C) float32, labels (B,) int64."""
+
+    tensors: dict[str, torch.Tensor]
+
+    @staticmethod
+    def from_pairs(ps: PairSet) -> PairTensors:
+        t = {name: torch.from_numpy(np.ascontiguousarray(_compact(name, getattr(ps.feats, name))))
+             for name in _F16 + _I16}
+        t["scale"] = torch.from_numpy(np.asarray(ps.feats.scale, np.float32))
+        t["cues"] = torch.from_numpy(np.asarray(ps.cues, np.float32))
+        t["labels"] = torch.from_numpy(np.asarray(ps.labels, np.int64))
+        return PairTensors(t)
+
+    def __len__(self) -> int:
+        return len(self.tensors["labels"])
+
+    def batch(self, idx, with_cues: bool = False, noise_m: float = 0.0,
+              generator: torch.Generator | None = None) -> dict[str, torch.Tensor]:
+        """Network inputs of pairs ``idx`` (float32 / int64), as :func:`to_batch` makes them."""
+        idx = torch.as_tensor(np.asarray(idx), dtype=torch.int64)
+        t = self.tensors
+        pts = t["points"].index_select(0, idx).float()
+        if noise_m > 0:
+            s = (noise_m / t["scale"].index_select(0, idx))[:, None, None]
+            pts = pts + torch.randn(pts.shape, generator=generator).clamp_(-3, 3) * s
+        b = {"points": pts}
+        for name in ("centres", "normals", "corners"):
+            b[name] = t[name].index_select(0, idx).float()
+        for name in _I16:
+            b[name] = t[name].index_select(0, idx).long()
+        if with_cues:
+            b["cues"] = t["cues"].index_select(0, idx)
+        return b
+
+
+def save_pair_set(ps: PairSet, path) -> None:
+    """Write a featurised set to ``path`` (.npz, compact dtypes) atomically (a temporary name, then rename)."""
+    from pathlib import Path
+
+    path = Path(path)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    tmp = path.with_name(f".{path.stem}.tmp.npz")
+    np.savez(tmp, **ps.to_arrays())
+    tmp.replace(path)
+
+
+def load_pair_set(path) -> PairSet:
+    with np.load(path, allow_pickle=False) as d:
+        return PairSet.from_arrays({k: d[k] for k in d.files})
 
 
 def batches(n: int, batch_size: int, shuffle: bool, rng: np.random.Generator | None = None,

@@ -10,7 +10,14 @@ Also the pair readers training and evaluation use (:func:`read_tile_pairs`, :fun
 """
 
 from tasks.classify.pairs import featurise_tile_pairs, read_tile_pairs
-from tasks.classify.stage import DEFAULT_MODEL, campus_pair_set, grade_pairs, load_model, run_classify_tile
+from tasks.classify.stage import (
+    DEFAULT_MODEL,
+    campus_pair_set,
+    grade_pairs,
+    grading_threshold,
+    load_model,
+    run_classify_tile,
+)
 
-__all__ = ["DEFAULT_MODEL", "campus_pair_set", "featurise_tile_pairs", "grade_pairs", "load_model", "read_tile_pairs",
-           "run_classify_tile"]
+__all__ = ["DEFAULT_MODEL", "campus_pair_set", "featurise_tile_pairs", "grade_pairs", "grading_threshold", "load_model",
+           "read_tile_pairs", "run_classify_tile"]

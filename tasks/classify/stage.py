@@ -2,7 +2,8 @@
 (or the model a config names), writing ``grades.parquet`` beside the tile's store.
 
 - **Grades**: ``score`` = the network's probability of "bad" (float32), ``grade`` = 1 when the score reaches
-  ``classify.threshold`` (0.5), else 0.
+  the threshold: ``classify.threshold`` when set, else the one the checkpoint ships (chosen on validation by
+  training; 0.5 for older checkpoints), else 0.
 - **Patches that are not pairs** get ``grade = -1`` (unknown) and ``score = NaN``:
   faces but no points (roofs, courtyards, anything the street scanner cannot see) have no MLS evidence to
   grade against, and the fusion stage could not rebuild them from points anyway; points but no faces
@@ -58,6 +59,7 @@ class LoadedModel:
     hash: str
     path: str
     uses_cues: bool
+    threshold: float = 0.5  # the checkpoint's operating threshold (ms3d_model.train.checkpoint_threshold)
 
 
 _MODELS: dict[tuple, LoadedModel] = {}
@@ -79,14 +81,19 @@ def load_model(path: str | None) -> LoadedModel:
         raise InputError(p, "model checkpoint not found (classify.model in the config)") from None
     key = (str(p), st.st_size, st.st_mtime_ns)
     if key not in _MODELS:
-        from ms3d_model.train import load_checkpoint, model_hash, net_uses_cues
+        from ms3d_model.train import checkpoint_threshold, load_checkpoint, model_hash, net_uses_cues
 
         try:
-            net, profile, _ = load_checkpoint(p)
+            net, profile, meta = load_checkpoint(p)
         except Exception as e:  # noqa: BLE001 - any unreadable checkpoint is the user's input problem
             raise InputError(p, f"not a loadable ms3d model checkpoint ({type(e).__name__}: {e})") from None
-        _MODELS[key] = LoadedModel(net, profile, model_hash(p), str(p), net_uses_cues(net))
+        _MODELS[key] = LoadedModel(net, profile, model_hash(p), str(p), net_uses_cues(net), checkpoint_threshold(meta))
     return _MODELS[key]
+
+
+def grading_threshold(ccfg) -> float:
+    """The threshold a config grades at: ``classify.threshold`` when set, else the checkpoint's (loads it)."""
+    return float(ccfg.threshold) if ccfg.threshold is not None else load_model(ccfg.model).threshold
 
 
 def grade_pairs(model: LoadedModel, tp, batch_size: int, threshold: float) -> tuple[np.ndarray, np.ndarray]:
@@ -142,7 +149,8 @@ def run_classify_tile(tile: TileId, cfg, wd: WorkDir) -> dict | None:
     except InputError as e:
         return {"unit": tile.key, "status": "failed", "error": str(e), "skipped": False}
     fp = store_fingerprint(tile_dir)
-    params = {"model_hash": model.hash, "threshold": ccfg.threshold,
+    threshold = float(ccfg.threshold) if ccfg.threshold is not None else model.threshold
+    params = {"model_hash": model.hash, "threshold": threshold,
               "min_faces": cfg.partition.min_faces, "min_points": cfg.partition.min_points}
     if ccfg.evidence:
         params["evidence"] = {k: v for k, v in ccfg.model_dump().items() if k.startswith("evidence_")}
@@ -158,7 +166,7 @@ def run_classify_tile(tile: TileId, cfg, wd: WorkDir) -> dict | None:
         grade = np.full(len(keys), -1, np.int8)
         t1 = time.perf_counter()
         if len(tp):
-            s, g = grade_pairs(model, tp, ccfg.batch_size, ccfg.threshold)
+            s, g = grade_pairs(model, tp, ccfg.batch_size, threshold)
             score[tp.rows], grade[tp.rows] = s, g
         t_grade = time.perf_counter() - t1
         ev = tile_evidence(tp, store.patches(), ccfg) if ccfg.evidence else None
@@ -167,7 +175,7 @@ def run_classify_tile(tile: TileId, cfg, wd: WorkDir) -> dict | None:
         t_evidence = time.perf_counter() - t1 - t_grade
         write_side_table(tile_dir, "grades", {"patch": keys, "score": score, "grade": grade}, store.meta,
                          model_hash=model.hash, model=Path(model.path).name, profile=model.profile.name,
-                         threshold=ccfg.threshold)
+                         threshold=threshold)
         summary = {"tile": tile.key, "n_patches": len(keys), "n_pairs": len(tp), "n_bad": int((grade == 1).sum()),
                    "n_unknown": int((grade == -1).sum()), "model_hash": model.hash,
                    "n_evidence_bad": int(ev.bad.sum()) if ev is not None else 0,

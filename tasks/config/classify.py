@@ -11,7 +11,9 @@ class ClassifyConfig(BaseModel):
     enabled: bool = Field(True, description="grade every (mesh patch, point patch) pair with the network")
     model: str | None = Field(None, description="checkpoint (.pt) to grade with; None: the shipped default "
                               "model (ms3d_model/weights/default.pt)")
-    threshold: float = Field(0.5, ge=0.0, le=1.0, description="a pair is bad (grade 1) when its score (probability of bad) reaches this")
+    threshold: float | None = Field(None, ge=0.0, le=1.0, description="a pair is bad (grade 1) when its score (probability "
+                                    "of bad) reaches this; None: the threshold the checkpoint ships (chosen on "
+                                    "validation; 0.5 for checkpoints without one)")
     batch_size: int = Field(64, ge=1, description="pairs per forward pass (inference)")
     threads: int = Field(1, ge=1, description="torch threads per worker process (a Dask worker runs one tile at a time)")
     # geometric evidence beside the network (tasks.classify.evidence): bad when the model says bad OR the

@@ -33,6 +33,7 @@ from storage.atomic import write_bytes_atomic
 from storage.errors import InputError
 from storage.manifest import all_records
 from storage.workdir import WorkDir, campus_frame, read_campus
+from tasks.classify import grading_threshold
 from tasks.quality import ensure_quality, merged_tiles, truth_dir_of
 from tasks.report.grades import census_of_stores, grades_section
 from tasks.report.html import Section, esc, render_page
@@ -91,7 +92,7 @@ def run_report(cfg, wd: WorkDir, truth_dir: str | Path | None = None, quality: b
         _guarded("Grades: distribution and unknown patches", lambda: _written(grades_section(
             census_of_stores([wd.tile_dir(t) for t in wd.live_tiles()], cfg.partition.min_faces,
                              cfg.partition.min_points), cfg.partition.min_faces, cfg.partition.min_points,
-            cfg.classify.threshold, cfg.report.max_unknown_share), wd.report_dir)),
+            grading_threshold(cfg.classify), cfg.report.max_unknown_share), wd.report_dir)),
         _guarded("Stages: time and memory", lambda: stages_section(records)),
     ]
     region_sec = _guarded("Rebuilt regions: before and after", regions_fn)
