@@ -22,7 +22,7 @@ MISSING = -1
 SPLIT_MIN = -(1 << 62) - 1
 LOCAL_BASE = -(1 << 62) - 2
 _BLOCK = 1 << 58
-BLOCKS = {"rebuilt": 0, "seam": 1, "region_position": 2, "merge_position": 3}
+BLOCKS = {"rebuilt": 0, "seam": 1, "region_position": 2, "merge_position": 3, "free": 4}
 
 
 def is_campus_id(ids: np.ndarray) -> np.ndarray:

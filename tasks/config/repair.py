@@ -97,6 +97,12 @@ class MeshConfig(_Section):
                                "and no replaced vertex lies within this distance, the zone's own surface is sampled "
                                "at this spacing and triangulated with the fused points: a surface the MLS did not "
                                "see keeps the input mesh (tasks.repair.fill); 0: fused points only (the paper)")
+    free_surface: bool = Field(True, description="MLS points of a region farther than max_map_distance_m from every "
+                               "face (a passage through a block model, a wall the mesh lost) are meshed on their own "
+                               "(Poisson, cut back to the points: tasks.repair.free) and added, not welded")
+    free_min_points: int = Field(50, ge=3, description="fewer such points (after thinning) are left alone")
+    free_off_surface_m: float = Field(0.25, gt=0, description="a point this close to a retained face is explained "
+                                      "by it and not meshed freely (a passage wall's foot next to the ground)")
     stitch_tolerance_m: float = Field(0.01, gt=0, description="largest border gap accepted between the rebuilt "
                                       "mesh and the retained mesh")
     max_hole_loop_m: float = Field(40.0, gt=0, description="open boundary loops of the mesh shorter than this "

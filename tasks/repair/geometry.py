@@ -19,6 +19,7 @@ from storage.vertex_ids import local_ids
 
 from tasks.repair.chart import zone_charts
 from tasks.repair.fill import SOURCE_FILL, unseen_samples
+from tasks.repair.free import far_points, free_surface
 from tasks.repair.defect_types import DefectEvidence, classify_evidence, repair_plan
 from tasks.repair.fuse import (
     FusionParams,
@@ -147,6 +148,30 @@ def _mesh_points(fused_xyz: np.ndarray, fused_n: np.ndarray, fused_src: np.ndarr
     return pv[near], np.full(int(near.sum()), 2, np.int8), np.full(int(near.sum()), -1)
 
 
+def _free_part(data: RegionInput, mls: np.ndarray, mc, fc, stats: dict) -> tuple[np.ndarray, np.ndarray]:
+    """The free surface (:mod:`tasks.repair.free`) of the region's MLS points that no chart takes (farther
+    than ``mc.max_map_distance_m`` from the zone's faces) and no retained face explains (farther than
+    ``mc.free_off_surface_m`` from the context faces): ((v, 3), (f, 3)); empty when ``mc.free_surface``
+    is off."""
+    if not mc.free_surface or not len(mls):
+        return np.zeros((0, 3)), np.zeros((0, 3), np.int64)
+    far = far_points(mls, data.xyz, data.zone_faces, mc.max_map_distance_m)
+    far[far] = far_points(mls[far], data.xyz, data.context_faces, mc.free_off_surface_m)
+    v, f, st = free_surface(mls[far], min_points=mc.free_min_points, normal_k=fc.normal_k)
+    stats["free"] = st
+    return v, f
+
+
+def with_free(mesh: RebuiltMesh, v: np.ndarray, f: np.ndarray) -> RebuiltMesh:
+    """``mesh`` plus free-surface vertices (new, local ids; source 1: from MLS points) and faces (chart -1)."""
+    if not len(f):
+        return mesh
+    n = len(mesh.xyz)
+    return RebuiltMesh(np.concatenate([mesh.xyz, v]), np.r_[mesh.vertex_id, local_ids(np.arange(len(v)), "free")],
+                       np.concatenate([mesh.faces, f + n]), np.r_[mesh.source, np.ones(len(v), np.int8)],
+                       np.r_[mesh.chart, np.full(len(f), -1, np.int32)], mesh.stats)
+
+
 def _finish_stats(stats: dict, data: RegionInput, mesh: RebuiltMesh, replaced: np.ndarray, zone_area: float) -> None:
     """Add the border gap between the rebuilt charts and what stays (context faces and non-disc zone
     pieces left in place) and the rebuilt figures to ``stats``."""
@@ -181,13 +206,17 @@ def repair_region_geometry(data: RegionInput, cfg) -> RegionGeometry:
     conflict = _conflicts(data, zone_v, vn, mls, mls_n, tc, params, stats)
     plan = repair_plan(ev, covered, offset, typed=tc.enabled, offset_m=tc.offset_m, conflict=conflict,
                        uncovered=tc.uncovered)
+    free = _free_part(data, mls, mc, fc, stats)
     if plan.mesh_only:
         mls, mls_n = mls[:0], mls_n[:0]
     stats |= {"plan": plan.reason, "charts": len(topo.charts), "non_disc_faces": len(topo.rejected)}
     t2 = time.perf_counter()
     if not plan.rebuild or not topo.charts:
         stats["seconds"] = {"total": time.perf_counter() - t0}
-        return RegionGeometry(empty_mesh(), np.zeros(mz, bool), ev, np.zeros((0, 3)), np.zeros(0, np.int8), stats)
+        mesh = with_free(empty_mesh(), *free)
+        if mesh.n_faces:
+            _finish_stats(stats, data, mesh, np.zeros(mz, bool), zone_area)
+        return RegionGeometry(mesh, np.zeros(mz, bool), ev, np.zeros((0, 3)), np.zeros(0, np.int8), stats)
     fr = graph_cut_fuse(data.xyz[zone_v], vn[zone_v], mls, mls_n, params, forced=plan.forced & ~locked, locked=locked)
     stats["fusion"] = {"vertices": len(zone_v), "replaced": int(fr.replaced.sum()),
                        "accepted": int(fr.accepted.sum()), "rejected": int((~fr.accepted).sum()),
@@ -208,6 +237,7 @@ def repair_region_geometry(data: RegionInput, cfg) -> RegionGeometry:
     stats["seam_vertices_moved"] = int((vids != data.vertex_id).sum())
     mesh = rebuild_charts(topo.charts, vids, pts, src, pvert, max_map_distance_m=mc.max_map_distance_m,
                           border_margin_m=0.5 * fc.mls_spacing_m, max_edge_m=mc.max_edge_m, vertex_xyz=vxyz)
+    mesh = with_free(mesh, *free)
     t4 = time.perf_counter()
     replaced = np.ones(mz, bool)
     replaced[topo.rejected] = False

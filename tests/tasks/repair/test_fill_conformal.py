@@ -86,3 +86,29 @@ def test_unseen_half_of_a_zone_keeps_the_input_surface():
     fill2 = unseen_samples(v, f, seen, np.array([[8.0, 0.0, 1.0]]), step_m=0.4, reach_m=1.0)
     assert np.linalg.norm(fill2 - [8.0, 0.0, 1.0], axis=1).min() >= 0.4
     assert len(unseen_samples(v, f, seen, np.zeros((0, 3)), step_m=0.0, reach_m=1.0)) == 0
+
+
+def test_points_far_from_every_face_are_meshed_on_their_own():
+    """A passage wall inside a city model's block: no face within reach, so no chart takes its points;
+    the free surface meshes them (new vertex ids, nothing replaced)."""
+    import trimesh
+
+    from tasks.config.repair import RepairConfig
+    from tasks.repair.geometry import RegionInput, repair_region_geometry
+
+    block = trimesh.creation.box(extents=(20.0, 12.0, 9.0))
+    block.apply_translation((10.0, 6.0, 4.5))
+    v, f = np.asarray(block.vertices, float), np.asarray(block.faces, np.int64)
+    g = np.stack(np.meshgrid(np.arange(6.0, 12.0, 0.05), np.arange(0.2, 2.8, 0.05)), -1).reshape(-1, 2)
+    wall = np.c_[g[:, 0], np.full(len(g), 4.0), g[:, 1]]  # 4 m inside the block's front
+    data = RegionInput(xyz=v, vertex_id=np.arange(len(v)), zone_faces=np.zeros((0, 3), np.int64), context_faces=f,
+                       near_zone=np.zeros(len(v), bool), mls_xyz=wall, mls_class=np.zeros(len(wall), np.uint8),
+                       ctx_xyz=np.zeros((0, 3)), face_normals=np.asarray(block.face_normals, np.float32))
+    geo = repair_region_geometry(data, RepairConfig())
+    m = geo.mesh
+    area = triangle_areas(m.xyz, m.faces).sum()
+    assert 0.8 * 6 * 2.6 < area < 1.2 * 6 * 2.6
+    assert np.abs(m.xyz[:, 1] - 4.0).max() < 0.05
+    assert not is_campus_id(m.vertex_id).any() and not geo.replaced.any()
+    off = RepairConfig.model_validate({"mesh": {"free_surface": False}})
+    assert repair_region_geometry(data, off).mesh.n_faces == 0
