@@ -21,7 +21,10 @@ def fallback_colors(mesh: RebuiltMesh, data, zone_uv: np.ndarray, zone_texture: 
                     load_texture: Callable[[int], np.ndarray | None]) -> np.ndarray:
     """(m, 3) uint8 colour of each rebuilt face: the original texture sampled at the closest point of the
     closest replaced face. data: the region's ``RegionInput``; zone_uv: (mz, 3, 2) float32 per-corner uv
-    of its zone faces; zone_texture: (mz,) int64 texture index (-1 none); load_texture(i): image i or None."""
+    of its zone faces; zone_texture: (mz,) int64 texture index (-1 none); load_texture(i): image i or None.
+    A region that replaces no face (a free surface only) gets the untextured grey of a missing texture."""
+    if not len(data.zone_faces):
+        return sample_texture_colors(np.zeros((mesh.n_faces, 2)), np.full(mesh.n_faces, -1), load_texture)
     cen = mesh.xyz[mesh.faces].mean(axis=1)
     fid, bary, _ = ClosestPoint(data.xyz, data.zone_faces).query(cen)
     fid = np.maximum(fid, 0)
