@@ -67,6 +67,16 @@ def _texture_region(mesh, rr: RegionRead, cfg: CampusConfig, wd: WorkDir, frame,
     return texture_region(mesh, rr.input, cams, vox, tc, colors, image_loader(cams))
 
 
+def camera_fingerprint(cfg: CampusConfig) -> str | None:
+    """Fingerprint of the camera files the texture step reads (a COLMAP model: images.txt and
+    cameras.txt, the intrinsics and distortion), or None without texturing or cameras."""
+    _, cams = camera_paths(cfg)
+    if not cfg.repair.texture.enabled or cams is None or not cams.exists():
+        return None
+    files = [cams] + ([cams.with_name("cameras.txt")] if cams.name == "images.txt" else [])
+    return combine_fingerprints([file_fingerprint(f) for f in files if f.exists()])
+
+
 def region_fingerprint(region: Region, wd: WorkDir, cfg: CampusConfig, memo: dict | None = None) -> str:
     """What a region's output depends on besides the parameters: its patch sets and grades (the plan
     entry), the stores of its tiles, and the cameras file. ``memo``: a dict shared by the regions of one
@@ -78,9 +88,7 @@ def region_fingerprint(region: Region, wd: WorkDir, cfg: CampusConfig, memo: dic
             memo[t] = store_fingerprint(wd.tile_dir(TileId.from_key(t)))
         parts.append(f"{t}:{memo[t]}")
     if ("cameras",) not in memo:
-        _, cams = camera_paths(cfg)
-        memo[("cameras",)] = file_fingerprint(cams) if cfg.repair.texture.enabled and cams is not None \
-            and cams.exists() else None
+        memo[("cameras",)] = camera_fingerprint(cfg)
     if memo[("cameras",)] is not None:
         parts.append(memo[("cameras",)])
     return combine_fingerprints(parts)

@@ -104,3 +104,19 @@ def test_camera_paths_default_to_the_synth_layout(tmp_path):
     write_colmap(tmp_path / "sparse", [world_camera("a.jpg", 0.0)])
     assert camera_paths(config(tmp_path / "sparse"))[1] == tmp_path / "sparse" / "images.txt"
     assert load_cameras(CampusConfig(), {}, FRAME) == []
+
+
+def test_an_edited_colmap_intrinsics_file_changes_the_region_fingerprint(tmp_path):
+    """COLMAP keeps poses in images.txt and intrinsics + distortion in cameras.txt: editing either re-textures."""
+    from tasks.repair.stage import camera_fingerprint
+
+    model = tmp_path / "sparse"
+    model.mkdir()
+    (model / "images.txt").write_text("# poses\n")
+    (model / "cameras.txt").write_text("1 OPENCV 640 480 500 500 320 240 0.01 0 0 0\n")
+    cfg = config(model)
+    before = camera_fingerprint(cfg)
+    (model / "cameras.txt").write_text("1 OPENCV 640 480 500 500 320 240 0.02 0 0 0\n")
+    assert camera_fingerprint(cfg) != before
+    (model / "images.txt").write_text("# other poses\n")
+    assert camera_fingerprint(cfg) not in (before, None)
