@@ -175,6 +175,11 @@ def _lifted(xyz: np.ndarray, group: np.ndarray) -> np.ndarray:
     return np.concatenate([xyz, (group * _PAIR_GAP_M)[:, None].astype(np.float64)], axis=1)
 
 
+def _tree(xyzg: np.ndarray) -> cKDTree:
+    # sliding-midpoint splits build ~2x faster than median splits; queries stay exact
+    return cKDTree(xyzg, balanced_tree=False, compact_nodes=False)
+
+
 def _point_to_mesh(p, gp, t, gf, normals, centres, k_max) -> tuple[np.ndarray, np.ndarray]:
     """Unsigned and signed distances (q,) float64 of points p (q, 3) to their pair's faces: exact distance to
     the nearest of the (up to) k_max faces with the nearest centres.
@@ -184,10 +189,11 @@ def _point_to_mesh(p, gp, t, gf, normals, centres, k_max) -> tuple[np.ndarray, n
     cannot be nearer, so the result equals computing them all (a tie keeps the earlier candidate either way).
     """
     k = min(k_max, int(np.bincount(gf).max()))
-    dc, fi = cKDTree(_lifted(centres, gf)).query(_lifted(p, gp), k=k, distance_upper_bound=_PAIR_GAP_M / 2)
+    dc, fi = _tree(_lifted(centres, gf)).query(_lifted(p, gp), k=k, distance_upper_bound=_PAIR_GAP_M / 2)
     fi, dc = np.asarray(fi).reshape(len(p), k), np.asarray(dc).reshape(len(p), k)
     dist = np.full((len(p), k), np.inf)
-    dist[:, 0] = np.linalg.norm(closest_point_on_triangles(p, t[fi[:, 0]]) - p, axis=1)
+    near = closest_point_on_triangles(p, t[fi[:, 0]])
+    dist[:, 0] = np.linalg.norm(near - p, axis=1)
     valid = fi < len(t)  # a pair with fewer than k faces: the missing neighbours come back as len(t)
     valid[:, 0] = False
     row, col = np.nonzero(valid)
@@ -196,12 +202,16 @@ def _point_to_mesh(p, gp, t, gf, normals, centres, k_max) -> tuple[np.ndarray, n
     plane = np.abs(((p[row] - t[f, 0]) * normals[f]).sum(1))
     keep = np.maximum(dc[row, col] - radius[f], plane) <= dist[row, 0] + 1e-9 * (1.0 + dist[row, 0])
     row, col, f = row[keep], col[keep], f[keep]
-    dist[row, col] = np.linalg.norm(closest_point_on_triangles(p[row], t[f]) - p[row], axis=1)
+    q = closest_point_on_triangles(p[row], t[f])
+    dist[row, col] = np.linalg.norm(q - p[row], axis=1)
     rows = np.arange(len(p))
     best = dist.argmin(axis=1)
     d = dist[rows, best]
     fbest = fi[rows, best]
-    near = closest_point_on_triangles(p, t[fbest])
+    at = np.full((len(p), k), -1)
+    at[row, col] = np.arange(len(row))
+    other = best > 0
+    near[other] = q[at[other, best[other]]]
     signed = np.sign(((p - near) * normals[fbest]).sum(1)) * d
     return d, signed
 
@@ -248,7 +258,7 @@ def _cues(points: list, tris: list, open_edges: list | None, seeds: list) -> np.
     d, signed = _point_to_mesh(p, gp, t, gf, normals, centres, 8)
 
     # mesh -> points
-    dm, _ = cKDTree(_lifted(p_all, ga)).query(_lifted(centres, gf), k=1, distance_upper_bound=_PAIR_GAP_M / 2)
+    dm, _ = _tree(_lifted(p_all, ga)).query(_lifted(centres, gf), k=1, distance_upper_bound=_PAIR_GAP_M / 2)
     w = np.where((total_area > 0)[gf], area / np.where(total_area > 0, total_area, 1.0)[gf], 1.0 / m[gf])
 
     # boundaries: edges of the patch without a neighbour in the patch, and tile-level open edges
