@@ -26,7 +26,8 @@ def _cmd_train(a) -> int:
         overrides["milestones"] = tuple(overrides["milestones"])
     models = list(suite()) if a.suite else (a.models or ["ms3dqe"])
     spec = TrainSpec(out=a.out, data=a.data, seeds=a.seeds, work_dirs=a.work_dir or [], profile=a.profile,
-                     overrides=overrides, models=models, buffer_m=a.buffer_m, progress=sys.stderr.isatty())
+                     overrides=overrides, models=models, block_m=a.block_m, buffer_m=a.buffer_m,
+                     progress=sys.stderr.isatty())
     logging.getLogger("ms3d").setLevel(logging.INFO)
     summary = train(spec, use_prefect=not a.no_prefect)
     for name, m in summary["models"].items():
@@ -72,6 +73,8 @@ def add_commands(sub: argparse._SubParsersAction) -> None:
     t.add_argument("--paper-training", action="store_true",
                    help="the paper's optimiser, loss and selection (SGD, MultiStepLR, batch 8, plain cross-entropy, "
                         "best accuracy) instead of AdamW + one-cycle, balanced loss, best AP on bad")
+    t.add_argument("--block-m", type=float, default=20.0, help="side of the square ground blocks validation is "
+                                                               "drawn in (metres; 10 suits the tiny synth campuses)")
     t.add_argument("--buffer-m", type=float, help="gap between training and validation pairs (metres; default: the "
                                                   "largest defect's extent, at most half a block)")
     t.add_argument("--no-prefect", action="store_true", help="run without a Prefect server")
