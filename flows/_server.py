@@ -2,7 +2,9 @@
 watchdog that ends the server when the ms3d process that started it dies (even by SIGKILL), so a
 killed run never leaves a server holding the work dir's database.
 
-    python -m flows._server PORT
+    python -m flows._server PORT [HOST]
+
+HOST defaults to 127.0.0.1 (``flows.runtime.LOOPBACK``): the API has no authentication.
 """
 
 from __future__ import annotations
@@ -23,9 +25,12 @@ def _watch_parent(parent: int, period_s: float = 1.0) -> None:
 def main(argv: list[str]) -> None:
     import uvicorn
 
+    from flows.runtime import LOOPBACK
+
     port = int(argv[0])
+    host = argv[1] if len(argv) > 1 else LOOPBACK
     threading.Thread(target=_watch_parent, args=(os.getppid(),), daemon=True).start()
-    uvicorn.run("prefect.server.api.server:create_app", factory=True, host="127.0.0.1", port=port,
+    uvicorn.run("prefect.server.api.server:create_app", factory=True, host=host, port=port,
                 log_level="error", lifespan="on")
 
 

@@ -242,10 +242,10 @@ def make_task_runner(cfg: CampusConfig):
 
     if cfg.cluster.address:
         return DaskTaskRunner(address=cfg.cluster.address)
-    return DaskTaskRunner(cluster_kwargs={
-        "n_workers": cfg.cluster.n_workers, "threads_per_worker": cfg.cluster.threads_per_worker,
-        "processes": True, "memory_limit": cfg.cluster.memory_limit, "dashboard_address": None,
-    })
+    from flows.runtime import local_cluster_kwargs  # 127.0.0.1 only, no dashboard
+
+    return DaskTaskRunner(cluster_kwargs=local_cluster_kwargs(
+        cfg.cluster.n_workers, cfg.cluster.threads_per_worker, cfg.cluster.memory_limit))
 
 
 def run_campus(cfg: CampusConfig, progress: bool = True) -> dict:

@@ -52,12 +52,17 @@ def _overrides(a) -> dict:
 
 def _cmd_run(a) -> int:
     from flows.campus import CampusRunFailed, run_campus
+    from flows.runtime import Stopped, stop_on_signals, stopped_line
     from flows.summary import format_summary
     from tasks.config import CampusConfig
 
     cfg = CampusConfig.from_yaml(a.config, _overrides(a))
     try:
-        summary = run_campus(cfg, progress=sys.stderr.isatty())
+        with stop_on_signals():
+            summary = run_campus(cfg, progress=sys.stderr.isatty())
+    except Stopped as e:  # SIGINT / SIGTERM: the run unwound (cluster closed, lock released)
+        print(stopped_line(e.signum, cfg.work_dir), file=sys.stderr)
+        return e.exit_code
     except CampusRunFailed as e:
         print(format_summary(e.summary))
         print(str(e))  # each failed unit once, with its error
@@ -72,11 +77,17 @@ def _cmd_run(a) -> int:
 
 
 def _cmd_serve(a) -> int:
+    from flows.runtime import Stopped, stop_on_signals, stopped_line
     from flows.serve import serve_campus
     from tasks.config import CampusConfig
 
     cfg = CampusConfig.from_yaml(a.config, _overrides(a))
-    return serve_campus(Path(a.config), cfg, cron=a.cron, name=a.name, overrides=_overrides(a))
+    try:
+        with stop_on_signals():  # while serving, serve_campus handles the signals itself
+            return serve_campus(Path(a.config), cfg, cron=a.cron, name=a.name, overrides=_overrides(a))
+    except Stopped as e:  # a signal while the embedded server started or stopped
+        print(stopped_line(e.signum, cfg.work_dir), file=sys.stderr)
+        return e.exit_code
 
 
 
@@ -185,7 +196,10 @@ def _quiet_logs() -> None:
     on the console: keep the terminal to ms3d's own lines (the run history keeps everything)."""
     os.environ.setdefault("PREFECT_LOGGING_LEVEL", "WARNING")
     os.environ.setdefault("PREFECT_LOGGING_HANDLERS_CONSOLE_LEVEL", "CRITICAL")
-    os.environ.setdefault("DASK_LOGGING__DISTRIBUTED", "error")
+    # worker processes read this at import: a worker whose scheduler closes first logs a heartbeat
+    # CommClosedError at ERROR when a run ends or is stopped; the run's own outcome says what matters
+    os.environ.setdefault("DASK_LOGGING", repr({"distributed": "error", **{
+        f"distributed.{m}": "critical" for m in ("worker", "core", "comm", "batched", "nanny")}}))
     os.environ.setdefault("PREFECT_SERVER_ANALYTICS_ENABLED", "false")
     for name in ("distributed", "prefect"):
         logging.getLogger(name).setLevel(logging.ERROR)

@@ -8,6 +8,16 @@ stops it cleanly at the end after draining the log and event workers (otherwise 
 
 The database lives in ``WORKDIR/prefect/prefect.db``, so the run history survives:
 ``ms3d ui WORKDIR`` (``prefect server start`` with that database) shows it later.
+
+Every server started here listens on 127.0.0.1 only (:data:`LOOPBACK`): the Prefect API (see
+``flows._server``) and, in ``flows.campus.make_task_runner``, the local Dask scheduler and workers (no
+dashboard). A remote cluster or API is used only when configured by address.
+
+Stopping: :func:`stop_on_signals` turns SIGINT and SIGTERM into :class:`Stopped` (a KeyboardInterrupt,
+so Prefect, Dask and asyncio unwind as on Ctrl-C): the flow's context managers close the Dask client
+and cluster, release the work-dir lock and stop the embedded server; the CLI then prints
+:func:`stopped_line` and exits with 128 + the signal number (130 for SIGINT, 143 for SIGTERM). A second
+signal while unwinding exits at once (the OS releases the lock; the server's watchdog ends it).
 """
 
 from __future__ import annotations
@@ -15,14 +25,18 @@ from __future__ import annotations
 import contextlib
 import logging
 import os
+import signal
 import socket
 import subprocess
 import sys
+import threading
 import time
 from collections.abc import Iterator
 from pathlib import Path
 
 log = logging.getLogger("ms3d.runtime")
+
+LOOPBACK = "127.0.0.1"  # the one interface every server ms3d starts listens on
 
 
 def prefect_env(prefect_dir: Path) -> dict[str, str]:
@@ -39,7 +53,7 @@ def prefect_env(prefect_dir: Path) -> dict[str, str]:
 
 def _free_port() -> int:
     with contextlib.closing(socket.socket(socket.AF_INET, socket.SOCK_STREAM)) as s:
-        s.bind(("127.0.0.1", 0))
+        s.bind((LOOPBACK, 0))
         return s.getsockname()[1]
 
 
@@ -63,12 +77,17 @@ class PrefectServer:
 
     def __init__(self, prefect_dir: Path, port: int | None = None):
         self.prefect_dir = Path(prefect_dir)
+        self.host = LOOPBACK
         self.port = port or _free_port()
         self.proc: subprocess.Popen | None = None
 
     @property
     def api_url(self) -> str:
-        return f"http://127.0.0.1:{self.port}/api"
+        return f"http://{self.host}:{self.port}/api"
+
+    def command(self) -> list[str]:
+        """The child process's command line (``flows._server`` on ``host:port``)."""
+        return [sys.executable, "-m", "flows._server", str(self.port), self.host]
 
     def start(self, timeout_s: float = 120) -> PrefectServer:
         env = {**os.environ, **prefect_env(self.prefect_dir), "PREFECT_UI_ENABLED": "0",
@@ -76,9 +95,11 @@ class PrefectServer:
         env.pop("PREFECT_API_URL", None)
         log_path = self.prefect_dir / "server.log"
         self._log = open(log_path, "ab")
+        # its own session: a Ctrl-C reaches the terminal's whole process group, and the server must
+        # outlive the flow run that reports its cancellation (stop() ends it; so does its watchdog)
         self.proc = subprocess.Popen(
-            [sys.executable, "-m", "flows._server", str(self.port)],
-            env=env, stdout=self._log, stderr=subprocess.STDOUT,
+            self.command(),
+            env=env, stdout=self._log, stderr=subprocess.STDOUT, start_new_session=True,
         )
         _wait_healthy(self.api_url, self.proc, timeout_s, log_path)
         return self
@@ -93,6 +114,22 @@ class PrefectServer:
                 self.proc.wait()
             self.proc = None
             self._log.close()
+
+
+def local_cluster_kwargs(n_workers: int, threads_per_worker: int, memory_limit) -> dict:
+    """Keyword arguments of the local ``distributed.LocalCluster``: worker processes, scheduler and
+    workers on 127.0.0.1, no dashboard, and this module as the workers' preload (:func:`dask_setup`)."""
+    return {"n_workers": n_workers, "threads_per_worker": threads_per_worker, "processes": True,
+            "memory_limit": memory_limit, "host": LOOPBACK, "dashboard_address": None,
+            "preload": [__name__]}
+
+
+def dask_setup(worker) -> None:
+    """Dask worker preload: ignore SIGINT. A Ctrl-C reaches every process of the terminal's group; the
+    worker is stopped by its nanny when the flow closes the cluster (or exits when its nanny dies),
+    instead of printing a KeyboardInterrupt traceback of its own."""
+    if threading.current_thread() is threading.main_thread():
+        signal.signal(signal.SIGINT, signal.SIG_IGN)
 
 
 def drain_prefect_services(timeout_s: float = 10) -> None:
@@ -135,3 +172,67 @@ def embedded_prefect(prefect_dir: Path, api_url: str | None = None) -> Iterator[
                 os.environ.pop(k, None)
             else:
                 os.environ[k] = v
+
+
+# ------------------------------------------------------------------------------------------ stopping
+
+
+class Stopped(KeyboardInterrupt):
+    """SIGINT or SIGTERM asked ms3d to stop (``signum``); ``exit_code`` is 128 + signum."""
+
+    def __init__(self, signum: int):
+        super().__init__(signum)
+        self.signum = int(signum)
+
+    @property
+    def signal_name(self) -> str:
+        return signal.Signals(self.signum).name
+
+    @property
+    def exit_code(self) -> int:
+        return 128 + self.signum
+
+
+_stopping: list[int] = []  # signals received since stop_on_signals was entered
+
+
+def _on_stop_signal(signum: int, _frame) -> None:
+    _stopping.append(signum)
+    if len(_stopping) > 1:  # asked again while unwinding: stop now
+        os._exit(128 + signum)
+    raise Stopped(signum)
+
+
+@contextlib.contextmanager
+def stop_on_signals(signals: tuple[int, ...] = (signal.SIGINT, signal.SIGTERM)) -> Iterator[None]:
+    """Within the block, ``signals`` raise :class:`Stopped` in the main thread (the first one; a
+    second one exits the process at once). Prefect swaps its own SIGTERM bridge in while a flow runs
+    and, on SIGTERM, re-sends the signal to the handler it replaced: this one. Main thread only."""
+    saved = {s: signal.signal(s, _on_stop_signal) for s in signals}
+    _stopping.clear()
+    try:
+        yield
+    finally:
+        for s, h in saved.items():
+            signal.signal(s, h)
+
+
+def stop_requested() -> int | None:
+    """The first stop signal received inside :func:`stop_on_signals`, or None."""
+    return _stopping[0] if _stopping else None
+
+
+def units_done(work_dir: Path) -> int:
+    """How many (stage, unit) records of ``work_dir`` say done or empty: what the next run skips."""
+    from storage.manifest import all_records
+    from storage.workdir import WorkDir
+
+    with contextlib.suppress(Exception):  # a stop message must never fail
+        return sum(r.status in ("done", "empty") for r in all_records(WorkDir(work_dir)))
+    return 0
+
+
+def stopped_line(signum: int, work_dir: Path) -> str:
+    """The one line ms3d prints when a signal stopped it."""
+    name = signal.Signals(signum).name
+    return f"ms3d: stopped by {name}; {units_done(work_dir)} units done, the next run resumes"

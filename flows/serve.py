@@ -5,10 +5,19 @@ on the Prefect API (the one configured, or one embedded server keeping its datab
 and runs each scheduled or triggered flow run in a subprocess until stopped (Ctrl-C / SIGTERM). Each run
 resumes: units done and unchanged are skipped. ``deploy/prefect.yaml`` holds the same deployment for a
 work pool on a shared server.
+
+Stopping: the Prefect runner is driven here rather than by ``flow.serve``, whose SIGTERM handler exits
+from inside the event loop (tracebacks, and a flow run left running). SIGINT and SIGTERM set an event;
+the runner then cancels the flow run in progress (Prefect's control channel, then SIGTERM to its
+process, which unwinds: Dask client and cluster closed, work-dir lock released), stops polling, and the
+embedded server stops. ``serve_campus`` returns 128 + the signal number.
 """
 
 from __future__ import annotations
 
+import asyncio
+import signal
+import sys
 from pathlib import Path
 
 from storage.errors import InputError
@@ -29,9 +38,11 @@ def check_cron(cron: str) -> None:
 
 def serve_campus(config_path: Path, cfg: CampusConfig, cron: str, name: str | None = None,
                  overrides: dict | None = None) -> int:
-    """Serve the campus deployment until interrupted. Returns the exit code."""
+    """Serve the campus deployment until SIGINT or SIGTERM. Returns the exit code (130 / 143)."""
+    from prefect.runner import Runner
+
     from flows.campus import reprocess_from_config
-    from flows.runtime import embedded_prefect
+    from flows.runtime import embedded_prefect, stopped_line
     from storage.housekeeping import check_work_dir_writable
 
     check_cron(cron)
@@ -40,7 +51,39 @@ def serve_campus(config_path: Path, cfg: CampusConfig, cron: str, name: str | No
     name = name or cfg.name
     params = {"config_path": str(Path(config_path).absolute()), "overrides": overrides or {}}
     with embedded_prefect(wd.prefect_dir, cfg.cluster.prefect_api_url) as url:
+        runner = Runner(name=name, pause_on_shutdown=True)
+        runner.add_flow(reprocess_from_config, name=name, cron=cron, parameters=params)
         print(f"serving deployment 'reprocess-campus-from-config/{name}' (cron '{cron}', UTC) on {url}; "
               "Ctrl-C stops", flush=True)
-        reprocess_from_config.serve(name=name, cron=cron, parameters=params, print_starting_message=False)
-    return 0
+        signum = asyncio.run(serve_until_signalled(runner))
+    print(stopped_line(signum, wd.root), file=sys.stderr, flush=True)
+    return 128 + signum
+
+
+async def serve_until_signalled(runner, signals: tuple[int, ...] = (signal.SIGINT, signal.SIGTERM)) -> int:
+    """Run a Prefect ``runner`` until one of ``signals``; cancel its flow runs and stop it. Returns the
+    signal number. Main thread only (signal handlers)."""
+    loop = asyncio.get_running_loop()
+    got: asyncio.Future[int] = loop.create_future()
+
+    def on_signal(signum: int) -> None:
+        if not got.done():
+            got.set_result(signum)
+
+    # Runner.start installs its own SIGTERM handler (sys.exit inside the loop): replace it with ours
+    saved = {s: signal.getsignal(s) for s in signals}
+    runner.handle_sigterm = lambda *_: loop.call_soon_threadsafe(on_signal, signal.SIGTERM)
+    serving = asyncio.create_task(runner.start())
+    await asyncio.sleep(0)  # let start() install its handler before ours replace it
+    for s in signals:
+        loop.add_signal_handler(s, on_signal, s)
+    try:
+        await asyncio.wait([got, serving], return_when=asyncio.FIRST_COMPLETED)
+        if runner.started:
+            await runner.astop()  # cancels the flow runs in progress and stops polling
+        await serving
+    finally:
+        for s in signals:
+            loop.remove_signal_handler(s)
+            signal.signal(s, saved[s])
+    return got.result() if got.done() else signal.SIGTERM
