@@ -125,7 +125,7 @@ def test_a_roof_counts_as_horizontal():
 # -- the vectorised extraction equals the per-pair loop it replaced --------------------------------------
 
 def _reference_pair_cues(points, tris, open_edges=None, seed=0) -> np.ndarray:
-    """The per-pair implementation before vectorisation (ms3d_model/cues.py up to commit 01223df), verbatim
+    """The per-pair implementation before vectorisation (ms3d_model/cues.py before commit 01223df), verbatim
     maths; its closest_point_on_triangles is the module's, which no longer gives NaN on a zero-area face."""
     p_all = np.asarray(points, np.float64).reshape(-1, 3)
     t = np.asarray(tris, np.float64).reshape(-1, 3, 3)
