@@ -101,7 +101,11 @@ class PrefectServer:
             self.command(),
             env=env, stdout=self._log, stderr=subprocess.STDOUT, start_new_session=True,
         )
-        _wait_healthy(self.api_url, self.proc, timeout_s, log_path)
+        try:
+            _wait_healthy(self.api_url, self.proc, timeout_s, log_path)
+        except BaseException:  # not healthy, or stopped (a signal) while starting: leave no server behind
+            self.stop()
+            raise
         return self
 
     def stop(self) -> None:

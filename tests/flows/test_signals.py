@@ -76,6 +76,7 @@ def _listening(procs: list[psutil.Process]) -> set[tuple[str, int]]:
     return out
 
 
+@pytest.mark.slow
 def test_serve_stops_on_sigterm_mid_run_and_resumes(tmp_path):
     from synth.handmade import build_campus
 
@@ -136,3 +137,34 @@ def _serve_then_sigterm(proc: subprocess.Popen, out_path: Path, work: Path, env:
     except subprocess.TimeoutExpired:
         pytest.fail("ms3d serve still alive 30 s after SIGTERM")
     return time.monotonic() - t0, tree
+
+
+@pytest.mark.slow
+def test_run_stops_on_sigterm_mid_run(tmp_path):
+    """``ms3d run`` (embedded Prefect, Dask): SIGTERM once a unit is recorded; Prefect's SIGTERM bridge
+    hands the signal back to ms3d's handler, the flow unwinds, one line, exit 143, nothing left."""
+    from synth.handmade import build_campus
+
+    config = build_campus(tmp_path / "campus")
+    work = tmp_path / "work"
+    env = {**os.environ, "OMP_NUM_THREADS": "1"}
+    env.pop("PREFECT_API_URL", None)
+    err_path = tmp_path / "run.err"
+    with open(err_path, "w") as err_file:
+        proc = subprocess.Popen([sys.executable, "-m", "flows.cli", "run", str(config), "--work-dir", str(work),
+                                 *SETS], stdout=err_file, stderr=subprocess.STDOUT, env=env)
+    try:
+        _wait(lambda: len(_records(work)) >= 1, 90, "unit recorded", proc)
+        tree = [psutil.Process(proc.pid), *psutil.Process(proc.pid).children(recursive=True)]
+        proc.send_signal(signal.SIGTERM)
+        rc = proc.wait(timeout=30)
+    finally:
+        if proc.poll() is None:
+            proc.kill()
+    out = err_path.read_text()
+    assert rc == 143 and "Traceback" not in out, out
+    assert re.search(r"^ms3d: stopped by SIGTERM; [1-9]\d* units done, the next run resumes$", out, re.MULTILINE), out
+    with open(work / ".lock", "a+") as f:
+        fcntl.flock(f, fcntl.LOCK_EX | fcntl.LOCK_NB)
+    _, alive = psutil.wait_procs(tree[1:], timeout=15)
+    assert not alive, alive
