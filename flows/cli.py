@@ -12,6 +12,8 @@
 
 Every user error (config, YAML, inputs, CRS, work dir) prints one line ``ms3d: error: ...`` and exits
 with code 2; ``--debug`` shows the traceback. A run with failed tiles or an incomplete campus exits 1.
+SIGINT / SIGTERM stop ``run`` and ``serve`` cleanly: one line ``ms3d: stopped by SIGTERM; ...`` and exit
+code 128 + the signal (130 / 143), see ``flows.runtime.stop_on_signals``.
 """
 
 from __future__ import annotations
