@@ -5,7 +5,8 @@
 The held-out campus is a synth ``demo`` campus of a seed never used in training (generated and processed
 under ``--data`` when missing), or any labelled campus: ``--work-dir`` (processed) or ``--campus`` (a
 YAML config with ``inputs.labels``; processed first). Every model is scored on the same pairs: Acc, mAP,
-per-class precision / recall / F1, confusion matrix; its forward time per pair at batch 1 and at the best
+per-class precision / recall / F1, confusion matrix (Acc, P/R/F1 and the confusion at the checkpoint's own
+operating threshold, ``ms3d_model.train.checkpoint_threshold``, printed beside them; mAP needs none); its forward time per pair at batch 1 and at the best
 batch size (network only, featurised inputs, as the paper times it) and its parameter count. The
 gradient-boosting baseline comes from the same training run (``ms3d train --suite``: its trees are
 stored as a TreeNet checkpoint) and is timed on its trees alone (cue extraction reported beside).
@@ -89,7 +90,7 @@ def evaluate(models: dict[str, str], eval_name: str, eval_wd: str, data: str = "
     from ms3d_model.metrics import classification_report
     from ms3d_model.net import kernel_response_stats, n_parameters
     from ms3d_model.report import model_kind, model_label, per_class, table3, table4
-    from ms3d_model.train import load_checkpoint, net_uses_cues, predict
+    from ms3d_model.train import checkpoint_threshold, load_checkpoint, net_uses_cues, predict
     from tasks.classify import campus_pair_set
 
     torch.set_num_threads(threads)
@@ -97,7 +98,8 @@ def evaluate(models: dict[str, str], eval_name: str, eval_wd: str, data: str = "
     results, configs, held = {}, {}, {}
     kc = {}
     for name, path in models.items():
-        net, prof, _ = load_checkpoint(path)
+        net, prof, meta = load_checkpoint(path)
+        thr = checkpoint_threshold(meta)
         size = (prof.max_points, prof.max_faces, prof.k_centre, prof.seed)
         if size not in held:
             ps = campus_pair_set(eval_wd, eval_name, *size, cache_dir=cache)
@@ -107,7 +109,8 @@ def evaluate(models: dict[str, str], eval_name: str, eval_wd: str, data: str = "
         ps = held[size]
         t = time.perf_counter()
         p = predict(net, ps, prof.eval_batch)
-        rep = classification_report(ps.labels, p)
+        rep = classification_report(ps.labels, p, thr)
+        rep["threshold"] = thr
         rep.update(forward_seconds(net, ps, uses_cues=net_uses_cues(net)))
         n_par = int(net.feature.numel()) if prof.net.arch == "gbm" else n_parameters(net)  # trees: node count
         rep.update({"parameters": n_par, "profile": prof.name, "path": str(path),
@@ -125,7 +128,7 @@ def evaluate(models: dict[str, str], eval_name: str, eval_wd: str, data: str = "
             from ms3d_model.dataset import to_batch
 
             kc = kernel_response_stats(net, to_batch(ps.feats.take(np.arange(min(64, len(ps))))))
-        log.info("%s: acc %.4f mAP %.4f", rep["model"], rep["acc"], rep["map"])
+        log.info("%s: threshold %.4f acc %.4f mAP %.4f", rep["model"], thr, rep["acc"], rep["map"])
     trees = [k for k, r in results.items() if model_kind(r["net"]) == "gbm"]
     cue_s = _cue_seconds_per_pair(eval_wd) if trees else float("nan")
     for k in trees:

@@ -164,12 +164,13 @@ def table4(results: dict[str, dict], configs: dict[str, dict]) -> str:
 
 def per_class(results: dict[str, dict]) -> str:
     """Per-class precision / recall / F1 and the confusion matrix of each of our models."""
-    lines = ["Per class (good / bad): precision, recall, F1; confusion [[good->good, good->bad], [bad->good, bad->bad]]"]
+    lines = ["Per class (good / bad) at each checkpoint's own threshold on p(bad) (thr; 0.5 when it ships none): "
+             "precision, recall, F1; confusion [[good->good, good->bad], [bad->good, bad->bad]]"]
     for name, r in results.items():
         if "precision_good" not in r:
             continue
         who = _label(r) if r.get("net") else name
-        lines.append(f"{who:<30} P {_f(r['precision_good'], '{:.3f}')}/{_f(r['precision_bad'], '{:.3f}')}  "
+        lines.append(f"{who:<30} thr {_f(r.get('threshold', 0.5), '{:.3f}')}  P {_f(r['precision_good'], '{:.3f}')}/{_f(r['precision_bad'], '{:.3f}')}  "
                      f"R {_f(r['recall_good'], '{:.3f}')}/{_f(r['recall_bad'], '{:.3f}')}  "
                      f"F1 {_f(r['f1_good'], '{:.3f}')}/{_f(r['f1_bad'], '{:.3f}')}  confusion {r['confusion']}  n={r['n']}")
     return "\n".join(lines)

@@ -66,3 +66,30 @@ def test_evaluate_with_the_shipped_default_reports_it_as_trees(tiny_work, tmp_pa
     assert _row(text, "GBM on cues").rstrip().endswith("GBM trees (default.pt)") and acc in _row(text, "GBM on cues")
     assert _row(text, "MS3DQE-Net ").rstrip().endswith("-") and acc not in _row(text, "MS3DQE-Net ")
     assert "no MS3DQE-Net checkpoint scored" in text
+
+
+def test_evaluate_grades_at_the_checkpoints_own_threshold(tiny_work, tmp_path):
+    """Acc and P/R on bad come from the threshold the checkpoint ships (not 0.5), and the text prints it."""
+    import numpy as np
+    import torch
+
+    from flows.evaluate import evaluate
+    from ms3d_model.metrics import classification_report
+    from tasks.classify import DEFAULT_MODEL, campus_pair_set
+
+    _, wd = tiny_work
+    obj = torch.load(DEFAULT_MODEL, map_location="cpu", weights_only=True)
+    obj["threshold"] = 0.05  # far from 0.5: many more pairs graded bad
+    torch.save(obj, tmp_path / "low.pt")
+    res = evaluate({"gbm": str(tmp_path / "low.pt")}, "tiny", str(wd.root), data=str(tmp_path), max_pairs=300)
+    r = res["results"]["gbm"]
+    assert r["threshold"] == 0.05 and "thr 0.050" in res["text"]
+    from ms3d_model.train import load_checkpoint, predict
+
+    net, prof, _ = load_checkpoint(tmp_path / "low.pt")
+    ps = campus_pair_set(str(wd.root), "tiny", prof.max_points, prof.max_faces, prof.k_centre, prof.seed,
+                         cache_dir=str(tmp_path / "cache"))
+    ps = ps.take(np.sort(np.random.default_rng(0).permutation(len(ps))[:300])) if len(ps) > 300 else ps
+    p = predict(net, ps, 256)
+    assert r["confusion"] == classification_report(ps.labels, p, 0.05)["confusion"]
+    assert r["confusion"] != classification_report(ps.labels, p, 0.5)["confusion"]
