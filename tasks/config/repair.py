@@ -103,6 +103,9 @@ class MeshConfig(_Section):
     free_min_points: int = Field(50, ge=3, description="fewer such points (after thinning) are left alone")
     free_off_surface_m: float = Field(0.25, gt=0, description="a point this close to a retained face is explained "
                                       "by it and not meshed freely (a passage wall's foot next to the ground)")
+    max_unsupported_share: float = Field(0.3, ge=0, le=1, description="a region whose rebuilt surface lies more than "
+                                         "this area share off both the MLS points and the input surface "
+                                         "(tasks.repair.support) falls back to the input mesh; 1: never")
     stitch_tolerance_m: float = Field(0.01, gt=0, description="largest border gap accepted between the rebuilt "
                                       "mesh and the retained mesh")
     max_hole_loop_m: float = Field(40.0, gt=0, description="open boundary loops of the mesh shorter than this "

@@ -20,6 +20,7 @@ from storage.vertex_ids import local_ids
 from tasks.repair.chart import zone_charts
 from tasks.repair.fill import SOURCE_FILL, unseen_samples
 from tasks.repair.free import far_points, free_surface
+from tasks.repair.support import unsupported_share
 from tasks.repair.defect_types import DefectEvidence, classify_evidence, repair_plan
 from tasks.repair.fuse import (
     FusionParams,
@@ -237,10 +238,14 @@ def repair_region_geometry(data: RegionInput, cfg) -> RegionGeometry:
     stats["seam_vertices_moved"] = int((vids != data.vertex_id).sum())
     mesh = rebuild_charts(topo.charts, vids, pts, src, pvert, max_map_distance_m=mc.max_map_distance_m,
                           border_margin_m=0.5 * fc.mls_spacing_m, max_edge_m=mc.max_edge_m, vertex_xyz=vxyz)
-    mesh = with_free(mesh, *free)
-    t4 = time.perf_counter()
     replaced = np.ones(mz, bool)
     replaced[topo.rejected] = False
+    stats["unsupported_share"] = unsupported_share(mesh.xyz, mesh.faces, both, nrm, data.xyz, data.zone_faces)
+    if stats["unsupported_share"] > mc.max_unsupported_share:  # invented geometry: the input mesh stays
+        stats["plan"] = f"fallback: {stats['unsupported_share']:.0%} of the rebuilt surface unsupported"
+        mesh, replaced = empty_mesh(), np.zeros(mz, bool)
+    mesh = with_free(mesh, *free)
+    t4 = time.perf_counter()
     _finish_stats(stats, data, mesh, replaced, zone_area)
     stats["seconds"] = {"normals": t1 - t0, "evidence": t2 - t1, "fusion": t3 - t2, "mesh": t4 - t3,
                         "total": time.perf_counter() - t0}

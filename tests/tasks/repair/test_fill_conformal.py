@@ -112,3 +112,34 @@ def test_points_far_from_every_face_are_meshed_on_their_own():
     assert not is_campus_id(m.vertex_id).any() and not geo.replaced.any()
     off = RepairConfig.model_validate({"mesh": {"free_surface": False}})
     assert repair_region_geometry(data, off).mesh.n_faces == 0
+
+
+def _half_seen_region():
+    """A 10 m x 3 m wall zone whose left half the MLS sees 0.5 m behind it (a recess), right half unseen."""
+    from tasks.repair.geometry import RegionInput
+
+    v, f = _band(length=10.0, height=3.0, nx=20, nz=6)
+    seen = np.array([[x, 0.5, z] for x in np.arange(0.02, 5, 0.04) for z in np.arange(0.02, 3, 0.04)])
+    return RegionInput(xyz=v, vertex_id=np.arange(len(v)), zone_faces=f, context_faces=np.zeros((0, 3), np.int64),
+                       near_zone=np.ones(len(v), bool), mls_xyz=seen, mls_class=np.zeros(len(seen), np.uint8),
+                       ctx_xyz=np.zeros((0, 3)), face_normals=None)
+
+
+def test_unseen_part_keeps_the_input_and_unsupported_rebuilds_fall_back():
+    from tasks.config.repair import RepairConfig
+    from tasks.repair.geometry import repair_region_geometry
+
+    data = _half_seen_region()
+    geo = repair_region_geometry(data, RepairConfig())
+    m = geo.mesh
+    assert m.n_faces and geo.replaced.all()
+    c = m.xyz[m.faces].mean(axis=1)
+    right = c[:, 0] > 6.0  # beyond the step (the fill keeps a step's clearance from the seen half)
+    assert np.abs(c[right, 1]).max() < 0.02  # the unseen half stays on the input wall
+    inner = (c[:, 0] > 0.5) & (c[:, 0] < 4.0) & (c[:, 2] > 0.5) & (c[:, 2] < 2.5)  # off the zone's fixed edge
+    assert np.mean(np.abs(c[inner, 1] - 0.5) < 0.05) > 0.99  # the seen half moves onto the MLS surface
+    share = geo.stats["unsupported_share"]
+    assert 0 < share < 0.3  # only the step between the two halves rests on neither
+    strict = repair_region_geometry(data, RepairConfig.model_validate({"mesh": {"max_unsupported_share": share / 2}}))
+    assert strict.mesh.n_faces == 0 and not strict.replaced.any()
+    assert strict.stats["plan"].startswith("fallback")
