@@ -34,6 +34,14 @@ CUE_NAMES = (
     "normal_agreement", "point_planarity", "mesh_normal_spread",
     "point_spread_along_normal", "mesh_spread_along_normal", "frac_horizontal_faces",
 )
+# Appended later (a model trained on the first 25 reads only those: TreeNet indexes its features, MS3DQE-Net+
+# takes the first ``n_cues`` columns). Signed distances are positive in front of the mesh (along its normal).
+EXTRA_CUE_NAMES = (
+    "p2m_frac_behind_10cm", "p2m_frac_front_10cm", "p2m_frac_30cm", "p2m_p25", "p2m_p75",
+    "p2m_signed_p10", "p2m_signed_p90", "m2p_median", "m2p_frac_25cm",
+    "points_above_mesh_m", "points_below_mesh_m",
+)
+CUE_NAMES = CUE_NAMES + EXTRA_CUE_NAMES
 N_CUES = len(CUE_NAMES)
 MAX_CUE_POINTS = 1024
 _PAIR_GAP_M = 1.0e6  # pairs sit this far apart on the k-d trees' fourth axis (a campus spans < 10 km)
@@ -296,8 +304,29 @@ def _cues(points: list, tris: list, open_edges: list | None, seeds: list) -> np.
         np.abs((pt_n * mesh_n).sum(1)), planarity, 1.0 - mean_len / np.maximum(total_area, 1e-12),
         spread(along_p, ga), spread(along_m, gv),
         np.bincount(gf, w * (np.abs(normals[:, 2]) > 0.9), minlength=b),
-    ]
+    ] + _extra_cues(d, signed, gp, n_cue, sd, ss, sm, dm, gf, w, p_all[:, 2], ga, t[:, :, 2], b)
     return np.stack(cues, axis=1).astype(np.float32)
+
+
+def _extra_cues(d, signed, gp, n_cue, sd, ss, sm, dm, gf, w, pz, ga, tz, b) -> list:
+    """The :data:`EXTRA_CUE_NAMES` columns, (B,) float64 each: shares of points more than 10 cm behind / in
+    front of the mesh and beyond 30 cm, quartiles of the point -> mesh distance, 10th / 90th percentiles of
+    the signed distance, median mesh -> point distance and the area share of faces > 25 cm from every point,
+    and how far the points reach above the mesh's top and below its bottom (m; z up). d, signed: (q,) per cue
+    point of pair gp; sd, ss, sm: their and dm's :func:`sorted_segments`; dm, w: (M,) per face of pair gf;
+    pz: (N,) z of all points of pair ga; tz: (M, 3) z of the faces' corners."""
+    zmax_p = np.full(b, -np.inf)
+    zmin_p = np.full(b, np.inf)
+    np.maximum.at(zmax_p, ga, pz)
+    np.minimum.at(zmin_p, ga, pz)
+    zmax_m = np.full(b, -np.inf)
+    zmin_m = np.full(b, np.inf)
+    np.maximum.at(zmax_m, gf, tz.max(1))
+    np.minimum.at(zmin_m, gf, tz.min(1))
+    return [_segment_mean((signed < -0.10).astype(float), gp, n_cue), _segment_mean((signed > 0.10).astype(float), gp, n_cue),
+            _segment_mean((d > 0.30).astype(float), gp, n_cue), percentile_of_sorted(sd, 25), percentile_of_sorted(sd, 75),
+            percentile_of_sorted(ss, 10), percentile_of_sorted(ss, 90), median_of_sorted(sm),
+            np.bincount(gf, w * (dm > 0.25), minlength=b), zmax_p - zmax_m, zmin_m - zmin_p]
 
 
 def pair_cues(points: np.ndarray, tris: np.ndarray, open_edges: np.ndarray | None = None, seed: int = 0) -> np.ndarray:

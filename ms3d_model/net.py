@@ -252,7 +252,7 @@ class MS3DQENet(nn.Module):
             pv = torch.cat(pooled, dim=1)
             parts.append(self.point_agg(pv) if hasattr(self, "point_agg") else pv)
         if c.n_cues:
-            parts.append(self.cue_mlp((batch["cues"] - self.cue_mean) / self.cue_std))
+            parts.append(self.cue_mlp((batch["cues"][:, :c.n_cues] - self.cue_mean) / self.cue_std))  # older cue sets lead
         return self.head(self.fusion(torch.cat(parts, dim=1)))
 
 

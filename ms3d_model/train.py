@@ -48,6 +48,7 @@ def make_model(profile: Profile, cues: np.ndarray | None = None) -> nn.Module:
     """A fresh network of ``profile``; for MS3DQE-Net+ the cue standardisation comes from ``cues`` (B, C)."""
     net = build_net(profile.net)
     if profile.net.n_cues and cues is not None and len(cues):
+        cues = cues[:, :profile.net.n_cues]  # a network of an older, shorter cue set reads the leading columns
         mean = np.nanmean(cues, axis=0)
         std = np.maximum(np.nanstd(cues, axis=0), 1e-6)
         net.cue_mean.copy_(torch.from_numpy(mean.astype(np.float32)))
@@ -243,7 +244,7 @@ def train_model(profile: Profile, train: PairSet, val: PairSet, out_dir: str | P
     out_dir.mkdir(parents=True, exist_ok=True)
     torch.set_num_threads(profile.threads)
     set_seeds(profile.seed)
-    if profile.net.n_cues and profile.net.n_cues != N_CUES:
+    if profile.net.n_cues and profile.net.n_cues > N_CUES:
         raise ValueError(f"profile expects {profile.net.n_cues} cues, the featuriser makes {N_CUES}")
     net = make_model(profile, train.cues)
     rng, gen = np.random.default_rng(profile.seed), torch.Generator().manual_seed(profile.seed)

@@ -9,6 +9,7 @@ from scipy.spatial import cKDTree
 
 from ms3d_model.cues import (
     CUE_NAMES,
+    EXTRA_CUE_NAMES,
     MAX_CUE_POINTS,
     batch_cues,
     closest_point_on_triangles,
@@ -74,6 +75,28 @@ def test_points_off_the_mesh_give_the_offset_and_its_side(offset_m, sign):
     assert cue(c, "p2m_signed_median") == pytest.approx(sign * 0.2, abs=1e-6)
     assert cue(c, "p2m_signed_mean") == pytest.approx(sign * 0.2, abs=1e-6)
     assert cue(c, "coverage_10cm") == 0.0 and cue(c, "m2p_mean") >= 0.2 - 1e-6
+
+
+@pytest.mark.parametrize("offset_m", [-0.2, 0.2, 0.05, 0.4])
+def test_the_extra_cues_give_the_side_quantiles_and_reach(offset_m):
+    """Points offset from the wall (normal -y): shares behind / in front beyond 10 cm, beyond 30 cm, the
+    quartiles and signed percentiles equal the offset; the points reach 0.3 m above the wall's top."""
+    tris, _ = grid_wall()  # 2 m wide, 1 m high, z in [0, 1]
+    pts = wall_points(3000, offset_y=offset_m)
+    pts = np.concatenate([pts, [[1.0, offset_m, 1.3]]])  # one point 0.3 m above the top
+    c = pair_cues(pts, tris)
+    front = -offset_m  # signed distance: + on the -y side
+    assert cue(c, "p2m_frac_front_10cm") == pytest.approx(float(front > 0.1), abs=1e-3)
+    assert cue(c, "p2m_frac_behind_10cm") == pytest.approx(float(front < -0.1), abs=1e-3)
+    assert cue(c, "p2m_frac_30cm") == pytest.approx(float(abs(offset_m) > 0.3), abs=1e-3)
+    for name in ("p2m_p25", "p2m_p75"):
+        assert cue(c, name) == pytest.approx(abs(offset_m), abs=1e-6), name
+    for name in ("p2m_signed_p10", "p2m_signed_p90"):
+        assert cue(c, name) == pytest.approx(front, abs=1e-6), name
+    assert cue(c, "points_above_mesh_m") == pytest.approx(0.3, abs=1e-6)
+    assert cue(c, "points_below_mesh_m") < 0.01
+    assert cue(c, "m2p_frac_25cm") == pytest.approx(float(abs(offset_m) > 0.25), abs=1e-6)
+    assert cue(c, "m2p_median") >= abs(offset_m) - 1e-6
 
 
 def test_a_hole_shows_as_open_edges_of_its_perimeter():
@@ -199,10 +222,11 @@ def test_batched_cues_equal_the_per_pair_loop():
     keys = np.arange(len(pairs), dtype=np.int64) * 7919 + 11
     got = batch_cues([p for p, _, _ in pairs], [t for _, t, _ in pairs], [o for _, _, o in pairs], keys, seed=5)
     want = np.stack([_reference_pair_cues(p, t, o, pair_seed(5, int(k))) for (p, t, o), k in zip(pairs, keys)])
-    np.testing.assert_allclose(got, want, rtol=1e-6, atol=1e-6)
+    n_ref = len(CUE_NAMES) - len(EXTRA_CUE_NAMES)  # the loop predates the extra cues
+    np.testing.assert_allclose(got[:, :n_ref], want, rtol=1e-6, atol=1e-6)
     # one pair at a time gives the same as in a batch, and the patch boundary stands in without tile edges
     p, t, _ = pairs[4]
-    np.testing.assert_allclose(pair_cues(p, t, seed=9), _reference_pair_cues(p, t, None, 9), rtol=1e-6, atol=1e-6)
+    np.testing.assert_allclose(pair_cues(p, t, seed=9)[:n_ref], _reference_pair_cues(p, t, None, 9), rtol=1e-6, atol=1e-6)
     np.testing.assert_array_equal(batch_cues([p], [t], None, keys[4:5], seed=5)[0],
                                   batch_cues([pairs[0][0], p], [pairs[0][1], t], None, keys[[0, 4]], seed=5)[1])
 
