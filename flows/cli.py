@@ -125,7 +125,7 @@ def _cmd_view(a) -> int:
     wd = WorkDir(a.work_dir)
     if not (wd.root / "output" / "tileset.json").exists():
         raise InputError(wd.root, "no output/tileset.json: run `ms3d run CONFIG` first")
-    serve_viewer(wd.root, port=a.port)
+    serve_viewer(wd.root, port=a.port, label=a.label)
     return 0
 
 
@@ -181,6 +181,8 @@ def build_parser() -> argparse.ArgumentParser:
     v = sub.add_parser("view", help="serve the campus's 3D Tiles with a viewer page on localhost")
     v.add_argument("work_dir")
     v.add_argument("--port", type=int, default=8765)
+    v.add_argument("--label", action="store_true", help="labelling mode: mark patches good/bad (g / b), least-sure "
+                                                        "first; appended to WORKDIR/labels/user-<date>.csv")
     v.set_defaults(func=_cmd_view)
 
     u = sub.add_parser("ui", help="start a Prefect server on the work dir's run history")

@@ -8,8 +8,29 @@ import logging
 import sys
 
 
+def _cmd_finetune(a) -> int:
+    from flows.finetune import FinetuneSpec, finetune
+
+    spec = FinetuneSpec(campus=a.campus, base=a.base, out=a.out, seeds=a.seeds, work_dirs=a.work_dir or [],
+                        data=a.data, holdout=a.holdout, user_weight=a.user_weight, block_m=a.block_m)
+    logging.getLogger("ms3d").setLevel(logging.INFO)
+    s = finetune(spec)
+    for name, f in s["heldout_user"].items():
+        print(f"{name:<10} held-out user labels: {f['n']} pairs ({f['n_bad']} bad)  acc {100 * f['acc']:.1f} %  "
+              f"precision {f['precision_bad']:.3f} recall {f['recall_bad']:.3f} at threshold {f['threshold']:.3f}")
+    print(f"{s['n_user_train']} user pairs (x{s['user_weight']}) + {s['n_synth_train']} synth pairs; "
+          f"{s['wall_seconds']:.1f} s -> {s['checkpoint']} (MODEL_CARD.md beside it); "
+          f"set classify.model to it and re-run to re-grade")
+    return 0
+
+
 def _cmd_train(a) -> int:
     from flows.train import TrainSpec, suite, train
+
+    if a.campus or a.base:
+        if not (a.campus and a.base):
+            raise SystemExit("ms3d train: --campus and --from go together (fine-tune a checkpoint on a campus's labels)")
+        return _cmd_finetune(a)
 
     overrides = {}
     for kv in a.set or []:
@@ -78,6 +99,12 @@ def add_commands(sub: argparse._SubParsersAction) -> None:
     t.add_argument("--buffer-m", type=float, help="gap between training and validation pairs (metres; default: the "
                                                   "largest defect's extent, at most half a block)")
     t.add_argument("--no-prefect", action="store_true", help="run without a Prefect server")
+    t.add_argument("--campus", metavar="CONFIG", help="fine-tune on this campus's user labels (WORKDIR/labels/*.csv, "
+                                                      "from `ms3d view --label`) mixed with the synth pairs")
+    t.add_argument("--from", dest="base", metavar="CHECKPOINT", help="the checkpoint to fine-tune (with --campus), "
+                                                                     "e.g. ms3d_model/weights/default.pt")
+    t.add_argument("--holdout", type=float, default=0.25, help="share of the user's labels held out for validation")
+    t.add_argument("--user-weight", type=int, default=10, help="how many synth pairs one user-labelled pair counts as")
     t.set_defaults(func=_cmd_train)
 
     e = sub.add_parser("evaluate", help="Tables 3 and 4 on a held-out campus")

@@ -7,12 +7,17 @@
                          thinned MLS points overlay, shown by the page's "MLS points" checkbox)
 
 The server binds 127.0.0.1 only and serves files read-only; nothing is fetched from the internet.
+With ``label=True`` (``ms3d view WORKDIR --label``) it also mounts the labelling API of
+:mod:`flows.label_server` under ``/api/`` (the only writes: ``WORKDIR/labels/user-<date>.csv``) and the page
+opens in labelling mode; requests from anything but a loopback address are refused (403).
 """
 
 from __future__ import annotations
 
 import functools
+import json
 import posixpath
+import sys
 import threading
 import urllib.parse
 from dataclasses import dataclass
@@ -22,6 +27,16 @@ from pathlib import Path
 from storage.errors import InputError
 
 VIEWER_DIR = Path(__file__).resolve().parents[1] / "viewer"
+PAGE = "/viewer/index.html?tileset=/output/tileset.json"
+LOOPBACK = ("127.0.0.1", "::1")
+MAX_BODY = 4096  # bytes: a label is ~40
+
+
+class _Server(ThreadingHTTPServer):
+    daemon_threads = True
+
+    def handle_error(self, request, client_address):  # one line, never a traceback
+        print(f"ms3d viewer: request from {client_address[0]} failed: {sys.exc_info()[1]}", file=sys.stderr, flush=True)
 
 
 class _Handler(SimpleHTTPRequestHandler):
@@ -31,9 +46,50 @@ class _Handler(SimpleHTTPRequestHandler):
         ".glb": "model/gltf-binary", ".json": "application/json",
     }  # fmt: skip
 
-    def __init__(self, *args, roots: dict[str, Path], **kwargs):
+    def __init__(self, *args, roots: dict[str, Path], api=None, **kwargs):
         self.roots = roots
+        self.api = api
         super().__init__(*args, directory=str(roots["viewer"]), **kwargs)
+
+    def _loopback(self) -> bool:
+        if self.client_address[0] in LOOPBACK:
+            return True
+        self.send_error(403, "loopback clients only")
+        return False
+
+    def _api(self, method: str) -> None:
+        """A labelling API request: JSON in, JSON out; a failure is one line in the log, never a traceback."""
+        n = int(self.headers.get("Content-Length") or 0)
+        if n > MAX_BODY:
+            status, doc = 413, {"error": f"body over {MAX_BODY} bytes"}
+        elif self.api is None:
+            status, doc = 404, {"error": "labelling is off: start the viewer with --label"}
+        else:
+            try:
+                status, doc = self.api.handle(method, self.path, self.rfile.read(n) if n else b"")
+            except Exception as exc:  # noqa: BLE001 - the server keeps serving; the log gets one line
+                status, doc = 500, {"error": f"{type(exc).__name__}: {exc}"}
+        if status >= 400:
+            print(f"ms3d viewer: {status} {method} {urllib.parse.urlsplit(self.path).path}: {doc['error']}",
+                  file=sys.stderr, flush=True)
+        data = json.dumps(doc).encode()
+        self.send_response(status)
+        self.send_header("Content-Type", "application/json")
+        self.send_header("Content-Length", str(len(data)))
+        self.end_headers()
+        self.wfile.write(data)
+
+    def do_POST(self):
+        if not self._loopback():
+            return
+        if urllib.parse.urlsplit(self.path).path.startswith("/api/"):
+            self._api("POST")
+        else:
+            self.send_error(405, "read-only")
+
+    def do_HEAD(self):
+        if self._loopback():
+            super().do_HEAD()
 
     def translate_path(self, path: str) -> str:
         path = posixpath.normpath(urllib.parse.unquote(urllib.parse.urlsplit(path).path))
@@ -43,9 +99,15 @@ class _Handler(SimpleHTTPRequestHandler):
         return str(self.roots[parts[0]].joinpath(*parts[1:]))
 
     def do_GET(self):
-        if urllib.parse.urlsplit(self.path).path in ("", "/"):
+        if not self._loopback():
+            return
+        path = urllib.parse.urlsplit(self.path).path
+        if path.startswith("/api/"):
+            self._api("GET")
+            return
+        if path in ("", "/"):
             self.send_response(302)
-            self.send_header("Location", "/viewer/index.html?tileset=/output/tileset.json")
+            self.send_header("Location", PAGE + ("&label=1" if self.api is not None else ""))
             self.end_headers()
             return
         super().do_GET()
@@ -64,11 +126,12 @@ class ViewerServer:
 
     httpd: ThreadingHTTPServer
     thread: threading.Thread | None
+    label: bool = False
 
     @property
     def url(self) -> str:
         host, port = self.httpd.server_address[:2]
-        return f"http://{host}:{port}/viewer/index.html?tileset=/output/tileset.json"
+        return f"http://{host}:{port}{PAGE}" + ("&label=1" if self.label else "")
 
     def stop(self) -> None:
         self.httpd.shutdown()
@@ -87,20 +150,28 @@ def _roots(work_dir: str | Path) -> dict[str, Path]:
     return {"viewer": VIEWER_DIR, "node_modules": modules, "output": output}
 
 
-def start_viewer(work_dir: str | Path, port: int = 0) -> ViewerServer:
-    """Serve in a background thread (port 0 = any free port); returns the running server."""
-    handler = functools.partial(_Handler, roots=_roots(work_dir))
-    httpd = ThreadingHTTPServer(("127.0.0.1", port), handler)
+def _httpd(work_dir: str | Path, port: int, label: bool) -> ThreadingHTTPServer:
+    api = None
+    if label:
+        from flows.label_server import LabelApi
+
+        api = LabelApi(Path(work_dir).absolute())
+    return _Server(("127.0.0.1", port), functools.partial(_Handler, roots=_roots(work_dir), api=api))
+
+
+def start_viewer(work_dir: str | Path, port: int = 0, label: bool = False) -> ViewerServer:
+    """Serve in a background thread (port 0 = any free port); returns the running server. label: mount the
+    labelling API (:mod:`flows.label_server`) and open the page in labelling mode."""
+    httpd = _httpd(work_dir, port, label)
     thread = threading.Thread(target=httpd.serve_forever, name="ms3d-viewer", daemon=True)
     thread.start()
-    return ViewerServer(httpd, thread)
+    return ViewerServer(httpd, thread, label)
 
 
-def serve_viewer(work_dir: str | Path, port: int = 8765) -> None:
-    """Serve until interrupted (Ctrl-C); prints the viewer's URL."""
-    handler = functools.partial(_Handler, roots=_roots(work_dir))
-    httpd = ThreadingHTTPServer(("127.0.0.1", port), handler)
-    server = ViewerServer(httpd, None)
+def serve_viewer(work_dir: str | Path, port: int = 8765, label: bool = False) -> None:
+    """Serve until interrupted (Ctrl-C); prints the viewer's URL (``label``: as :func:`start_viewer`)."""
+    httpd = _httpd(work_dir, port, label)
+    server = ViewerServer(httpd, None, label)
     print(f"ms3d viewer: {server.url}  (Ctrl-C to stop)", flush=True)
     try:
         httpd.serve_forever()

@@ -1,11 +1,12 @@
 // ms3d viewer: three.js + 3d-tiles-renderer, no online service. Loads ?tileset=URL (default
 // /output/tileset.json), colours faces by the EXT_structural_metadata provenance (grade, source, region)
-// or shows the textures, and prints the provenance of a clicked face.
+// or shows the textures, and prints the provenance of a clicked face. ?label=1: the labelling mode (label.js).
 import * as THREE from 'three';
 import { OrbitControls } from 'three/addons/controls/OrbitControls.js';
 import { DRACOLoader } from 'three/addons/loaders/DRACOLoader.js';
 import { TilesRenderer } from '3d-tiles-renderer';
 import { GLTFExtensionsPlugin, ReorientationPlugin } from '3d-tiles-renderer/plugins';
+import { setupLabelling } from './label.js';
 
 const params = new URLSearchParams(location.search);
 const tilesetUrl = params.get('tileset') || '/output/tileset.json';
@@ -169,6 +170,7 @@ function pickAt(x, y) {
            distance: +hit.distance.toFixed(2) };
 }
 state.pickAt = pickAt;
+if (params.get('label') === '1') setupLabelling({ tiles, camera, controls, scene, renderer, raycaster, state });
 renderer.domElement.addEventListener('click', (e) => {
   const p = pickAt(e.clientX, e.clientY);
   state.pick = p;

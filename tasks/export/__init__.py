@@ -15,7 +15,9 @@ build), ``gltf`` / ``lod`` / ``georef`` (glb writer, decimation, ENU frame), ``c
 ``python -m tasks.export.check WORKDIR``), ``stage`` (the run and its records).
 """
 
+from tasks.export.georef import EnuProjector, make_georef
 from tasks.export.nodes import NodeJob, build_node
 from tasks.export.stage import build_nodes, node_batches, node_records, run_export, run_export_stage
 
-__all__ = ["NodeJob", "build_node", "build_nodes", "node_batches", "node_records", "run_export", "run_export_stage"]
+__all__ = ["EnuProjector", "NodeJob", "build_node", "build_nodes", "make_georef", "node_batches", "node_records",
+           "run_export", "run_export_stage"]
