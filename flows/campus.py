@@ -23,6 +23,7 @@ from prefect import flow
 from prefect.artifacts import create_table_artifact
 
 from flows.executors import InlineExecutor, PrefectExecutor
+from flows.planned import map_pending, pending, submit_pending
 from flows.summary import CampusRunFailed, summarise
 from flows.tasks import (
     classify_task,
@@ -81,9 +82,9 @@ def scan_inputs(cfg: CampusConfig, wd: WorkDir, ex) -> tuple:
     from tasks.scan import campus_frame, scan_batches, scan_files, scanned_records
 
     found, ids, files = scan_files(cfg)
-    batches = scan_batches(files, cfg.cluster.n_workers)
-    scans = ex.map(scan_task, batches, "scan", cfg_json=cfg.model_dump(mode="json")).results()
-    records = scanned_records(batches, scans)
+    scans = map_pending(wd, ex, scan_task, files, "scan", lambda todo: scan_batches(todo, cfg.cluster.n_workers),
+                        cfg_json=cfg.model_dump(mode="json"))
+    records = scanned_records([files], scans)
     return records, campus_frame(records, cfg), found, ids, scans
 
 
@@ -137,11 +138,14 @@ def _inputs(run: _Run) -> dict:
     cfg, wd, ex = run.cfg, run.wd, run.ex
     records, frame, found, ids, scans = scan_inputs(cfg, wd, ex)
     rec_json = [r.to_json() for r in records]
-    reg_future = ex.submit(register_task, rec_json, frame.to_json(), run.cfg_json)
+    reg_future = submit_pending(wd, ex, register_task, rec_json, frame.to_json(), run.cfg_json)
     units = plan_units(records, cfg.tiling.chunk_points)
-    mesh_batches, point_batches = ingest_batches(units, run.n_workers)
-    mesh_ingest = ex.map(ingest_task, mesh_batches, "ingest meshes", cfg_json=run.cfg_json,
-                         frame_json=frame.to_json(), matrix=None)
+    ingest_consts = {"cfg_json": run.cfg_json, "frame_json": frame.to_json()}
+    mesh_units = [u for u in units if u.kind == "mesh"]
+    todo, mesh_done = pending(wd, ingest_task, [u.to_json() for u in mesh_units], "ingest meshes",
+                              **ingest_consts, matrix=None)
+    mesh_batches, _ = ingest_batches(_named(mesh_units, todo), run.n_workers)
+    mesh_ingest = ex.map(ingest_task, mesh_batches, "ingest meshes", **ingest_consts, matrix=None)
     registration = reg_future.result()
     if "error" in registration:
         mesh_ingest.results()
@@ -150,9 +154,10 @@ def _inputs(run: _Run) -> dict:
                  extra={"name": cfg.name, "inputs": rec_json, "grid": cfg.grid().to_json(),
                         "skipped_files": [list(s) for s in found.skipped]})
     matrix = np.asarray(registration["matrix"], np.float64)
-    point_ingest = ex.map(ingest_task, point_batches, "ingest points", cfg_json=run.cfg_json,
-                          frame_json=frame.to_json(), matrix=matrix.tolist())
-    ingests = mesh_ingest.results() + point_ingest.results()
+    point_ingest = map_pending(wd, ex, ingest_task, [u.to_json() for u in units if u.kind == "points"],
+                               "ingest points", lambda todo: [[u] for u in todo], **ingest_consts,
+                               matrix=matrix.tolist())
+    ingests = [r for rs in mesh_done.values() for r in rs] + mesh_ingest.results() + point_ingest
     blocked, failed, incomplete = blocked_tiles(records, ingests, units, frame, matrix, cfg.grid())
     run.failed.update(failed)
     run.stages |= {"scan": scans, "ingest": ingests}
@@ -173,23 +178,25 @@ def _tiles(run: _Run, inputs: dict) -> dict:
     hints = input_tiles(inputs["records"], inputs["frame"], inputs["matrix"], cfg.grid())
     tiles = sorted({k for h in hints.values() for k in h} | {t.key for t in wd.staged_tiles()}
                    | set(wd.tile_keys_on_disk()))
-    batches = fixed_batches(tiles, cfg.cluster.tiles_per_task)
-    parts = run.note("tile", ex.map(partition_task, batches, "partition", cfg_json=cj,
-                                    frame_json=inputs["frame"].to_json(), blocked=inputs["blocked"]).results())
+    def batches(todo: list[str]) -> list[list[str]]:
+        return fixed_batches(todo, cfg.cluster.tiles_per_task)
+
+    parts = run.note("tile", map_pending(wd, ex, partition_task, tiles, "partition", batches, cfg_json=cj,
+                                         frame_json=inputs["frame"].to_json(), blocked=inputs["blocked"]))
     run.note("labels", [{"status": "failed", "unit": s["unit"], "error": s["labels_error"]}
                         for s in parts if s.get("labels_error")])
     drop_unplanned_records(wd, "partition", set(tiles))
     drop_unplanned_records(wd, "labels", set(tiles))
-    outliers = ex.submit(outliers_task, cj).result()
-    grades = run.note("classify", ex.map(classify_task, batches, "classify", cfg_json=cj).results())
+    outliers = submit_pending(wd, ex, outliers_task, cj).result()
+    grades = run.note("classify", map_pending(wd, ex, classify_task, tiles, "classify", batches, cfg_json=cj))
     drop_unplanned_records(wd, "classify", set(tiles))
-    plan = ex.submit(regions_task, cj).result()
+    plan = submit_pending(wd, ex, regions_task, cj).result()
     run.note("regions", [plan], per_unit=False)
     todo, unchanged = pending_regions(plan["regions"], cfg, wd)  # one read of the plan and the records
     weight = dict(zip(plan["regions"], plan["weights"]))
     region_batches = balanced_batches(todo, [weight.get(k, 1.0) for k in todo], 4 * run.n_workers)
     repairs = run.note("region", unchanged + ex.map(repair_task, region_batches, "repair", cfg_json=cj).results())
-    merges = run.note("merge", ex.map(merge_task, batches, "merge", cfg_json=cj).results())
+    merges = run.note("merge", map_pending(wd, ex, merge_task, tiles, "merge", batches, cfg_json=cj))
     drop_unplanned_records(wd, "merge", set(tiles))
     run.stages |= {"partition": parts, "classify": grades, "repair": repairs, "merge": merges}
     return outliers
@@ -216,9 +223,15 @@ def _outputs(run: _Run) -> tuple[dict, dict]:
         if not any(g.get("status") == "failed" for g in got):
             write_quality(wd, qplan["key"], [g["sums"] for g in got])
     run.note("export", [exported], per_unit=False)
-    report = ex.submit(report_task, cj).result() if cfg.report.enabled else {"status": "skipped"}
+    report = submit_pending(wd, ex, report_task, cj).result() if cfg.report.enabled else {"status": "skipped"}
     run.note("report", [report], per_unit=False)
     return exported, report
+
+
+def _named(units: list, todo: list[dict]) -> list:
+    """The ingest units (``IngestUnit``) whose JSON is in ``todo``, in their order."""
+    keys = {u["key"] for u in todo}
+    return [u for u in units if u.key in keys]
 
 
 def _publish_artifact(summary: dict) -> None:
@@ -258,8 +271,19 @@ def run_campus(cfg: CampusConfig, progress: bool = True) -> dict:
     if cfg.runner == "inline":
         return reprocess(cfg, InlineExecutor())
     with embedded_prefect(wd.prefect_dir, cfg.cluster.prefect_api_url):
+        log.info("Prefect API up %.1f s after the process started", _since_process_start())
         runner = make_task_runner(cfg)
         return reprocess_campus.with_options(task_runner=runner)(cfg.model_dump(mode="json"), progress=progress)
+
+
+def _since_process_start() -> float:
+    """Seconds since this process started (NaN when unknown)."""
+    try:
+        import psutil
+
+        return time.time() - psutil.Process().create_time()
+    except Exception:  # noqa: BLE001 - a figure for the log only
+        return float("nan")
 
 
 @flow(name="reprocess-campus-from-config")

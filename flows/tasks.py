@@ -22,7 +22,7 @@ from storage.ids import TileId
 from storage.inputs import InputFile
 from storage.workdir import WorkDir
 from tasks.config import CampusConfig
-from tasks.units import record_step
+from tasks.units import Done, MustRun, is_planning, record_step, run_unit, skipped_summary
 
 
 def config_of(cfg_json: dict) -> tuple[CampusConfig, WorkDir]:
@@ -75,7 +75,7 @@ def partition_task(tile_keys: list[str], cfg_json: dict, frame_json: dict, block
     frame = CampusFrame.from_json(frame_json)
     out = []
     for k in tile_keys:
-        if delay:
+        if delay and not is_planning():
             time.sleep(delay)
         t = TileId.from_key(k)
         res = run_partition_tile(t, cfg, wd, frame, blocked.get(k))
@@ -89,10 +89,19 @@ def partition_task(tile_keys: list[str], cfg_json: dict, frame_json: dict, block
 
 @task(name="outliers", cache_policy=NO_CACHE)
 def outliers_task(cfg_json: dict) -> dict:
-    """The campus-wide patch outlier fit."""
+    """The campus-wide patch outlier fit; skipped while no live store changed (``flows.campus_steps``)."""
+    import json
+
+    from flows.campus_steps import outliers_fingerprint, outliers_outputs
     from tasks.outliers import run_outliers
 
-    return run_outliers(*config_of(cfg_json))
+    cfg, wd = config_of(cfg_json)
+
+    def work() -> Done:
+        out = json.loads(json.dumps(run_outliers(cfg, wd)))
+        return Done(outputs=outliers_outputs(wd), summary=out)
+
+    return run_unit(wd, "outliers", "campus", outliers_fingerprint(wd), cfg.stage_params("outliers"), work)
 
 
 def _per_tile(run, tile_keys: list[str], cfg_json: dict) -> list[dict]:
@@ -112,9 +121,27 @@ def classify_task(tile_keys: list[str], cfg_json: dict) -> list[dict]:
 @task(name="regions", cache_policy=NO_CACHE)
 def regions_task(cfg_json: dict) -> dict:
     """Plan the bad regions of the campus: {"status", "regions": [keys], "weights": [bytes per key], ...}."""
-    from tasks.regions import run_regions
+    from flows.campus_steps import regions_fingerprint, regions_params
+    from storage.region_plan import plan_path, read_plan
+    from tasks.regions import region_weight, run_regions
 
-    return run_regions(*config_of(cfg_json))
+    cfg, wd = config_of(cfg_json)
+    ran: dict = {}
+
+    def work() -> Done:
+        ran.update(run_regions(cfg, wd))
+        if ran["status"] == "failed":
+            raise InputError(None, ran["error"])
+        return Done(outputs=[str(plan_path(wd.root).relative_to(wd.root))],
+                    summary={k: v for k, v in ran.items() if k not in ("regions", "weights")})
+
+    res = run_unit(wd, "regions", "campus", regions_fingerprint(wd), regions_params(cfg), work)
+    if res["status"] == "failed":
+        return {**res, "regions": [], "weights": []}
+    if ran:
+        return {**ran, **res}
+    plan = read_plan(wd.root)  # skipped: the plan on disk is current
+    return {**res, "regions": [r.key for r in plan], "weights": [region_weight(r) for r in plan]}
 
 
 @task(name="repair", cache_policy=NO_CACHE)
@@ -157,7 +184,15 @@ def quality_task(cfg_json: dict, plan: dict, part: tuple[int, int]) -> dict:
 @task(name="report", cache_policy=NO_CACHE)
 def report_task(cfg_json: dict) -> dict:
     """Write the run report (``output/report.html``)."""
+    from flows.campus_steps import report_fingerprint, report_params
+    from storage.manifest import is_done, params_hash
     from tasks.report import run_report
 
     cfg, wd = config_of(cfg_json)
-    return record_step(wd, "report", "campus", partial(run_report, cfg, wd, quality=cfg.report.quality))
+    fp, ph = report_fingerprint(wd), params_hash(report_params(cfg))
+    rec = is_done(wd, "report", "campus", fp, ph)
+    if rec is not None and (wd.root / "output" / "report.html").exists():
+        return {**skipped_summary(rec), "report": str(wd.root / "output" / "report.html")}
+    if is_planning():
+        raise MustRun("report", "campus")
+    return record_step(wd, "report", "campus", partial(run_report, cfg, wd, quality=cfg.report.quality), fp, ph)

@@ -16,7 +16,8 @@ from __future__ import annotations
 import contextlib
 import errno
 import time
-from collections.abc import Callable
+from collections.abc import Callable, Iterator
+from contextvars import ContextVar
 from dataclasses import dataclass, field
 
 from storage.errors import EmptyTileError, InputError
@@ -160,15 +161,67 @@ def pending_units(wd: WorkDir, stage: str, fingerprints: dict[str, str], params:
     return run, skipped
 
 
+class MustRun(Exception):  # noqa: N818 - a planning signal, not an error
+    """Raised by :func:`run_unit` inside :func:`planning` for a unit that is not current: it must run."""
+
+    def __init__(self, stage: str, unit: str):
+        super().__init__(f"{stage} {unit} must run")
+        self.stage, self.unit = stage, unit
+
+
+class _Plan:
+    """The records of each stage, read once (on the first unit of that stage) for a planning pass."""
+
+    def __init__(self, wd: WorkDir):
+        self.wd, self.records = wd, {}
+
+    def current(self, stage: str, unit: str, fingerprint: str, phash: str) -> ManifestRecord:
+        """The unit's current record; raises MustRun when there is none."""
+        if stage not in self.records:
+            self.records[stage] = read_stage_records(self.wd, stage)
+        rec = self.records[stage].get(unit)
+        if not record_is_current(self.wd, rec, fingerprint, phash):
+            raise MustRun(stage, unit)
+        return rec
+
+
+_PLANNING: ContextVar[_Plan | None] = ContextVar("ms3d_planning", default=None)
+
+
+@contextlib.contextmanager
+def planning(wd: WorkDir) -> Iterator[None]:
+    """Plan instead of run: inside, :func:`run_unit` returns the :func:`skipped_summary` of a current unit
+    and raises :class:`MustRun` for any other, without running its work. A stage's run function called
+    here computes its fingerprints exactly as when it runs, so the units it returns skipped are exactly
+    those a task would skip; each stage's records are read once (:func:`read_stage_records`).
+
+    A run function's own steps before its ``run_unit`` (a stat, removing a stale side table) happen here
+    too, as they would in the task; they are idempotent.
+    """
+    token = _PLANNING.set(_Plan(wd))
+    try:
+        yield
+    finally:
+        _PLANNING.reset(token)
+
+
+def is_planning() -> bool:
+    """Whether this code runs inside :func:`planning` (e.g. to leave out a test's fault-injection delay)."""
+    return _PLANNING.get() is not None
+
+
 def run_unit(wd: WorkDir, stage: str, unit: str, fingerprint: str, params: dict,
              work: Callable[[], Done], on_fail: Callable[[], None] | None = None) -> dict:
     """Skip ``unit`` if done and unchanged, else run ``work`` and record the outcome.
 
     Returns a summary dict with at least ``unit``, ``status`` ("done", "empty", "failed") and
     ``skipped``; a failure adds ``error`` (one line). ``on_fail`` runs after a failure (e.g. to mark a
-    stale output); it must not raise.
+    stale output); it must not raise. Inside :func:`planning`, raises :class:`MustRun` instead of running.
     """
     ph = unit_params(stage, params)
+    plan = _PLANNING.get()
+    if plan is not None:
+        return skipped_summary(plan.current(stage, unit, fingerprint, ph))
     rec = is_done(wd, stage, unit, fingerprint, ph)
     if rec is not None:
         return skipped_summary(rec)
