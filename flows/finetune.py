@@ -11,6 +11,9 @@ demo campuses and ``--work-dir`` labelled campuses, as ``ms3d train`` builds the
   validation pairs (area split with a buffer, as ``ms3d train``), plus the user's held-out pairs.
 - Networks: not yet (one clear error); ``ms3d_model.train.train_model`` starts from fresh weights.
 
+When the user's campus is itself among the synth campuses (a labelled synth campus), its pairs at the
+user-labelled patches are left out of the synth pairs, so the held-out user figures are not leaked.
+
 Writes ``OUT/finetuned.pt``, ``OUT/MODEL_CARD.md`` (data, counts, figures on the held-out user labels for the
 base and the fine-tuned model) and ``OUT/finetune.json``. Point ``classify.model`` at the checkpoint: the
 classify stage re-grades (a new model hash), and repair re-runs only the regions whose patches changed.
@@ -77,6 +80,18 @@ def user_pairs(work_dir: str | Path, name: str, prof):
     return PairSet.concat(parts), len(keys) - found
 
 
+def _users_own(synth, campuses: dict[str, str], work_dir: str, users) -> np.ndarray:
+    """(B,) bool: synth pairs of the user's own campus (a labelled synth campus can be both) at patches the
+    user labelled; they are left out so the held-out user labels never leak into training."""
+    from storage.grid import PatchGrid
+
+    own = [n for n, w in campuses.items() if Path(w).resolve() == Path(work_dir).resolve()]
+    if not own or not len(synth):
+        return np.zeros(len(synth), bool)
+    in_own = np.isin(np.asarray(synth.names)[synth.campus], own)
+    return in_own & np.isin(PatchGrid.pack(synth.ijk), PatchGrid.pack(users.ijk))
+
+
 def _figures(labels: np.ndarray, p_bad: np.ndarray, threshold: float) -> dict:
     y, pred = np.asarray(labels) == 1, np.asarray(p_bad) >= threshold
     tp = int((y & pred).sum())
@@ -116,6 +131,8 @@ def finetune(spec: FinetuneSpec) -> dict:
     if not campuses:
         raise InputError(spec.campus, "no synth pairs to mix with: give --seeds or --work-dir")
     synth = load_pairs(campuses, prof, str(Path(spec.data) / "cache"))
+    excluded = _users_own(synth, campuses, cfg.work_dir, users)
+    synth = synth.take(np.flatnonzero(~excluded))
     size = np.asarray(cfg.grid().size_m, np.float64)
     s_tr, s_va = area_split(synth.ijk, size, synth.campus, spec.block_m, 0.2, prof.seed, 0.0)
     tr = PairSet.concat([synth.take(np.flatnonzero(s_tr))] + [users.take(u_tr)] * max(spec.user_weight, 1))
@@ -124,7 +141,8 @@ def finetune(spec: FinetuneSpec) -> dict:
 
     out = Path(spec.out)
     t_fit = time.perf_counter()
-    res = fit_tree_model(replace(prof, name=f"{prof.name}:finetune"), tr, va, out)
+    prof = replace(prof, name=f"{prof.name}:finetune", net=replace(prof.net, n_cues=int(tr.cues.shape[1])))
+    res = fit_tree_model(prof, tr, va, out)  # the current cue set: older trees read its leading columns
     fit_seconds = time.perf_counter() - t_fit
     best = out / "finetuned.pt"
     Path(res["best_path"]).replace(best)
@@ -136,7 +154,7 @@ def finetune(spec: FinetuneSpec) -> dict:
                "checkpoint": str(best), "model_hash": res["model_hash"], "synth_campuses": campuses,
                "n_user_labels": len(users) + dropped, "n_user_dropped_not_pairs": dropped,
                "n_user_train": len(u_tr), "n_user_heldout": len(u_va), "user_weight": spec.user_weight,
-               "n_synth_train": int(s_tr.sum()), "n_synth_val": int(s_va.sum()), "validation": res["best"],
+               "n_synth_excluded_user_patches": int(excluded.sum()), "n_synth_train": int(s_tr.sum()), "n_synth_val": int(s_va.sum()), "validation": res["best"],
                "heldout_user": figs, "fit_seconds": fit_seconds, "wall_seconds": time.perf_counter() - t0}
     (out / "finetune.json").write_text(json.dumps(summary, indent=1, default=str))
     (out / "MODEL_CARD.md").write_text(model_card(summary))

@@ -207,9 +207,10 @@ def test_finetune_on_user_labels_writes_a_checkpoint_that_loads_and_regrades(tin
 
     t0 = time.perf_counter()
     s = finetune(FinetuneSpec(campus=str(config), base=str(DEFAULT_MODEL), out=str(tmp_path / "ft"), seeds=[],
-                              work_dirs=[str(wd0.root)], data=str(tmp_path / "data"), holdout=0.25))
+                              work_dirs=[str(work)], data=str(tmp_path / "data"), holdout=0.25))
     assert time.perf_counter() - t0 < 40
     assert s["n_user_labels"] == len(picked) + 1 and s["n_user_dropped_not_pairs"] == 1
+    assert s["n_synth_excluded_user_patches"] == len(picked)  # the campus is also a synth one: no leak
     assert s["n_user_train"] + s["n_user_heldout"] == len(picked) and s["n_user_heldout"] == round(0.25 * len(picked))
     card = (tmp_path / "ft" / "MODEL_CARD.md").read_text()
     assert "Held-out user labels" in card and f"{s['n_user_heldout']} held out" in card
