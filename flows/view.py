@@ -59,8 +59,13 @@ class _Handler(SimpleHTTPRequestHandler):
 
     def _api(self, method: str) -> None:
         """A labelling API request: JSON in, JSON out; a failure is one line in the log, never a traceback."""
-        n = int(self.headers.get("Content-Length") or 0)
-        if n > MAX_BODY:
+        try:
+            n = int(self.headers.get("Content-Length") or 0)
+        except ValueError:
+            n = -1
+        if n < 0:
+            status, doc = 400, {"error": "bad Content-Length"}
+        elif n > MAX_BODY:
             status, doc = 413, {"error": f"body over {MAX_BODY} bytes"}
         elif self.api is None:
             status, doc = 404, {"error": "labelling is off: start the viewer with --label"}
