@@ -229,3 +229,22 @@ def test_finetune_on_user_labels_writes_a_checkpoint_that_loads_and_regrades(tin
     agree = np.mean([graded[k] == v for k, v in truth.items()])
     assert agree >= 0.75, agree
     assert all(r["skipped"] for r in (run_classify_tile(t, cfg, wd) for t in wd.live_tiles()))
+
+
+def test_user_labels_latest_row_wins_and_a_bad_file_is_one_line(tmp_path):
+    import datetime as dt
+
+    from storage.errors import InputError
+    from storage.user_labels import append_user_label, read_user_labels
+
+    t0 = dt.datetime(2026, 5, 1, 12, 0, tzinfo=dt.UTC)
+    append_user_label(tmp_path, (1, 2, 3), 1, t0)
+    append_user_label(tmp_path, (4, 5, 6), 0, t0 + dt.timedelta(seconds=1))
+    append_user_label(tmp_path, (1, 2, 3), 0, t0 + dt.timedelta(days=1))  # next day's file: changed their mind
+    assert sorted(p.name for p in (tmp_path / "labels").iterdir()) == ["user-2026-05-01.csv", "user-2026-05-02.csv"]
+    keys, labels = read_user_labels(tmp_path)
+    assert dict(zip(map(tuple, PatchGrid.unpack(keys).tolist()), labels.tolist())) == {(1, 2, 3): 0, (4, 5, 6): 0}
+    (tmp_path / "labels" / "user-2026-05-03.csv").write_text("i,j,k,label,time\n1,2,3,7,2026-05-03T00:00:00+00:00\n")
+    with pytest.raises(InputError) as e:
+        read_user_labels(tmp_path)
+    assert "user-2026-05-03.csv" in str(e.value) and "line 2" in str(e.value) and "\n" not in str(e.value)
