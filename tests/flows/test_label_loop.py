@@ -100,24 +100,21 @@ def test_non_loopback_clients_are_refused(export_copy):
     assert not h._loopback() and h.sent == [403]
 
 
-def test_least_sure_orders_by_distance_to_the_threshold(tiny_work, tmp_path):
+@pytest.fixture
+def graded_work(tiny_work, tiny_export, tmp_path):
+    """A copy of the processed tiny campus with seeded random grades (threshold 0.4) and the tiny export's
+    output/ (the same synth campus, so the same world and ECEF), georeferenced from this campus's frame.
+    Returns (work dir, (u,) keys, (u,) scores)."""
     from storage.patch_reader import PatchStore
     from storage.patch_writer import write_side_table
     from storage.workdir import WorkDir, campus_frame, read_campus
     from tasks.export import make_georef
 
     rng = np.random.default_rng(3)
-    keys = np.arange(50, dtype=np.int64)
-    scores = rng.random(50)
-    scores[[4, 9]] = np.nan
-    got = least_sure(keys, scores, 0.3, 10)
-    margin = np.abs(scores - 0.3)
-    assert got.tolist() == np.argsort(np.where(np.isnan(margin), np.inf, margin), kind="stable")[:10].tolist()
-    assert 4 not in least_sure(keys, scores, 0.3, 100) and len(least_sure(keys, scores, 0.3, 100)) == 48
-
     _, wd0 = tiny_work
-    work = tmp_path / "work"
-    shutil.copytree(wd0.root, work, ignore=shutil.ignore_patterns("*.npz", "regions", "labels"))
+    work = tmp_path / "graded"
+    shutil.copytree(wd0.root, work, ignore=shutil.ignore_patterns("*.npz", "regions", "labels", "output"))
+    shutil.copytree(tiny_export[0] / "output", work / "output")
     wd = WorkDir(work)
     all_keys, all_scores = [], []
     for t in wd.live_tiles():
@@ -129,11 +126,23 @@ def test_least_sure_orders_by_distance_to_the_threshold(tiny_work, tmp_path):
         all_keys.append(k)
         all_scores.append(s)
     frame = campus_frame(read_campus(wd))
-    (work / "output").mkdir(exist_ok=True)
     (work / "output" / "georef.json").write_text(json.dumps(make_georef(frame.crs, frame.origin, (50.0, 50.0, 0.0)).to_json()))
+    return work, np.concatenate(all_keys), np.concatenate(all_scores).astype(np.float64)
+
+
+def test_least_sure_orders_by_distance_to_the_threshold(graded_work):
+    rng = np.random.default_rng(3)
+    keys = np.arange(50, dtype=np.int64)
+    scores = rng.random(50)
+    scores[[4, 9]] = np.nan
+    got = least_sure(keys, scores, 0.3, 10)
+    margin = np.abs(scores - 0.3)
+    assert got.tolist() == np.argsort(np.where(np.isnan(margin), np.inf, margin), kind="stable")[:10].tolist()
+    assert 4 not in least_sure(keys, scores, 0.3, 100) and len(least_sure(keys, scores, 0.3, 100)) == 48
+
+    work, k_all, s_all = graded_work
     api = LabelApi(work)
     props = api.proposals(15)
-    k_all, s_all = np.concatenate(all_keys), np.concatenate(all_scores).astype(np.float64)
     want = k_all[least_sure(k_all, s_all, 0.4, 15)]
     ijk = np.array([[p["i"], p["j"], p["k"]] for p in props["proposals"]])
     assert PatchGrid.pack(ijk).tolist() == want.tolist() and props["threshold"] == pytest.approx(0.4)
@@ -150,18 +159,32 @@ def test_least_sure_orders_by_distance_to_the_threshold(tiny_work, tmp_path):
                                                              props["proposals"][1]["k"])
 
 
-def test_headless_browser_labels_two_patches_into_the_csv(export_copy):
+def _drive(work: Path, mode: str) -> dict:
     from tests.flows.test_view import _tools_or_fail
 
     _tools_or_fail()
-    server = start_viewer(export_copy, label=True)
+    server = start_viewer(work, label=True)
     try:
-        run = subprocess.run(["node", str(VIEWER_DIR / "label.mjs"), server.url, "1024", "700", "90000"],
+        run = subprocess.run(["node", str(VIEWER_DIR / "label.mjs"), server.url, "1024", "700", "90000", mode],
                              check=False, capture_output=True, text=True, timeout=150)
     finally:
         server.stop()
     assert run.returncode == 0, run.stderr[-2000:]
-    result = json.loads(run.stdout)
+    return json.loads(run.stdout)
+
+
+def test_headless_browser_labels_the_least_sure_patches_with_the_keys(graded_work):
+    work, k_all, s_all = graded_work
+    result = _drive(work, "propose")
+    assert result["ready"] and not result.get("error") and not result["console"], result
+    want = PatchGrid.unpack(k_all[least_sure(k_all, s_all, 0.4, 2)]).tolist()
+    assert [[c["i"], c["j"], c["k"]] for c in result["clicks"]] == want and [c["label"] for c in result["clicks"]] == [1, 0]
+    rows = [[int(r[c]) for c in ("i", "j", "k", "label")] for r in _rows(work)]
+    assert rows == [want[0] + [1], want[1] + [0]]
+
+
+def test_headless_browser_labels_two_patches_into_the_csv(export_copy):
+    result = _drive(export_copy, "click")
     assert result["ready"] and not result.get("error") and not result["console"], result
     clicks = result["clicks"]
     assert len(clicks) == 2 and [c["label"] for c in clicks] == [1, 0], result
