@@ -138,7 +138,7 @@ def fit_tree_model(prof, tr, va, out: Path) -> dict:
 
     t0, c0 = time.perf_counter(), time.process_time()
     clf = fit_gbm(tr.cues, tr.labels, seed=prof.seed, max_iter=prof.gbm_max_iter, learning_rate=prof.gbm_lr,
-                  max_leaf_nodes=prof.gbm_leaves, l2=prof.gbm_l2, balanced=prof.loss != "ce")
+                  max_leaf_nodes=prof.gbm_leaves, l2=prof.gbm_l2, balanced=prof.gbm_balanced)
     arrays = tree_arrays(clf)
     prof = replace(prof, net=replace(prof.net, tree_depth=tree_depth(arrays)))
     net = build_net(prof.net, {k: torch.from_numpy(v) for k, v in arrays.items()})
