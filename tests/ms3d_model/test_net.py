@@ -58,6 +58,23 @@ def test_every_variant_runs_forward_and_backward(name):
     assert all(g is not None for g in grads) and any(float(g.abs().sum()) > 0 for g in grads)
 
 
+def test_a_network_of_the_older_25_cue_set_reads_the_leading_columns():
+    """The shipped MS3DQE-Net+ was trained on 25 cues; the featuriser now appends more: same output, and the
+    appended columns are ignored (changing them changes nothing)."""
+    torch.manual_seed(0)
+    net = make_model(replace(TINY, net=replace(TINY.net, n_cues=25)), _pairs(8).cues).eval()
+    ps = _pairs(4)
+    assert N_CUES > 25
+    with torch.no_grad():
+        full = net(to_batch(ps.feats, ps.cues))
+        lead = net(to_batch(ps.feats, ps.cues[:, :25]))
+        other = ps.cues.copy()
+        other[:, 25:] = 1e3
+        changed = net(to_batch(ps.feats, other))
+    torch.testing.assert_close(full, lead)
+    torch.testing.assert_close(full, changed)
+
+
 @pytest.mark.parametrize("name", ["ablation Full", "ms3dqe+", "meshnet", "ablation (4)"])
 def test_permuting_points_and_faces_leaves_the_output_unchanged(name):
     torch.manual_seed(0)
@@ -177,3 +194,18 @@ def test_gbm_ships_as_a_tree_net_with_the_same_probabilities(tmp_path):
     loaded, _, _ = load_checkpoint(tmp_path / "gbm.pt")
     p = torch.softmax(loaded({"cues": torch.from_numpy(x)}), 1)[:, 1].numpy()
     np.testing.assert_allclose(p, gbm_p_bad(clf, x), atol=1e-6)
+
+
+def test_the_trees_follow_the_profiles_gbm_fields_and_ship_a_threshold(tmp_path):
+    from flows.train import fit_tree_model
+    from ms3d_model.profiles import Profile
+
+    ps = _pairs(200, seed=3)
+    ps.cues[:, 0] += ps.labels * 2.0  # one informative cue
+    prof = replace(TINY, net=replace(TINY.net, arch="gbm", n_cues=N_CUES), gbm_max_iter=3, gbm_leaves=4, gbm_lr=0.3)
+    res = fit_tree_model(prof, ps.take(np.arange(150)), ps.take(np.arange(150, 200)), tmp_path / "gbm")
+    net, p2, meta = load_checkpoint(res["best_path"])
+    assert res["best"]["epoch"] == 3 and net.feature.shape[0] == 3 and (p2.gbm_leaves, p2.gbm_max_iter) == (4, 3)
+    assert meta["threshold"] == res["threshold"] and 0 < res["threshold"] < 1
+    old = {k: v for k, v in prof.to_json().items() if not k.startswith("gbm_")}  # written before the fields
+    assert Profile.from_json(old).gbm_leaves == Profile().gbm_leaves
