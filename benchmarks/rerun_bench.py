@@ -9,7 +9,10 @@ every region, exactly as :func:`tasks.repair.run_region` records them. Then it t
    unchanged campus: every region must be skipped;
 2. the planner after one tile's store changed (a strip rewritten): exactly the regions on that tile run;
 3. the per-unit path the flow took before (``run_region`` on each key, skipping through its own record
-   check), on a sample of ``--sample`` keys, extrapolated to all of them.
+   check), on a sample of ``--sample`` keys, extrapolated to all of them;
+4. the flow's planner for a per-tile stage (``flows.planned.pending``: the stage's task function called
+   under ``tasks.units.planning``) over the ``--tiles`` stores, each with a done record fingerprinted by
+   its store (as classify does; the stage's own setup, e.g. loading the network, is not included).
 
 Usage: ``python benchmarks/rerun_bench.py [--regions 50000] [--tiles 400] [--sample 200]``
 """
@@ -35,7 +38,9 @@ from storage.workdir import WorkDir  # noqa: E402
 from tasks.config import CampusConfig  # noqa: E402
 from tasks.repair import pending_regions, region_fingerprint, run_region  # noqa: E402
 from tasks.repair.stage import region_params  # noqa: E402
-from tasks.units import unit_params  # noqa: E402
+from flows.planned import pending  # noqa: E402
+from storage.store_state import store_fingerprint  # noqa: E402
+from tasks.units import Done, run_unit, unit_params  # noqa: E402
 
 
 def build_work_dir(root: Path, n_regions: int, n_tiles: int, seed: int = 0) -> tuple[CampusConfig, list[str]]:
@@ -77,6 +82,32 @@ def build_work_dir(root: Path, n_regions: int, n_tiles: int, seed: int = 0) -> t
     return cfg, [r.key for r in regions]
 
 
+class _TileStage:
+    """A per-tile task as the flow maps it (``fn(batch, cfg_json)``): each tile is a ``run_unit`` of the
+    "classify" stage fingerprinted by its store."""
+
+    def __init__(self, wd: WorkDir):
+        self.wd = wd
+
+    def fn(self, batch: list[str], cfg_json: dict) -> list[dict]:
+        return [run_unit(self.wd, "classify", k, store_fingerprint(self.wd.root / "tiles" / k), cfg_json,
+                         lambda: Done(outputs=[f"tiles/{k}/{PATCHES_FILE}"])) for k in batch]
+
+
+def time_tile_stage(wd: WorkDir, tiles: list[str]) -> tuple[float, float]:
+    """(seconds of the first run recording every tile, seconds of the no-op plan) for :class:`_TileStage`."""
+    stage, params = _TileStage(wd), {"model_hash": "bench"}
+    t0 = time.perf_counter()
+    ran = stage.fn(tiles, params)
+    t_run = time.perf_counter() - t0
+    assert not any(r["skipped"] for r in ran)
+    t0 = time.perf_counter()
+    todo, done = pending(wd, stage, tiles, "bench tiles", cfg_json=params)
+    t_plan = time.perf_counter() - t0
+    assert not todo and len(done) == len(tiles)
+    return t_run, t_plan
+
+
 def main(argv: list[str] | None = None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--regions", type=int, default=50_000)
@@ -90,12 +121,12 @@ def main(argv: list[str] | None = None) -> int:
         wd = WorkDir(root)
         print(f"built {a.regions:,} regions over {a.tiles} tiles with done records in {time.perf_counter() - t0:.1f} s")
 
-        t0 = time.perf_counter()
+        t0, c0 = time.perf_counter(), time.process_time()
         todo, skipped = pending_regions(keys, cfg, wd)
-        t_plan = time.perf_counter() - t0
+        t_plan, c_plan = time.perf_counter() - t0, time.process_time() - c0
         assert not todo and len(skipped) == len(keys), (len(todo), len(skipped))
-        print(f"no-op plan:        {t_plan:6.2f} s  ({len(todo)} to run, {len(skipped):,} skipped; "
-              f"{1e6 * t_plan / len(keys):.0f} us per unit)")
+        print(f"no-op plan:        {t_plan:6.2f} s wall, {c_plan:.2f} s CPU ({len(todo)} to run, {len(skipped):,} "
+              f"skipped; {1e6 * t_plan / len(keys):.0f} us per unit)")
 
         changed = "0_0"
         p = root / "tiles" / changed / PATCHES_FILE
@@ -117,6 +148,11 @@ def main(argv: list[str] | None = None) -> int:
         per = t_old / len(sample)
         print(f"per-unit skipping (before): {1e3 * per:.1f} ms per unit on {len(sample)} units "
               f"-> {per * len(keys):,.0f} s for {len(keys):,} (task-run overhead not included)")
+
+        tiles = sorted(p.name for p in (root / "tiles").iterdir())
+        t_run, t_tiles = time_tile_stage(wd, tiles)
+        print(f"per-tile stage no-op plan: {t_tiles:6.2f} s for {len(tiles)} tiles "
+              f"({1e3 * t_tiles / len(tiles):.2f} ms per tile, no task run; recording them took {t_run:.2f} s)")
     return 0
 
 

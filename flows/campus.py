@@ -6,6 +6,9 @@ Per-file and per-tile stages are mapped over a Dask cluster with ``prefect_dask.
 local cluster by default, an existing one by address). Tasks receive ids, paths, small JSON records and
 the config, never arrays; every stage's outputs live in the work dir, and each unit is skipped when its
 manifest record is done with matching fingerprints (``tasks.units.run_unit``), so re-running resumes.
+Each stage is planned in this process first (``flows.planned``: its task function under
+``tasks.units.planning``, one read of the stage's records) and only the units that must run become task
+runs: a rerun with nothing changed launches none (and so starts no Dask cluster).
 
 Expected failures (a bad input, a full disk) come back from tasks as failed unit summaries, not as
 exceptions: the user sees each once, in the summary and in ``ms3d status``; Prefect's logs keep the
@@ -188,6 +191,7 @@ def _tiles(run: _Run, inputs: dict) -> dict:
     drop_unplanned_records(wd, "partition", set(tiles))
     drop_unplanned_records(wd, "labels", set(tiles))
     outliers = submit_pending(wd, ex, outliers_task, cj).result()
+    run.note("outliers", [outliers], per_unit=False)
     grades = run.note("classify", map_pending(wd, ex, classify_task, tiles, "classify", batches, cfg_json=cj))
     drop_unplanned_records(wd, "classify", set(tiles))
     plan = submit_pending(wd, ex, regions_task, cj).result()

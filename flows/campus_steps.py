@@ -10,7 +10,8 @@ What each step reads, i.e. what enters its fingerprint:
   ``partition`` config sections (more than the plan uses: a change reruns the plan, never reuses a stale one);
 - report: every manifest record but the report's own (status, fingerprint, parameters and, for the units
   skipped by fingerprint, seconds: a unit that ran this run changes it), the content of ``tileset.json`` and
-  ``report/quality.json``, and the ``report`` and ``classify`` config sections.
+  ``report/quality.json``, the ``report`` and ``partition`` config sections and ``classify.threshold`` (a
+  new network changes the classify records).
 """
 
 from __future__ import annotations
@@ -80,5 +81,5 @@ def report_fingerprint(wd: WorkDir) -> str:
 
 def report_params(cfg) -> dict:
     """The run report's parameters (cfg: CampusConfig)."""
-    return {"report": cfg.report.model_dump(mode="json"), "classify": cfg.classify.model_dump(mode="json"),
+    return {"report": cfg.report.model_dump(mode="json"), "classify_threshold": cfg.classify.threshold,
             "partition": cfg.partition.model_dump(mode="json"), "grid": cfg.grid().to_json()}
