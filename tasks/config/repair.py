@@ -97,6 +97,9 @@ class MeshConfig(_Section):
                                "and no replaced vertex lies within this distance, the zone's own surface is sampled "
                                "at this spacing and triangulated with the fused points: a surface the MLS did not "
                                "see keeps the input mesh (tasks.repair.fill); 0: fused points only (the paper)")
+    fill_clears_replaced: bool = Field(True, description="no input-surface sample within fill_step_m of a vertex the "
+                                       "fusion replaced (a protrusion cut back is not put back); false: only the fused "
+                                       "points' feet clear the input surface")
     free_surface: bool = Field(True, description="MLS points of a region farther than max_map_distance_m from every "
                                "face (a passage through a block model, a wall the mesh lost) are meshed on their own "
                                "(Poisson, cut back to the points: tasks.repair.free) and added, not welded")

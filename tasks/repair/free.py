@@ -1,9 +1,10 @@
 """Surface the mesh has no faces for at all: rebuilt from the MLS points alone.
 
 A region's charts rebuild the faces it replaces; the fused points they take lie within
-``max_map_distance_m`` of those faces. What the MLS sees far from every face of the region (the walls
-and ceiling of a passage through a city model's solid block, a free-standing wall the mesh lost) has
-no chart to land in. :func:`free_surface` meshes those points on their own: screened Poisson (open3d)
+``max_map_distance_m`` of those faces. What the MLS sees far from every face of the region and *behind*
+the surface (:func:`behind_surface`: inside the solid, e.g. the walls and ceiling of a passage through
+a city model's block) has no chart to land in. Points in front of the surface (trees, cars, people,
+unclassified) are never meshed this way: they are not the building. :func:`free_surface` meshes those points on their own: screened Poisson (open3d)
 of the points with consistently oriented PCA normals, cut back to where the points are (vertices
 farther than ``keep_m`` from every point go, with their faces), and long faces dropped. The result
 has new vertices only (local ids); it is not welded to the retained mesh (it has no border there).
@@ -27,6 +28,29 @@ def far_points(pts: np.ndarray, xyz: np.ndarray, faces: np.ndarray, reach_m: flo
         return np.ones(len(pts), bool)
     _, _, d = ClosestPoint(xyz, faces).query(pts)
     return d > reach_m
+
+
+def behind_surface(pts: np.ndarray, xyz: np.ndarray, faces: np.ndarray, depth_m: float) -> np.ndarray:
+    """(k,) bool: points (k, 3) more than depth_m behind their closest face (xyz (n, 3), faces (m, 3)),
+    i.e. inside the solid the faces' outward orientation bounds: a passage through a block, not a
+    tree or a car in front of a facade. No faces: none.
+
+    >>> xyz = np.array([[0, 0, 0], [4, 0, 0], [4, 0, 3], [0, 0, 3]], float)   # a wall facing -y
+    >>> f = np.array([[0, 1, 2], [0, 2, 3]])
+    >>> behind_surface(np.array([[1.0, 2.0, 1.0], [1.0, -2.0, 1.0]]), xyz, f, 0.25).tolist()
+    [True, False]
+    """
+    from tasks.repair.mesh import ClosestPoint
+
+    if not (len(pts) and len(faces)):
+        return np.zeros(len(pts), bool)
+    xyz = np.asarray(xyz, np.float64)
+    fid, bary, _ = ClosestPoint(xyz, faces).query(pts)
+    tri = xyz[faces[np.maximum(fid, 0)]]
+    n = np.cross(tri[:, 1] - tri[:, 0], tri[:, 2] - tri[:, 0])
+    n /= np.maximum(np.linalg.norm(n, axis=1), 1e-18)[:, None]
+    foot = np.einsum("kc,kcd->kd", bary, tri)
+    return (fid >= 0) & (np.einsum("ij,ij->i", pts - foot, n) < -depth_m)
 
 
 def free_surface(pts: np.ndarray, *, min_points: int = 50, normal_k: int = 12, depth: int = 8,
@@ -79,4 +103,4 @@ def free_surface(pts: np.ndarray, *, min_points: int = 50, normal_k: int = 12, d
     return v, f, stats
 
 
-__all__ = ["far_points", "free_surface"]
+__all__ = ["behind_surface", "far_points", "free_surface"]

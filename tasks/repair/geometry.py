@@ -19,7 +19,7 @@ from storage.vertex_ids import local_ids
 
 from tasks.repair.chart import zone_charts
 from tasks.repair.fill import SOURCE_FILL, unseen_samples
-from tasks.repair.free import far_points, free_surface
+from tasks.repair.free import behind_surface, far_points, free_surface
 from tasks.repair.support import unsupported_share
 from tasks.repair.defect_types import DefectEvidence, classify_evidence, repair_plan
 from tasks.repair.fuse import (
@@ -151,13 +151,15 @@ def _mesh_points(fused_xyz: np.ndarray, fused_n: np.ndarray, fused_src: np.ndarr
 
 def _free_part(data: RegionInput, mls: np.ndarray, mc, fc, stats: dict) -> tuple[np.ndarray, np.ndarray]:
     """The free surface (:mod:`tasks.repair.free`) of the region's MLS points that no chart takes (farther
-    than ``mc.max_map_distance_m`` from the zone's faces) and no retained face explains (farther than
-    ``mc.free_off_surface_m`` from the context faces): ((v, 3), (f, 3)); empty when ``mc.free_surface``
-    is off."""
+    than ``mc.max_map_distance_m`` from the zone's faces), no retained face explains (farther than
+    ``mc.free_off_surface_m`` from the context faces) and that lie behind the surface (inside the solid):
+    ((v, 3), (f, 3)); empty when ``mc.free_surface`` is off."""
     if not mc.free_surface or not len(mls):
         return np.zeros((0, 3)), np.zeros((0, 3), np.int64)
     far = far_points(mls, data.xyz, data.zone_faces, mc.max_map_distance_m)
     far[far] = far_points(mls[far], data.xyz, data.context_faces, mc.free_off_surface_m)
+    faces = np.concatenate([data.zone_faces, data.context_faces])
+    far[far] = behind_surface(mls[far], data.xyz, faces, mc.free_off_surface_m)
     v, f, st = free_surface(mls[far], min_points=mc.free_min_points, normal_k=fc.normal_k)
     stats["free"] = st
     return v, f
@@ -229,7 +231,8 @@ def repair_region_geometry(data: RegionInput, cfg) -> RegionGeometry:
     t3 = time.perf_counter()
     pts, src, pvert = _mesh_points(fused_xyz, np.concatenate([vn[kept_v], acc_n]), fused_src,
                                    np.r_[kept_v, np.full(len(acc), -1)], fc, mc, stats)
-    fill = unseen_samples(data.xyz, data.zone_faces, fused_xyz, data.xyz[zone_v[fr.replaced & ~locked]],
+    cleared = zone_v[fr.replaced & ~locked] if mc.fill_clears_replaced else zone_v[:0]
+    fill = unseen_samples(data.xyz, data.zone_faces, fused_xyz, data.xyz[cleared],
                           step_m=mc.fill_step_m, reach_m=mc.max_map_distance_m)
     stats["filled"] = len(fill)
     pts, src = np.concatenate([pts, fill]), np.r_[src, np.full(len(fill), SOURCE_FILL, np.int8)]

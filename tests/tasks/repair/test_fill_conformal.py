@@ -143,3 +143,21 @@ def test_unseen_part_keeps_the_input_and_unsupported_rebuilds_fall_back():
     strict = repair_region_geometry(data, RepairConfig.model_validate({"mesh": {"max_unsupported_share": share / 2}}))
     assert strict.mesh.n_faces == 0 and not strict.replaced.any()
     assert strict.stats["plan"].startswith("fallback")
+
+
+def test_points_in_front_of_the_surface_are_never_meshed_freely():
+    """A tree or a car in front of a facade (far from the mesh, in front of it) is not the building."""
+    import trimesh
+
+    from tasks.config.repair import RepairConfig
+    from tasks.repair.geometry import RegionInput, repair_region_geometry
+
+    block = trimesh.creation.box(extents=(20.0, 12.0, 9.0))
+    block.apply_translation((10.0, 6.0, 4.5))
+    v, f = np.asarray(block.vertices, float), np.asarray(block.faces, np.int64)
+    g = np.stack(np.meshgrid(np.arange(6.0, 12.0, 0.05), np.arange(0.5, 2.8, 0.05)), -1).reshape(-1, 2)
+    tree = np.c_[g[:, 0], np.full(len(g), -3.0), g[:, 1]]  # 3 m in front of the block's front face
+    data = RegionInput(xyz=v, vertex_id=np.arange(len(v)), zone_faces=np.zeros((0, 3), np.int64), context_faces=f,
+                       near_zone=np.zeros(len(v), bool), mls_xyz=tree, mls_class=np.zeros(len(tree), np.uint8),
+                       ctx_xyz=np.zeros((0, 3)), face_normals=np.asarray(block.face_normals, np.float32))
+    assert repair_region_geometry(data, RepairConfig()).mesh.n_faces == 0
