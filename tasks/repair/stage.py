@@ -73,8 +73,10 @@ def camera_fingerprint(cfg: CampusConfig) -> str | None:
     _, cams = camera_paths(cfg)
     if not cfg.repair.texture.enabled or cams is None or not cams.exists():
         return None
-    files = [cams] + ([cams.with_name("cameras.txt")] if cams.name == "images.txt" else [])
-    return combine_fingerprints([file_fingerprint(f) for f in files if f.exists()])
+    folder = cams if cams.is_dir() else cams.parent
+    colmap = cams.is_dir() or cams.name.lower() in ("cameras.txt", "images.txt")
+    files = [folder / "images.txt", folder / "cameras.txt"] if colmap else [cams]
+    return combine_fingerprints([f"{f.name}:{file_fingerprint(f)}" for f in files if f.is_file()])
 
 
 def region_fingerprint(region: Region, wd: WorkDir, cfg: CampusConfig, memo: dict | None = None) -> str:

@@ -120,3 +120,16 @@ def test_an_edited_colmap_intrinsics_file_changes_the_region_fingerprint(tmp_pat
     assert camera_fingerprint(cfg) != before
     (model / "images.txt").write_text("# other poses\n")
     assert camera_fingerprint(cfg) not in (before, None)
+
+
+def test_a_colmap_model_named_by_its_cameras_txt_fingerprints_the_poses_too(tmp_path):
+    from tasks.repair.stage import camera_fingerprint
+
+    model = tmp_path / "sparse"
+    model.mkdir()
+    (model / "images.txt").write_text("# poses\n")
+    (model / "cameras.txt").write_text("1 OPENCV 640 480 500 500 320 240 0.01 0 0 0\n")
+    cfg = config(model / "cameras.txt")
+    before = camera_fingerprint(cfg)
+    (model / "images.txt").write_text("# re-solved poses\n")
+    assert camera_fingerprint(cfg) != before
