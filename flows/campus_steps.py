@@ -79,7 +79,14 @@ def report_fingerprint(wd: WorkDir) -> str:
     return combine_fingerprints(sorted(parts))
 
 
+REPORT_VERSION = 1  # bumped whenever report.html changes for the same inputs
+
+
 def report_params(cfg) -> dict:
-    """The run report's parameters (cfg: CampusConfig)."""
-    return {"report": cfg.report.model_dump(mode="json"), "classify_threshold": cfg.classify.threshold,
+    """The run report's parameters (cfg: CampusConfig), with the package and report versions: an upgrade
+    that changes the page (bump :data:`REPORT_VERSION`) redraws it."""
+    from storage import __version__
+
+    return {"code_version": __version__, "report_version": REPORT_VERSION, "report": cfg.report.model_dump(mode="json"),
+            "classify_threshold": cfg.classify.threshold,
             "partition": cfg.partition.model_dump(mode="json"), "grid": cfg.grid().to_json()}

@@ -159,12 +159,15 @@ def evaluate(models: dict[str, str], eval_name: str, eval_wd: str, data: str = "
 
 def _result_key(name: str, kind: str, results: dict) -> str:
     """The key a checkpoint passed as ``name`` is reported under: ``name`` when it stands for the checkpoint's
-    kind, else the kind itself (unless taken: then the name, which the tables show as a row of its kind)."""
+    kind, else the kind itself (unless taken: then the name, which the tables show as a row of its kind);
+    a key already taken gets a ``#n`` suffix, so no result is overwritten."""
     from ms3d_model.report import suite_kind
 
-    if suite_kind(name) == kind or kind in results:
-        return name
-    return kind
+    key = name if suite_kind(name) == kind or kind in results else kind
+    n = 2
+    while key in results:  # two checkpoints under one name: both rows stay
+        key, n = f"{name}#{n}", n + 1
+    return key
 
 
 def _cue_seconds_per_pair(work_dir: str, n: int = 256) -> float:
