@@ -63,7 +63,13 @@ class _Handler(SimpleHTTPRequestHandler):
             n = int(self.headers.get("Content-Length") or 0)
         except ValueError:
             n = -1
-        if n < 0:
+        host = (self.headers.get("Host") or "").rsplit(":", 1)[0].strip("[]")
+        ctype = (self.headers.get("Content-Type") or "").split(";")[0].strip().lower()
+        if host not in ("127.0.0.1", "localhost", "::1"):  # a page of another site (DNS rebinding) may not call
+            status, doc = 403, {"error": f"Host {host or '(none)'} is not this loopback server"}
+        elif method == "POST" and ctype != "application/json":  # no cross-site 'simple' POST: JSON only
+            status, doc = 415, {"error": "Content-Type must be application/json"}
+        elif n < 0:
             status, doc = 400, {"error": "bad Content-Length"}
         elif n > MAX_BODY:
             status, doc = 413, {"error": f"body over {MAX_BODY} bytes"}

@@ -54,7 +54,7 @@ try {
     for (const [x, y] of hits.slice().reverse()) {
       const other = await page.evaluate(async ([px, py]) => {
         const L = window.ms3d.label; const a = L.labelled.at(-1);
-        const r = await fetch('/api/locate', { method: 'POST', body: JSON.stringify({ ecef: L.faceCentroidAt(px, py) }) });
+        const r = await fetch('/api/locate', { method: 'POST', headers: { 'Content-Type': 'application/json' }, body: JSON.stringify({ ecef: L.faceCentroidAt(px, py) }) });
         const p = await r.json();
         return p.i !== a.i || p.j !== a.j || p.k !== a.k;
       }, [x, y]);

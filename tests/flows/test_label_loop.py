@@ -20,8 +20,9 @@ from flows.view import VIEWER_DIR, start_viewer
 from storage.grid import PatchGrid
 
 
-def _post(url: str, body: bytes) -> tuple[int, dict]:
-    req = urllib.request.Request(url, data=body, method="POST", headers={"Content-Type": "application/json"})
+def _post(url: str, body: bytes, **headers: str) -> tuple[int, dict]:
+    headers = {"Content-Type": "application/json"} | {k.replace("_", "-"): v for k, v in headers.items()}
+    req = urllib.request.Request(url, data=body, method="POST", headers=headers)
     try:
         with urllib.request.urlopen(req) as r:
             return r.status, json.loads(r.read())
@@ -63,8 +64,12 @@ def test_endpoint_appends_valid_rows_rejects_bad_ones_and_binds_loopback(export_
             status, doc = _post(f"{base}/api/label", body)
             assert status == 400 and "\n" not in doc["error"] and doc["error"], (body, doc)
         assert _post(f"{base}/api/locate", b'{"ecef": [1, "x", 3]}')[0] == 400
+        # another site's page: a 'simple' cross-site POST (text/plain) or a rebound host name is refused
+        ok_body = b'{"i": 7, "j": -7, "k": 3, "label": 1}'
+        assert _post(f"{base}/api/label", ok_body, Content_Type="text/plain")[0] == 415
+        assert _post(f"{base}/api/label", ok_body, Host=f"evil.example:{port}")[0] == 403
         err = capfd.readouterr().err
-        assert len(err.strip().splitlines()) == len(bad) + 1 and "Traceback" not in err, err
+        assert len(err.strip().splitlines()) == len(bad) + 3 and "Traceback" not in err, err
         assert "label must be 0 (good) or 1 (bad), got 2" in err
         # nothing but loopback: the socket is bound to 127.0.0.1, so another interface's address is refused
         other = socket.gethostbyname(socket.gethostname())
