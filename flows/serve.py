@@ -16,6 +16,7 @@ embedded server stops. ``serve_campus`` returns 128 + the signal number.
 from __future__ import annotations
 
 import asyncio
+import contextlib
 import signal
 import sys
 from pathlib import Path
@@ -56,13 +57,17 @@ def serve_campus(config_path: Path, cfg: CampusConfig, cron: str, name: str | No
         print(f"serving deployment 'reprocess-campus-from-config/{name}' (cron '{cron}', UTC) on {url}; "
               "Ctrl-C stops", flush=True)
         signum = asyncio.run(serve_until_signalled(runner))
+    if signum == 0:  # the runner ended by itself (no signal)
+        print("ms3d: the Prefect runner stopped on its own; see the log above", file=sys.stderr, flush=True)
+        return 1
     print(stopped_line(signum, wd.root), file=sys.stderr, flush=True)
     return 128 + signum
 
 
 async def serve_until_signalled(runner, signals: tuple[int, ...] = (signal.SIGINT, signal.SIGTERM)) -> int:
     """Run a Prefect ``runner`` until one of ``signals``; cancel its flow runs and stop it. Returns the
-    signal number. Main thread only (signal handlers)."""
+    signal number, or 0 when the runner ended without one. Main thread only (signal handlers). A signal
+    that comes while the runner is still starting cancels the start."""
     loop = asyncio.get_running_loop()
     got: asyncio.Future[int] = loop.create_future()
 
@@ -81,9 +86,12 @@ async def serve_until_signalled(runner, signals: tuple[int, ...] = (signal.SIGIN
         await asyncio.wait([got, serving], return_when=asyncio.FIRST_COMPLETED)
         if runner.started:
             await runner.astop()  # cancels the flow runs in progress and stops polling
-        await serving
+        elif not serving.done():
+            serving.cancel()  # still starting: nothing to stop yet
+        with contextlib.suppress(asyncio.CancelledError):
+            await serving
     finally:
         for s in signals:
             loop.remove_signal_handler(s)
             signal.signal(s, saved[s])
-    return got.result() if got.done() else signal.SIGTERM
+    return got.result() if got.done() else 0

@@ -168,3 +168,34 @@ def test_run_stops_on_sigterm_mid_run(tmp_path):
         fcntl.flock(f, fcntl.LOCK_EX | fcntl.LOCK_NB)
     _, alive = psutil.wait_procs(tree[1:], timeout=15)
     assert not alive, alive
+
+
+class _FakeRunner:
+    """A Prefect Runner stand-in: ``start`` waits forever (still starting) or returns at once."""
+
+    def __init__(self, returns: bool):
+        self.returns, self.started, self.stopped = returns, False, False
+
+    async def start(self):
+        import asyncio
+
+        if not self.returns:
+            await asyncio.Event().wait()
+
+    async def astop(self):
+        self.stopped = True
+
+
+def test_a_signal_while_the_runner_starts_cancels_the_start_and_a_runner_ending_alone_is_no_signal():
+    import asyncio
+    import os
+    import signal as sig
+
+    from flows.serve import serve_until_signalled
+
+    async def signalled():
+        asyncio.get_running_loop().call_later(0.2, os.kill, os.getpid(), sig.SIGTERM)
+        return await asyncio.wait_for(serve_until_signalled(_FakeRunner(returns=False)), 10)
+
+    assert asyncio.run(signalled()) == sig.SIGTERM
+    assert asyncio.run(serve_until_signalled(_FakeRunner(returns=True))) == 0
