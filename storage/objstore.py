@@ -154,19 +154,14 @@ class Store(ConditionalOps):
         return self.get_range(key, None, None)
 
     def get_range(self, key: str, start: int | None, end: int | None) -> bytes:
-        """Bytes ``[start, end)`` of the object (None: from the start / to the end); one ranged GET on S3."""
-        try:
-            if self.is_local:
-                with open(self.path(key), "rb") as f:
-                    f.seek(start or 0)
-                    data = f.read() if end is None else f.read(end - (start or 0))
-            else:
-                self._count("GetObject")
-                data = self._fs.cat_file(self.path(key), start=start, end=end)
-        except FileNotFoundError:
-            raise
-        except backend_errors() as exc:
-            raise self._fail(key, "read", exc) from None
+        """Bytes ``[start, end)`` of the object (None: from the start / to the end); one GET on S3."""
+        if not self.is_local:
+            if end is not None and end <= (start or 0):
+                return b""
+            return self._get_object(key, start, end)[0]
+        with open(self.path(key), "rb") as f:
+            f.seek(start or 0)
+            data = f.read() if end is None else f.read(end - (start or 0))
         self.stats.bytes_read += len(data)
         return data
 

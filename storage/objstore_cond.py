@@ -48,26 +48,36 @@ class ConditionalOps:
         self.stats.bytes_written += len(data)
         return self._put_object(key, data, IfMatch=etag)
 
-    def get_with_etag(self, key: str) -> tuple[bytes, str] | None:
-        """(bytes, ETag) of one GET, so content and ETag belong together; None when absent."""
-        self._remote_only("get_with_etag")
+    def _get_object(self, key: str, start: int | None = None, end: int | None = None) -> tuple[bytes, str]:
+        """One GET (ranged when start/end are given: bytes [start, end)); (bytes, ETag) of that response.
+        FileNotFoundError when absent. (s3fs's cat_file sends a HEAD first for a whole object.)"""
         from fsspec.asyn import sync
 
         bucket, k = self._bucket_key(key)
         self._count("GetObject")
+        rng = {} if start is None and end is None else \
+            {"Range": f"bytes={start or 0}-{'' if end is None else end - 1}"}
 
         async def fetch():
-            resp = await self._fs._call_s3("get_object", Bucket=bucket, Key=k)
+            resp = await self._fs._call_s3("get_object", Bucket=bucket, Key=k, **rng)
             async with resp["Body"] as body:
                 return await body.read(), resp["ETag"]
         try:
             data, etag = sync(self._fs.loop, fetch)
         except FileNotFoundError:
-            return None
+            raise
         except backend_errors() as exc:
             raise self._fail(key, "read", exc) from None
         self.stats.bytes_read += len(data)
         return data, etag
+
+    def get_with_etag(self, key: str) -> tuple[bytes, str] | None:
+        """(bytes, ETag) of one GET, so content and ETag belong together; None when absent."""
+        self._remote_only("get_with_etag")
+        try:
+            return self._get_object(key)
+        except FileNotFoundError:
+            return None
 
     def delete_if_match(self, key: str, etag: str) -> bool:
         """Delete ``key`` only if its ETag is ``etag``; False when it changed or is gone."""
