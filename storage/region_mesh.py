@@ -31,12 +31,14 @@
     replaced_tile (r,)   int16    index into region.json "replaced_tiles"
     replaced_row  (r,)   int64    row in that tile's faces.parquet of each original face it replaces
 
-The merge reads them through :func:`region_meshes_for_tile`.
+The merge reads them through :func:`region_meshes_for_tile`; its resume decision needs only
+:func:`region_files_for_tile` (the same regions' file fingerprints, no array read).
 """
 
 from __future__ import annotations
 
 import contextlib
+import functools
 import hashlib
 import json
 from dataclasses import dataclass, field
@@ -46,7 +48,7 @@ import numpy as np
 
 from storage.atomic import atomic_path, file_fingerprint, write_json_atomic
 from storage.ids import TileId
-from storage.region_plan import plan_grid, read_plan_doc, region_dir
+from storage.region_plan import plan_grid, plan_path, read_plan_doc, region_dir
 
 MESH_FILE, FUSED_FILE, ATLAS_FILE, REGION_FILE = "mesh.npz", "fused.npz", "atlas.jpg", "region.json"
 MESH_ARRAYS = {"vertices": np.float32, "vertex_id": np.int64, "vertex_source": np.int8, "faces": np.int32,
@@ -188,4 +190,58 @@ def region_meshes_for_tile(root: str | Path, tile: TileId) -> list[RegionMesh]:
                               face_colors=arr["face_color"].astype(np.uint8),
                               replaced_rows=np.sort(rows).astype(np.int64), fingerprint=f"{tile.key}:{fp}",
                               region_id=entry["key"], defect_type=meta.get("evidence", {}).get("type", "")))
+    return out
+
+
+@dataclass(frozen=True)
+class RegionFiles:
+    """A complete rebuilt region as the merge's resume decision sees it, without reading its arrays.
+
+    region: its number (``Region.number``); key: its folder; fingerprint: ``"{tile}:{mesh}:{json}[:{atlas}]"``
+    (:func:`storage.atomic.file_fingerprint` of each file), the value :func:`region_meshes_for_tile` gives
+    ``RegionMesh.fingerprint`` for the same tile.
+    """
+
+    region: int
+    key: str
+    fingerprint: str
+
+
+@functools.lru_cache(maxsize=4)
+def _tiles_of_plan(path: str, ino: int, mtime_ns: int, size: int) -> dict[str, tuple[tuple[int, str], ...]]:
+    """{tile key: ((number, region key), ...)} of the plan at ``path``, cached per file identity (the plan
+    is replaced atomically: a new plan is a new inode), so planning T tiles parses it once, not T times."""
+    doc = read_plan_doc(Path(path).parents[1])
+    out: dict[str, list[tuple[int, str]]] = {}
+    for entry in [] if doc is None else doc["regions"]:
+        for t in entry["tiles"]:
+            out.setdefault(t, []).append((int(entry["number"]), entry["key"]))
+    return {t: tuple(v) for t, v in out.items()}
+
+
+def region_files_for_tile(root: str | Path, tile: TileId) -> list[RegionFiles]:
+    """The complete rebuilt regions of the current plan that list ``tile``, fingerprinted by their files
+    only: no mesh is loaded (a resume decision costs a stat and two small reads per region).
+
+    A superset of :func:`region_meshes_for_tile`: it also names a region the plan lists the tile for
+    (context patches) that neither owns a face in it nor replaces one of its rows. Raises OSError when
+    a complete region misses its mesh or atlas (as loading it would).
+    """
+    p = plan_path(root)
+    try:
+        st = p.stat()
+    except FileNotFoundError:
+        return []
+    out = []
+    for number, key in _tiles_of_plan(str(p), st.st_ino, st.st_mtime_ns, st.st_size).get(tile.key, ()):
+        d = region_dir(root, key)
+        try:
+            meta = json.loads((d / REGION_FILE).read_text())
+        except (OSError, ValueError):
+            continue
+        if meta.get("status") != "rebuilt":
+            continue
+        atlas = d / meta["atlas"] if meta.get("atlas") else None
+        fp = ":".join(file_fingerprint(f) for f in (d / MESH_FILE, d / REGION_FILE, atlas) if f is not None)
+        out.append(RegionFiles(number, key, f"{tile.key}:{fp}"))
     return out

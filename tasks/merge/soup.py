@@ -60,24 +60,28 @@ def _position_keys(xyz: np.ndarray, base: int) -> np.ndarray:
     return base - inverse.reshape(-1)
 
 
-def store_soup(cols: dict[str, np.ndarray], grade: np.ndarray) -> FaceSoup:
+def store_soup(cols: dict[str, np.ndarray], grade: np.ndarray, rows: np.ndarray | None = None) -> FaceSoup:
     """The soup of patch-store face rows.
 
     cols: store face columns (:data:`tasks.merge.tile.STORE_FACE_COLUMNS` but patch), (m,) each.
-    grade: (m,) int8 per face. A face is textured when its texture index is >= 0 and its three uv are
-    finite. Corners without a vertex id (-1: an input written without ids) weld by exact position.
+    grade: (k,) int8 per face of the soup. rows: (k,) int64 the rows of ``cols`` to take (each column is
+    indexed as it is used: no copy of the whole table), None: all (k = m). A face is textured when its
+    texture index is >= 0 and its three uv are finite. Corners without a vertex id (-1: an input written
+    without ids) weld by exact position.
     """
-    xyz = np.stack([np.stack([cols[f"{a}{v}"] for a in "xyz"], axis=1) for v in range(3)], axis=1)
-    keys = np.stack([cols[f"vid{v}"] for v in range(3)], axis=1).astype(np.int64, copy=False)
+    col = (lambda name: cols[name]) if rows is None else (lambda name: cols[name][rows])
+    xyz = np.stack([np.stack([col(f"{a}{v}") for a in "xyz"], axis=1) for v in range(3)], axis=1)
+    keys = np.stack([col(f"vid{v}") for v in range(3)], axis=1).astype(np.int64, copy=False)
     if (keys == MISSING).any():  # no ids: weld exactly coincident corners, in a key range of their own
         missing = keys == MISSING
         keys = keys.copy()
         keys[missing] = _position_keys(xyz[missing], int(local_ids(np.zeros(1), "merge_position")[0]))
-    uv = np.stack([np.stack([cols[f"{a}{v}"] for a in "uv"], axis=1) for v in range(3)], axis=1)
+    uv = np.stack([np.stack([col(f"{a}{v}") for a in "uv"], axis=1) for v in range(3)], axis=1)
     finite = np.isfinite(uv).all(axis=(1, 2))
-    texture = np.where(finite & (cols["texture"] >= 0), cols["texture"], -1).astype(np.int32)
+    tex = col("texture")
+    texture = np.where(finite & (tex >= 0), tex, -1).astype(np.int32)
     uv = np.where((texture >= 0)[:, None, None], uv, np.float32(0)).astype(np.float32, copy=False)
-    rgb = np.stack([cols["red"], cols["green"], cols["blue"]], axis=1).astype(np.uint8, copy=False)
+    rgb = np.stack([col("red"), col("green"), col("blue")], axis=1).astype(np.uint8, copy=False)
     m = len(keys)
     return FaceSoup(xyz=xyz, keys=keys, uv=uv, texture=texture, color=np.repeat(rgb[:, None, :], 3, axis=1),
                     grade=np.asarray(grade, np.int8), source=np.full(m, SOURCE_MESH, np.int8),

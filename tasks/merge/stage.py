@@ -24,9 +24,12 @@ Rules:
 - **No face twice**: a face on the same three vertices as an earlier face (either orientation) is
   dropped, and so is a face with two corners on one vertex.
 
-Memory is bounded by the tile (one store, the regions touching it). The stage
-:func:`run_merge_tile` is resumable: its fingerprint is the tile's store, the grade table it reads (or
-"all"), the campus frame and the rebuilt regions touching it; an unchanged result is not rewritten, so
+Memory is bounded by the tile: the regions touching it are loaded only in a unit that runs and dropped
+once their owned faces are taken, the retained soup once concatenated, so the weld holds one soup. The
+stage :func:`run_merge_tile` is resumable: its fingerprint is the tile's store, the grade table it reads
+(or "all"), the campus frame and the files of the rebuilt regions the plan lists for the tile
+(:func:`storage.region_mesh.region_files_for_tile`: a stat and two small reads each, no mesh loaded, so
+deciding that a tile is up to date costs no array read); an unchanged result is not rewritten, so
 export's fingerprint of the tile (the file's bytes) does not change either.
 """
 
@@ -48,12 +51,12 @@ from storage.errors import InputError
 from storage.ids import TileId
 from storage.manifest import combine_fingerprints
 from storage.patch_store import FACES_FILE, PATCHES_FILE, PatchStore
-from storage.region_mesh import RegionMesh, region_meshes_for_tile
+from storage.region_mesh import RegionMesh, region_files_for_tile, region_meshes_for_tile
 from storage.store_state import grades_identity, patch_grades
 from storage.tile_mesh import TileMesh, tile_mesh_paths, write_tile_mesh
 from storage.workdir import STALE_FILE, WorkDir, campus_frame, read_campus
-from tasks.merge.soup import FaceSoup
-from tasks.merge.tile import STORE_FACE_COLUMNS, merge_tile, retained_soup
+from tasks.merge.soup import FaceSoup, concat_soups
+from tasks.merge.tile import STORE_FACE_COLUMNS, rebuilt_parts, retained_soup, weld_tile
 from tasks.units import Done, run_unit
 
 MERGE_STAGE = "merge"
@@ -104,13 +107,53 @@ def _same_on_disk(tile_dir: Path, mesh: TileMesh) -> bool:
     return True
 
 
-def merge_fingerprint(tile_dir: Path, regions: Sequence[RegionMesh], frame_json: dict, grades_mode: str) -> str:
+def merge_fingerprint(tile_dir: Path, regions: Sequence[tuple[int, str]], frame_json: dict, grades_mode: str) -> str:
     """The identity of a tile's merge inputs: store files, the grades it reads under ``grades_mode``
-    (:func:`storage.store_state.grades_identity`), frame, rebuilt regions."""
+    (:func:`storage.store_state.grades_identity`), frame, and the rebuilt regions as (number, content
+    fingerprint) pairs (:func:`storage.region_mesh.region_files_for_tile`: the files, no array read)."""
     store = [file_fingerprint(tile_dir / n) for n in (FACES_FILE, PATCHES_FILE)]
-    regs = [f"{r.region}:{r.content_fingerprint()}" for r in sorted(regions, key=lambda r: r.region)]
+    regs = [f"{number}:{fp}" for number, fp in sorted(regions)]
     return combine_fingerprints([*store, grades_identity(tile_dir, grades_mode), repr(sorted(frame_json.items())),
                                  *regs])
+
+
+def _load_regions(root: Path, tile: TileId) -> list[RegionMesh]:
+    """The rebuilt regions reaching into ``tile``, loaded (only in a unit that runs); a region file that
+    cannot be read is this tile's InputError."""
+    try:
+        return region_meshes_for_tile(root, tile)
+    except (ValueError, KeyError, zipfile.BadZipFile) as e:
+        raise InputError(None, f"tile {tile.key}: merge inputs: a rebuilt region: {e}") from None
+
+
+def _merge_work(tile: TileId, cfg, wd: WorkDir, frame_json: dict, regions: Sequence[RegionMesh] | None) -> Done:
+    """The unit's work. Drops each input once used (the regions once their owned faces are taken, the
+    retained soup once concatenated), so the weld, the peak, holds only the tile's soup."""
+    t0 = time.perf_counter()
+    tile_dir, grid = wd.tile_dir(tile), cfg.grid()
+    region_list = _load_regions(wd.root, tile) if regions is None else list(regions)
+    store = PatchStore(tile_dir)
+    retained, retained_patches, n_replaced, grade_source = _read_retained(store, region_list, cfg.repair.grades)
+    frame = campus_frame({"frame": frame_json})
+    rebuilt = rebuilt_parts(tile, region_list, store.meta.textures, grid, frame.origin_array, retained_patches)
+    del region_list, retained_patches
+    n_retained = retained.n_faces
+    if rebuilt.parts:
+        retained = concat_soups([retained, *rebuilt.parts])
+        rebuilt.parts.clear()
+    mesh, stats = weld_tile(tile, retained, rebuilt, n_retained, n_replaced)
+    del retained
+    for t in mesh.textures:
+        if not Path(t).is_file():
+            raise InputError(t, f"texture image of tile {tile.key} not found")
+    rewritten = not _same_on_disk(tile_dir, mesh)
+    if rewritten:
+        write_tile_mesh(tile_dir, mesh)
+    npz, meta = tile_mesh_paths(tile_dir)
+    summary = {"tile": tile.key, **stats.to_json(), "grades_from": grade_source, "textures": len(mesh.textures),
+               "rewritten": rewritten, "merge_seconds": time.perf_counter() - t0,
+               "worker": f"{socket.gethostname()}:{os.getpid()}"}  # fmt: skip
+    return Done(outputs=[str(p.relative_to(wd.root)) for p in (npz, meta)], summary=summary)
 
 
 def run_merge_tile(tile: TileId, cfg, wd: WorkDir, regions: Sequence[RegionMesh] | None = None) -> dict | None:
@@ -118,10 +161,11 @@ def run_merge_tile(tile: TileId, cfg, wd: WorkDir, regions: Sequence[RegionMesh]
 
     cfg: the CampusConfig (its patch grid decides which tile owns a rebuilt face; ``repair.grades`` which
     grades the faces carry). regions: the rebuilt regions reaching into the tile; None (the stage's use):
-    read from the work dir (:func:`storage.region_mesh.region_meshes_for_tile`). Returns the unit summary
-    (status done / empty / failed, counts, ``grades_from``, ``rewritten``), or None when there is nothing
-    to do: a tile without a store loses its merged mesh; a stale store (its input failed) keeps its last
-    good one.
+    read from the work dir, fingerprinted by their files (:func:`storage.region_mesh.region_files_for_tile`)
+    and loaded only when the unit runs (:func:`storage.region_mesh.region_meshes_for_tile`). Returns the
+    unit summary (status done / empty / failed, counts, ``grades_from``, ``rewritten``), or None when
+    there is nothing to do: a tile without a store loses its merged mesh; a stale store (its input
+    failed) keeps its last good one.
     """
     tile_dir = wd.tile_dir(tile)
     if not (tile_dir / PATCHES_FILE).exists():
@@ -130,34 +174,16 @@ def run_merge_tile(tile: TileId, cfg, wd: WorkDir, regions: Sequence[RegionMesh]
     if (tile_dir / STALE_FILE).exists():
         return None
     try:
-        region_list = list(region_meshes_for_tile(wd.root, tile) if regions is None else regions)
+        if regions is None:
+            ids = [(f.region, f.fingerprint) for f in region_files_for_tile(wd.root, tile)]
+        else:
+            ids = [(r.region, r.content_fingerprint()) for r in regions]
         frame_json = read_campus(wd)["frame"]
-        fp = merge_fingerprint(tile_dir, region_list, frame_json, cfg.repair.grades)
+        fp = merge_fingerprint(tile_dir, ids, frame_json, cfg.repair.grades)
     except (InputError, ValueError, OSError) as e:
         return {"unit": tile.key, "status": "failed", "error": f"tile {tile.key}: merge inputs: {e}", "skipped": False}
-    grid = cfg.grid()
-
-    def work() -> Done:
-        t0 = time.perf_counter()
-        store = PatchStore(tile_dir)
-        retained, retained_patches, n_replaced, grade_source = _read_retained(store, region_list, cfg.repair.grades)
-        frame = campus_frame({"frame": frame_json})
-        mesh, stats = merge_tile(tile, retained, retained_patches, store.meta.textures, region_list, grid,
-                                 frame.origin_array, n_replaced)
-        del retained
-        for t in mesh.textures:
-            if not Path(t).is_file():
-                raise InputError(t, f"texture image of tile {tile.key} not found")
-        rewritten = not _same_on_disk(tile_dir, mesh)
-        if rewritten:
-            write_tile_mesh(tile_dir, mesh)
-        npz, meta = tile_mesh_paths(tile_dir)
-        summary = {"tile": tile.key, **stats.to_json(), "grades_from": grade_source, "textures": len(mesh.textures),
-                   "rewritten": rewritten, "merge_seconds": time.perf_counter() - t0,
-                   "worker": f"{socket.gethostname()}:{os.getpid()}"}  # fmt: skip
-        return Done(outputs=[str(p.relative_to(wd.root)) for p in (npz, meta)], summary=summary)
-
-    res = run_unit(wd, MERGE_STAGE, tile.key, fp, {"grid": grid.to_json()}, work)
+    res = run_unit(wd, MERGE_STAGE, tile.key, fp, {"grid": cfg.grid().to_json()},
+                   lambda: _merge_work(tile, cfg, wd, frame_json, regions))
     if res.get("status") == "empty":
         remove_merged(tile_dir)
     return res

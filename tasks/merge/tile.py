@@ -74,25 +74,34 @@ def retained_soup(cols: dict[str, np.ndarray], face_grade: np.ndarray, regions: 
     if not replaced.any():
         return store_soup(cols, face_grade), np.unique(patch), 0
     keep = np.flatnonzero(~replaced)
-    return (store_soup({k: v[keep] for k, v in cols.items()}, face_grade[keep]), np.unique(patch[keep]),
-            int(replaced.sum()))
+    return store_soup(cols, face_grade[keep], rows=keep), np.unique(patch[keep]), int(replaced.sum())
 
 
-def merge_tile(tile: TileId, retained: FaceSoup, retained_patches: np.ndarray, textures: Sequence[str],
-               regions: Sequence[RegionMesh], grid: PatchGrid, origin, replaced_faces: int = 0
-               ) -> tuple[TileMesh, MergeStats]:
-    """One tile's merged mesh: the retained faces (:func:`retained_soup`) and the faces of ``regions``
-    that the tile owns (:func:`faces_in_tile`), welded (:func:`weld_soup`).
+@dataclass(frozen=True, eq=False)
+class RebuiltParts:
+    """The faces of the rebuilt regions that a tile owns, ready to concatenate after the retained soup.
 
-    textures: the store's texture paths (what ``retained.texture`` indexes); regions: the rebuilt
-    regions reaching into the tile (any order); grid, origin: the campus patch grid and (3,) float64
-    world origin; replaced_faces: carried into the stats. Raises EmptyTileError when no face is left.
-    """
+    parts: one soup per region owning a face of the tile (region number order); textures: the store's
+    texture paths followed by the regions' atlases (what the soups' ``texture`` indexes); rebuilt: faces
+    in parts; overlap: those lying in a patch whose original faces were retained; regions: every region
+    number given, ascending."""
+
+    parts: list[FaceSoup]
+    textures: list[str]
+    rebuilt: int
+    overlap: int
+    regions: tuple[int, ...]
+
+
+def rebuilt_parts(tile: TileId, regions: Sequence[RegionMesh], textures: Sequence[str], grid: PatchGrid, origin,
+                  retained_patches: np.ndarray) -> RebuiltParts:
+    """The faces of ``regions`` that ``tile`` owns (:func:`faces_in_tile`), one small soup per region, so
+    the caller may drop the regions before welding. Arguments as :func:`merge_tile`."""
     regions = sorted(regions, key=lambda r: r.region)
     if len({r.region for r in regions}) != len(regions):
         raise InputError(None, f"tile {tile.key}: two rebuilt regions with one region number")
     all_textures = list(textures)
-    parts, rebuilt, overlap = [retained], 0, 0
+    parts, rebuilt, overlap = [], 0, 0
     for r in regions:
         index = -1
         if r.atlas is not None:
@@ -106,10 +115,32 @@ def merge_tile(tile: TileId, retained: FaceSoup, retained_patches: np.ndarray, t
             parts.append(soup.take(rows))
             rebuilt += len(rows)
             overlap += int(np.isin(face_patch[rows], retained_patches).sum())
-    soup = concat_soups(parts) if len(parts) > 1 else retained
+    return RebuiltParts(parts, all_textures, rebuilt, overlap, tuple(r.region for r in regions))
+
+
+def weld_tile(tile: TileId, soup: FaceSoup, rebuilt: RebuiltParts, retained_faces: int, replaced_faces: int
+              ) -> tuple[TileMesh, MergeStats]:
+    """Weld a tile's soup (the retained soup, then ``rebuilt.parts``, concatenated) into its merged mesh.
+    Raises EmptyTileError when no face is left."""
     if soup.n_faces == 0:
         raise EmptyTileError(None, f"tile {tile.key}: no faces left after merging")
-    mesh, weld = weld_soup(tile.key, soup, all_textures)
+    mesh, weld = weld_soup(tile.key, soup, rebuilt.textures)
     if mesh.n_faces == 0:
         raise EmptyTileError(None, f"tile {tile.key}: every face is degenerate")
-    return mesh, MergeStats(retained.n_faces, replaced_faces, rebuilt, overlap, weld, tuple(r.region for r in regions))
+    return mesh, MergeStats(retained_faces, replaced_faces, rebuilt.rebuilt, rebuilt.overlap, weld, rebuilt.regions)
+
+
+def merge_tile(tile: TileId, retained: FaceSoup, retained_patches: np.ndarray, textures: Sequence[str],
+               regions: Sequence[RegionMesh], grid: PatchGrid, origin, replaced_faces: int = 0
+               ) -> tuple[TileMesh, MergeStats]:
+    """One tile's merged mesh: the retained faces (:func:`retained_soup`) and the faces of ``regions``
+    that the tile owns (:func:`rebuilt_parts`), welded (:func:`weld_tile`).
+
+    textures: the store's texture paths (what ``retained.texture`` indexes); regions: the rebuilt
+    regions reaching into the tile (any order); grid, origin: the campus patch grid and (3,) float64
+    world origin; replaced_faces: carried into the stats. Raises EmptyTileError when no face is left.
+    (The stage runs the same three steps, dropping each input as soon as it is used.)
+    """
+    rebuilt = rebuilt_parts(tile, regions, textures, grid, origin, retained_patches)
+    soup = concat_soups([retained, *rebuilt.parts]) if rebuilt.parts else retained
+    return weld_tile(tile, soup, rebuilt, retained.n_faces, replaced_faces)

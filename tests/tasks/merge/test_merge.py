@@ -222,6 +222,96 @@ def test_rerun_skips_and_a_changed_region_redoes_its_tiles(handmade):
     assert [r["skipped"] for r in fourth] == [True, False] and fourth[1]["grades_from"] == "none"
 
 
+def _write_region(cfg, wd, tmp, key: str, rm: RegionMesh, tiles: list[str]) -> None:
+    """Write ``rm`` as repair does (``regions/{key}/``): the rows it replaces are the store rows of its
+    replaced patches in each of ``tiles``."""
+    from storage.patch_store import PatchStore
+    from storage.region_mesh import write_region_doc, write_region_mesh
+    from tasks.merge import faces_in_tile
+
+    xyz = rm.vertices[rm.faces]
+    _, face_patch = faces_in_tile(xyz, cfg.grid(), np.array(ORIGIN), TILES[0])
+    rows = [np.flatnonzero(np.isin(PatchStore(wd.tile_dir(TileId.from_key(t))).read_all(
+        point_columns=[], face_columns=["patch"])[1]["patch"], rm.replaced_patches)) for t in tiles]
+    mesh = {"vertices": rm.vertices, "vertex_id": rm.vertex_ids, "vertex_source": np.zeros(len(rm.vertices)),
+            "faces": rm.faces, "face_patch": face_patch, "uv": rm.corner_uv, "face_color": np.full((len(xyz), 3), 99),
+            "replaced_tile": np.concatenate([np.full(len(r), i) for i, r in enumerate(rows)]),
+            "replaced_row": np.concatenate(rows)}
+    d = wd.root / "regions" / key
+    write_region_mesh(d, mesh, np.zeros((1, 3)), np.zeros(1), np.full((8, 8, 3), 50, np.uint8))
+    write_region_doc(d, {"status": "rebuilt", "replaced_tiles": tiles, "atlas": "atlas.jpg", "evidence": {}})
+
+
+@pytest.fixture
+def on_disk_regions(handmade):
+    """The hand-made pair with two rebuilt regions on disk, as repair leaves them: "rx" (REPLACED_CELLS,
+    across the tile border) and "ry" (one new face over cell (13, 0), right tile only)."""
+    from storage.region_plan import Region, write_plan
+
+    cfg, wd, tmp = handmade
+    rx = _region(cfg, tmp, duplicate=False)
+    ry = RegionMesh(region=9, vertices=np.array([[13.2, 0.2, Z], [13.8, 0.2, Z], [13.5, 0.8, Z]], np.float32),
+                    faces=np.array([[0, 1, 2]]), vertex_ids=np.full(3, -1, np.int64),
+                    replaced_patches=np.array([_cell_key(cfg, 13, 0)]), corner_uv=np.zeros((1, 3, 2), np.float32))
+    keys = [np.array(sorted(r.replaced_patches), np.int64) for r in (rx, ry)]
+    plan = [Region("rx", REGION, keys[0], keys[0], keys[0][:0], tiles=tuple(t.key for t in TILES)),
+            Region("ry", 9, keys[1], keys[1], keys[1][:0], tiles=(TILES[1].key,))]
+    write_plan(wd.root, plan, {}, {}, cfg.grid())
+    _write_region(cfg, wd, tmp, "rx", rx, [t.key for t in TILES])
+    _write_region(cfg, wd, tmp, "ry", ry, [TILES[1].key])
+    return cfg, wd
+
+
+def test_planning_reads_no_region_mesh_and_a_changed_region_file_reruns_only_its_tiles(on_disk_regions, monkeypatch):
+    import storage.region_mesh as region_mesh
+    from tasks.units import MustRun, planning
+
+    from storage.region_mesh import region_files_for_tile, region_meshes_for_tile
+
+    cfg, wd = on_disk_regions
+    for t in TILES:  # the files' fingerprints are the loaded regions' own (no rerun after this change)
+        assert ({(f.region, f.fingerprint) for f in region_files_for_tile(wd.root, t)}
+                == {(m.region, m.fingerprint) for m in region_meshes_for_tile(wd.root, t)})
+    first = [run_merge_tile(t, cfg, wd) for t in TILES]
+    assert [(r["status"], r["regions"]) for r in first] == [("done", [REGION]), ("done", [REGION, 9])]
+    assert [r["replaced_faces"] for r in first] == [4, 4 + 2]  # cell (13, 0) has two faces
+    loads, real_load = [], np.load  # the region meshes read (np.load is numpy's: keep only regions/*)
+
+    def counting_load(path, *a, **k):
+        if Path(path).parent.parent.name == "regions":
+            loads.append(Path(path).parent.name)
+        return real_load(path, *a, **k)
+
+    monkeypatch.setattr(region_mesh.np, "load", counting_load)
+
+    def must_run() -> list[str]:
+        out = []
+        with planning(wd):
+            for t in TILES:
+                try:
+                    run_merge_tile(t, cfg, wd)
+                except MustRun:
+                    out.append(t.key)
+        return out
+
+    assert must_run() == [] and loads == []  # nothing changed: nothing runs, no region mesh is read
+    assert all(r["skipped"] for r in (run_merge_tile(t, cfg, wd) for t in TILES)) and loads == []
+    ry_doc = wd.root / "regions" / "ry" / "region.json"
+    ry_doc.write_text(ry_doc.read_text().replace('"evidence": {}', '"evidence": {"type": "hole"}'))
+    assert must_run() == [TILES[1].key] and loads == []
+    again = [run_merge_tile(t, cfg, wd) for t in TILES]
+    assert [r["skipped"] for r in again] == [True, False] and sorted(loads) == ["rx", "ry"]  # its regions
+    with np.load(wd.root / "regions" / "rx" / "mesh.npz") as z:
+        arrays = {k: z[k] for k in z.files}
+    arrays["vertices"][-1, 2] += 0.05  # the centre vertex raised: both tiles of rx rerun
+    np.savez(wd.root / "regions" / "rx" / "mesh.npz", **arrays)
+    assert must_run() == [t.key for t in TILES]
+    ry_doc.write_text(ry_doc.read_text().replace('"rebuilt"', '"kept"'))  # left to the mesh: tile 1 only
+    third = [run_merge_tile(t, cfg, wd) for t in TILES]
+    assert not any(r["skipped"] for r in third) and third[1]["regions"] == [REGION]
+    assert must_run() == []
+
+
 def test_tile_without_store_loses_its_merged_mesh_and_bad_textures_fail(handmade):
     cfg, wd, tmp = handmade
     run_merge_tile(TILES[0], cfg, wd)
