@@ -149,6 +149,26 @@ class Store(ConditionalOps):
         except backend_errors() as exc:
             raise self._fail(key, "upload", exc) from None
 
+    def get_file(self, key: str, local_path: str | Path) -> Path:
+        """Stage an object to a local file (written atomically): for readers that need a real path."""
+        from .atomic import atomic_path
+
+        with atomic_path(local_path) as tmp:
+            if self.is_local:
+                import shutil
+
+                shutil.copyfile(self.path(key), tmp)
+            else:
+                self._count("GetObject")
+                try:
+                    self._fs.get_file(self.path(key), str(tmp))
+                except FileNotFoundError:
+                    raise
+                except backend_errors() as exc:
+                    raise self._fail(key, "download", exc) from None
+        self.stats.bytes_read += os.path.getsize(local_path)
+        return Path(local_path)
+
     def get(self, key: str) -> bytes:
         """The whole object (FileNotFoundError when absent)."""
         return self.get_range(key, None, None)

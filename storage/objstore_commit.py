@@ -49,16 +49,18 @@ class UnitRecord:
     token: str
     files: dict[str, OutputRef]
     written_utc: float
+    meta: dict | None = None  # JSON-able facts committed with the outputs (fingerprint, params hash, ...)
 
     def to_json(self) -> dict:
         return {"version": RECORD_VERSION, "stage": self.stage, "unit": self.unit, "token": self.token,
                 "written_utc": self.written_utc,
-                "files": {n: {k: v for k, v in vars(r).items() if v is not None} for n, r in self.files.items()}}
+                "files": {n: {k: v for k, v in vars(r).items() if v is not None} for n, r in self.files.items()},
+                "meta": self.meta or {}}
 
     @classmethod
     def from_json(cls, d: dict) -> UnitRecord:
         return cls(stage=d["stage"], unit=d["unit"], token=d["token"], written_utc=float(d["written_utc"]),
-                   files={n: OutputRef(**r) for n, r in d["files"].items()})
+                   files={n: OutputRef(**r) for n, r in d["files"].items()}, meta=d.get("meta") or None)
 
 
 def record_key(stage: str, unit: str) -> str:
@@ -81,13 +83,16 @@ def _sha256_file(path: Path) -> tuple[str, int]:
     return h.hexdigest(), n
 
 
-def put_unit_outputs(store: Store, stage: str, unit: str, files: dict[str, bytes | str | Path]) -> UnitRecord:
+def put_unit_outputs(store: Store, stage: str, unit: str, files: dict[str, bytes | str | Path],
+                     meta: dict | None = None) -> UnitRecord:
     """Write a unit's outputs under a fresh key each, then its record (the commit point).
 
     Args:
         store: where the work dir lives.
         stage / unit: ids (one key part each, e.g. "partition", "3_-2").
         files: logical name (a relative a/b key, e.g. "points.parquet") -> bytes, or a local file to upload.
+        meta: JSON-able facts committed atomically with the outputs (e.g. the manifest row's input
+            fingerprint and params hash, so "done" and "its outputs" are one object). Never credentials.
     Returns:
         the record now in force (readers that resolve the unit see exactly these keys).
     """
@@ -105,7 +110,7 @@ def put_unit_outputs(store: Store, stage: str, unit: str, files: dict[str, bytes
             store.put_file(key, src)
             etag = None
         refs[name] = OutputRef(key, size, digest, etag)
-    record = UnitRecord(stage, unit, token, refs, time.time())
+    record = UnitRecord(stage, unit, token, refs, time.time(), dict(meta) if meta else None)
     store.put(rkey, json.dumps(record.to_json(), sort_keys=True).encode())
     return record
 

@@ -75,6 +75,13 @@ class RangeFile(io.RawIOBase):
         return n
 
 
+def open_ranged(store: Store, key: str, buffer_size: int = 1 << 16) -> io.BufferedReader:
+    """A buffered read-only file over one store object for readers that take a file object (laspy for
+    LAS/LAZ: its header, VLRs and the LAZ chunk table come in a few ranged GETs, then only the chunks
+    read). ``.raw`` is the :class:`RangeFile` with the byte and request counters."""
+    return io.BufferedReader(RangeFile(store, key), buffer_size=buffer_size)
+
+
 @dataclass(frozen=True)
 class PatchRows:
     """One patch's rows of one table, and what reading them cost.

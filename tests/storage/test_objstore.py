@@ -16,7 +16,7 @@ from storage.grid import PatchGrid
 from storage.objstore import PreconditionFailed, open_store, redact
 from storage.objstore_commit import put_unit_outputs, read_output, resolve, sweep_unrecorded
 from storage.objstore_lock import LOCK_KEY, LeaseLost, acquire_lease, run_lock
-from storage.objstore_ranges import read_patch_rows
+from storage.objstore_ranges import open_ranged, read_patch_rows
 from storage.patch_store import PatchStore, TileMeta, write_tile_tables
 from tasks.partition.kernels import build_tile_tables
 
@@ -66,7 +66,7 @@ def any_store(request, tmp_path):
     return request.getfixturevalue("s3_store")
 
 
-def test_round_trip_local_and_s3(any_store):
+def test_round_trip_local_and_s3(any_store, tmp_path):
     s = any_store
     s.put("a/b.bin", b"0123456789")
     s.put("a/c/d.json", b"{}")
@@ -81,10 +81,15 @@ def test_round_trip_local_and_s3(any_store):
         s.put("../escape", b"x")
     s.delete(["a/b.bin", "a/absent"])
     assert [o.key for o in s.list("")] == ["a/c/d.json"]
-    record = put_unit_outputs(s, "partition", "3_-2", {"points.parquet": b"P" * 100, "meta/x.json": b"{}"})
+    record = put_unit_outputs(s, "partition", "3_-2", {"points.parquet": b"P" * 100, "meta/x.json": b"{}"},
+                              meta={"fingerprint": "f00d", "params_hash": "beef"})
     again = resolve(s, "partition", "3_-2")
-    assert again == record
+    assert again == record and again.meta == {"fingerprint": "f00d", "params_hash": "beef"}
     assert read_output(s, again, "points.parquet") == b"P" * 100
+    staged = s.get_file(again.files["points.parquet"].key, tmp_path / "staged" / "points.parquet")
+    assert staged.read_bytes() == b"P" * 100
+    with pytest.raises(InputError, match="unsupported storage scheme"):
+        open_store("gs://bucket/x")
 
 
 def test_conditional_writes_on_s3(s3_store):
@@ -202,6 +207,25 @@ def test_one_patch_is_read_by_byte_ranges(s3_store, tmp_path):
     assert got.bytes_fetched < got.file_size / 3, (got.bytes_fetched, got.file_size)
     with pytest.raises(KeyError):
         read_patch_rows(s3_store, "0_0", key + 10**9)
+
+
+def test_laz_is_read_by_ranges(s3_store, tmp_path):
+    import laspy
+
+    n = 200_000
+    header = laspy.LasHeader(point_format=3, version="1.2")
+    header.scales, header.offsets = [0.001] * 3, [0.0] * 3
+    las = laspy.LasData(header)
+    rng = np.random.default_rng(2)
+    las.x, las.y, las.z = rng.random(n) * 100, rng.random(n) * 100, rng.random(n) * 10
+    las.write(tmp_path / "mls.laz")
+    s3_store.put_file("inputs/mls.laz", tmp_path / "mls.laz")
+    f = open_ranged(s3_store, "inputs/mls.laz")
+    with laspy.open(f) as reader:
+        assert reader.header.point_count == n
+        first = next(reader.chunk_iterator(20_000))
+    np.testing.assert_array_equal(first.X, las.X[:20_000])
+    assert f.raw.bytes_fetched < f.raw.size / 3, (f.raw.bytes_fetched, f.raw.size)
 
 
 def test_secrets_never_in_repr_errors_or_logs(s3_env, caplog):
