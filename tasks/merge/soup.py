@@ -143,10 +143,12 @@ def weld_soup(tile_key: str, soup: FaceSoup, textures: Sequence[str]) -> tuple[T
     attr_a = np.repeat((s.texture.astype(np.int64) + 1) << 24, 3)
     attr_a |= np.where(np.repeat(textured, 3), np.uint32(0), packed_rgb)
     del packed_rgb
+    attr_a = attr_a[welded[2]]  # in key-sorted order: the kernel then needs no copy of its own
     uv_bits = s.uv.reshape(-1, 2).view(np.uint32)
     attr_b = uv_bits[:, 0].astype(np.int64) << 32
     attr_b |= uv_bits[:, 1]
-    w = weld_corners(s.keys.reshape(-1), attr_a, attr_b, welded)
+    attr_b = attr_b[welded[2]]
+    w = weld_corners(s.keys.reshape(-1), attr_a, attr_b, welded, attrs_sorted=True)
     del attr_a, attr_b, welded
 
     used = np.unique(s.texture[textured])

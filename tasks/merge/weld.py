@@ -92,13 +92,16 @@ class WeldResult:
 
 
 def weld_corners(keys: np.ndarray, attr_a: np.ndarray, attr_b: np.ndarray,
-                 welded: tuple[np.ndarray, np.ndarray, np.ndarray] | None = None) -> WeldResult:
+                 welded: tuple[np.ndarray, np.ndarray, np.ndarray] | None = None, attrs_sorted: bool = False
+                 ) -> WeldResult:
     """Weld face corners by key, splitting a key where its corners' attributes differ.
 
     keys: (3 m,) int64 weld key per corner, face-major (the faces already deduplicated).
     attr_a, attr_b: (3 m,) int64 attributes that must agree for two corners to share a vertex (the
     merge packs texture + colour into one and the uv bits into the other).
-    welded: ``weld_keys(keys)`` when the caller has it already.
+    welded: ``weld_keys(keys)`` when the caller has it already. attrs_sorted: attr_a and attr_b are given
+    in key-sorted order already (``attr[order]``, ``order`` from ``welded``), so the caller can free the
+    unsorted ones before the kernel's own arrays exist (the merge's peak).
 
     Vertices 0 .. k-1 are the keys in ascending order (each takes its first corner's attributes);
     split vertices follow, in key order. Seam corners are matched to the first earlier corner of their
@@ -114,30 +117,32 @@ def weld_corners(keys: np.ndarray, attr_a: np.ndarray, attr_b: np.ndarray,
     """
     kid, first, order = weld_keys(keys) if welded is None else welded
     n_keys, c = len(first), len(kid)
+    idx = np.int32 if c < 2**31 else np.int64  # positions in sorted order: half the bytes at the peak
     # in key-sorted order: sa/sb the attributes, start the position where each corner's key begins
-    sa, sb = attr_a[order], attr_b[order]
+    sa, sb = (attr_a, attr_b) if attrs_sorted else (attr_a[order], attr_b[order])
     new = np.zeros(c, bool)
     new[np.searchsorted(kid[order], np.arange(n_keys))] = True
-    start = np.maximum.accumulate(np.where(new, np.arange(c), 0))
+    start = np.maximum.accumulate(np.where(new, np.arange(c, dtype=idx), idx(0)))
     match = start.copy()  # position (sorted order) of the first corner with equal key and attributes
-    open_ = np.flatnonzero((sa != sa[start]) | (sb != sb[start]))
+    open_ = np.flatnonzero((sa != sa[start]) | (sb != sb[start])).astype(idx)
     match[open_] = open_  # until an earlier equal corner is found: a vertex of its own
     d = 1
     while len(open_):
-        ahead = start[open_] + d
+        ahead = start[open_] + idx(d)
         live = ahead < open_  # candidates strictly before the corner itself
         open_, ahead = open_[live], ahead[live]
         hit = (sa[open_] == sa[ahead]) & (sb[open_] == sb[ahead])
         match[open_[hit]] = ahead[hit]
         open_ = open_[~hit]
         d += 1
-    del sa, sb
-    is_extra = (match == np.arange(c)) & ~new  # first corners of split vertices
+    del sa, sb, start
+    is_extra = (match == np.arange(c, dtype=idx)) & ~new  # first corners of split vertices
     number = np.empty(c, np.int64)
     number[new] = np.arange(n_keys)
     number[is_extra] = n_keys + np.arange(int(is_extra.sum()))
     vert = np.empty(c, np.int64)
     vert[order] = number[match]
+    del number, match
     corner = np.concatenate([first, order[is_extra]])
     position_corner = first[kid[corner]]
     return WeldResult(vert.reshape(-1, 3).astype(np.int32), corner, position_corner, n_keys, len(corner) - n_keys)
