@@ -263,10 +263,9 @@ def on_disk_regions(handmade):
 
 
 def test_planning_reads_no_region_mesh_and_a_changed_region_file_reruns_only_its_tiles(on_disk_regions, monkeypatch):
-    import storage.region_mesh as region_mesh
-    from tasks.units import MustRun, planning
-
+    from storage import region_mesh
     from storage.region_mesh import region_files_for_tile, region_meshes_for_tile
+    from tasks.units import MustRun, planning
 
     cfg, wd = on_disk_regions
     for t in TILES:  # the files' fingerprints are the loaded regions' own (no rerun after this change)
