@@ -41,7 +41,16 @@ EXTRA_CUE_NAMES = (
     "p2m_signed_p10", "p2m_signed_p90", "m2p_median", "m2p_frac_25cm",
     "points_above_mesh_m", "points_below_mesh_m",
 )
-CUE_NAMES = CUE_NAMES + EXTRA_CUE_NAMES
+PAIR_CUE_NAMES = CUE_NAMES + EXTRA_CUE_NAMES  # what one pair alone gives (:func:`batch_cues`)
+N_PAIR_CUES = len(PAIR_CUE_NAMES)
+# Appended last: the pair's neighbourhood in its tile (:mod:`ms3d_model.context`), the max and mean of these
+# pair cues over the pairs in the 26 neighbouring cells, and how many there are. A defect spans several cells;
+# a cell whose own evidence is weak is bad far more often when its neighbours are.
+CONTEXT_SOURCES = ("p2m_frac_15cm", "p2m_p90", "coverage_10cm", "open_edge_m", "m2p_p90",
+                   "p2m_frac_behind_10cm", "p2m_frac_front_10cm", "m2p_frac_25cm")
+CONTEXT_CUE_NAMES = (tuple(f"nb_max_{n}" for n in CONTEXT_SOURCES) + tuple(f"nb_mean_{n}" for n in CONTEXT_SOURCES)
+                     + ("nb_count",))
+CUE_NAMES = PAIR_CUE_NAMES + CONTEXT_CUE_NAMES
 N_CUES = len(CUE_NAMES)
 MAX_CUE_POINTS = 1024
 _PAIR_GAP_M = 1.0e6  # pairs sit this far apart on the k-d trees' fourth axis (a campus spans < 10 km)
@@ -243,7 +252,7 @@ def _point_normals(p_all, ga, counts, mesh_n) -> tuple[np.ndarray, np.ndarray]:
 
 
 def _cues(points: list, tris: list, open_edges: list | None, seeds: list) -> np.ndarray:
-    """(B, N_CUES) float32 cues of B pairs; seeds[b]: the subsampling seed of pair b."""
+    """(B, N_PAIR_CUES) float32 cues of B pairs; seeds[b]: the subsampling seed of pair b."""
     points = [np.asarray(p, np.float64).reshape(-1, 3) for p in points]
     tris = [np.asarray(t, np.float64).reshape(-1, 3, 3) for t in tris]
     n = np.array([len(p) for p in points], np.int64)
@@ -330,7 +339,7 @@ def _extra_cues(d, signed, gp, n_cue, sd, ss, sm, dm, gf, w, pz, ga, tz, b) -> l
 
 
 def pair_cues(points: np.ndarray, tris: np.ndarray, open_edges: np.ndarray | None = None, seed: int = 0) -> np.ndarray:
-    """(N_CUES,) float32 cues of one pair (see :data:`CUE_NAMES`).
+    """(N_PAIR_CUES,) float32 cues of one pair (see :data:`PAIR_CUE_NAMES`).
 
     points: (n, 3) metres; tris: (m, 3, 3) metres (n, m >= 1); open_edges: (m, 3) bool tile-level open
     edges, or None (then the patch-local boundary stands in). Points beyond MAX_CUE_POINTS are subsampled
@@ -341,14 +350,14 @@ def pair_cues(points: np.ndarray, tris: np.ndarray, open_edges: np.ndarray | Non
 
 def batch_cues(points: list[np.ndarray], tris: list[np.ndarray], open_edges: list[np.ndarray] | None,
                keys: np.ndarray, seed: int = 0) -> np.ndarray:
-    """(B, N_CUES) float32 cues of B pairs, all pairs at once (one k-d tree per kind for the batch).
+    """(B, N_PAIR_CUES) float32 cues of B pairs, all pairs at once (one k-d tree per kind for the batch).
 
     points[b]: (n_b, 3) float, metres; tris[b]: (m_b, 3, 3) float, metres (n_b, m_b >= 1); open_edges[b]:
     (m_b, 3) bool or None; keys: (B,) int64 patch keys (pair b subsamples with ``pair_seed(seed, keys[b])``).
 
     >>> tris = np.array([[[0, 0, 0], [1, 0, 0], [1, 1, 0]], [[0, 0, 0], [1, 1, 0], [0, 1, 0]]], float)
     >>> pts = np.array([[.25, .5, .2], [.75, .5, .2], [.5, .25, .2], [.5, .75, .2]])  # 0.2 m above the square
-    >>> c = dict(zip(CUE_NAMES, batch_cues([pts, pts - [0, 0, .2]], [tris, tris], None, np.array([1, 2])).T))
+    >>> c = dict(zip(PAIR_CUE_NAMES, batch_cues([pts, pts - [0, 0, .2]], [tris, tris], None, np.array([1, 2])).T))
     >>> [round(float(c[k][0]), 4) for k in ("p2m_median", "p2m_signed_mean", "mesh_area_m2", "patch_boundary_m")]
     [0.2, 0.2, 1.0, 4.0]
     >>> [round(float(c[k][1]), 4) for k in ("p2m_max", "coverage_10cm", "point_planarity")]

@@ -12,11 +12,12 @@ from __future__ import annotations
 import hashlib
 import json
 from collections.abc import Iterator
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from pathlib import Path
 
 import numpy as np
 
+from ms3d_model.context import with_context
 from ms3d_model.cues import CUE_NAMES, batch_cues, open_edge_flags
 from ms3d_model.dataset import PairSet
 from ms3d_model.features import PairFeatures, featurise_pairs
@@ -26,6 +27,7 @@ from storage.store_state import store_fingerprint
 
 FACE_COLUMNS = [f"{a}{v}" for v in range(3) for a in "xyz"] + ["vid0", "vid1", "vid2"]
 CACHE_VERSION = 1
+CUE_CHUNK = 512  # pairs per batch_cues call (one k-d tree per kind per call)
 
 
 @dataclass
@@ -49,6 +51,7 @@ class TilePairs:
     _open: np.ndarray
     _pr: np.ndarray
     _fr: np.ndarray
+    _cues: dict = field(default_factory=dict)
 
     def __len__(self) -> int:
         return len(self.keys)
@@ -62,6 +65,21 @@ class TilePairs:
     def all_triangles(self) -> np.ndarray:
         """(m, 3, 3) float32 every face of the tile, in patch order."""
         return self._tris
+
+    def cues(self, seed: int) -> np.ndarray:
+        """(P, N_CUES) float32 cues of every pair of the tile: each pair's own, then its neighbourhood in the
+        tile (:mod:`ms3d_model.context`). Computed once per seed."""
+        if seed not in self._cues:
+            own = [batch_cues(*self.raw_cue_inputs(np.arange(s, min(s + CUE_CHUNK, len(self)))), seed=seed)
+                   for s in range(0, len(self), CUE_CHUNK)]
+            own = np.concatenate(own) if own else np.zeros((0, len(CUE_NAMES)), np.float32)
+            self._cues[seed] = with_context(own, self.ijk)
+        return self._cues[seed]
+
+    def raw_cue_inputs(self, idx) -> tuple[list, list, list, np.ndarray]:
+        """(points, tris, open_edges, keys) of the pairs ``idx``: the arguments of ``batch_cues``."""
+        pts, tris, _, open_edges = self.raw(idx)
+        return pts, tris, open_edges, self.keys[idx]
 
     def raw(self, idx) -> tuple[list, list, list, list]:
         """(points, tris, vids, open_edges) lists of the pairs ``idx``."""
@@ -97,12 +115,14 @@ def read_tile_pairs(tile_dir: str | Path, min_faces: int = 1, min_points: int = 
 
 def featurise_tile_pairs(tp: TilePairs, idx: np.ndarray, max_points: int, max_faces: int, k_centre: int,
                          seed: int, with_cues: bool = True, with_feats: bool = True) -> tuple[PairFeatures | None, np.ndarray]:
-    """Features (None unless ``with_feats``) and cues ((B, C) float32; zeros unless ``with_cues``) of the
-    pairs ``idx`` of a tile."""
-    pts, tris, vids, open_edges = tp.raw(idx)
-    feats = featurise_pairs(pts, tris, vids, tp.keys[idx], max_points, max_faces, k_centre, seed) if with_feats else None
-    cues = (batch_cues(pts, tris, open_edges, tp.keys[idx], seed) if with_cues
-            else np.zeros((len(idx), len(CUE_NAMES)), np.float32))
+    """Features (None unless ``with_feats``) and cues ((B, N_CUES) float32, :meth:`TilePairs.cues`; zeros
+    unless ``with_cues``) of the pairs ``idx`` of a tile."""
+    idx = np.asarray(idx, np.int64)
+    feats = None
+    if with_feats:
+        pts, tris, vids, _ = tp.raw(idx)
+        feats = featurise_pairs(pts, tris, vids, tp.keys[idx], max_points, max_faces, k_centre, seed)
+    cues = tp.cues(seed)[idx] if with_cues else np.zeros((len(idx), len(CUE_NAMES)), np.float32)
     return feats, cues
 
 
@@ -141,22 +161,23 @@ def tile_pair_set(tile_dir: str | Path, campus_name: str, max_points: int, max_f
     f_path = _cache_name(cache_dir, campus_name, tile_dir.name, "feats",
                          base | {"max_points": max_points, "max_faces": max_faces, "k": k_centre})
     c_path = _cache_name(cache_dir, campus_name, tile_dir.name, "cues", base | {"cues": list(CUE_NAMES)})
-    if f_path is not None and f_path.exists() and c_path.exists():
+    f_ok, c_ok = (f_path is not None and f_path.exists()), (c_path is not None and c_path.exists())
+    if f_ok and c_ok:
         with np.load(f_path) as d, np.load(c_path) as c:
             return PairSet.from_arrays({**d, "cues": c["cues"]})
     tp = read_tile_pairs(tile_dir, min_faces, min_points)
     keep = np.flatnonzero(tp.labels >= 0) if labelled_only else np.arange(len(tp))
     if max_pairs is not None and len(keep) > max_pairs:
         keep = np.sort(np.random.default_rng(seed).choice(keep, max_pairs, replace=False))
-    cues = None
-    if c_path is not None and c_path.exists():
-        with np.load(c_path) as c:
-            cues = c["cues"]
+    if f_ok:  # features cached, cues new (a new cue set): cues only, the tile's pairs in the cached order
+        with np.load(f_path) as d:
+            ps = PairSet.from_arrays({**d, "cues": tp.cues(seed)[keep]})
+        _save_npz(c_path, {"cues": ps.cues})
+        return ps
     parts = []
     for s in range(0, len(keep), chunk):
         idx = keep[s:s + chunk]
-        f, c = featurise_tile_pairs(tp, idx, max_points, max_faces, k_centre, seed, with_cues=cues is None)
-        c = c if cues is None else cues[s:s + chunk]
+        f, c = featurise_tile_pairs(tp, idx, max_points, max_faces, k_centre, seed)
         parts.append(PairSet(f, c, tp.labels[idx], tp.ijk[idx], np.zeros(len(idx), np.int16), (campus_name,)).compact())
     ps = PairSet.concat(parts) if parts else empty_pair_set(max_points, max_faces, k_centre, campus_name)
     if f_path is not None:

@@ -9,6 +9,7 @@ from scipy.spatial import cKDTree
 
 from ms3d_model.cues import (
     CUE_NAMES,
+    PAIR_CUE_NAMES,
     EXTRA_CUE_NAMES,
     MAX_CUE_POINTS,
     batch_cues,
@@ -222,7 +223,7 @@ def test_batched_cues_equal_the_per_pair_loop():
     keys = np.arange(len(pairs), dtype=np.int64) * 7919 + 11
     got = batch_cues([p for p, _, _ in pairs], [t for _, t, _ in pairs], [o for _, _, o in pairs], keys, seed=5)
     want = np.stack([_reference_pair_cues(p, t, o, pair_seed(5, int(k))) for (p, t, o), k in zip(pairs, keys)])
-    n_ref = len(CUE_NAMES) - len(EXTRA_CUE_NAMES)  # the loop predates the extra cues
+    n_ref = len(PAIR_CUE_NAMES) - len(EXTRA_CUE_NAMES)  # the loop predates the extra cues
     np.testing.assert_allclose(got[:, :n_ref], want, rtol=1e-6, atol=1e-6)
     # one pair at a time gives the same as in a batch, and the patch boundary stands in without tile edges
     p, t, _ = pairs[4]

@@ -1,0 +1,49 @@
+"""Neighbourhood cues (ms3d_model.context): max / mean / count over the 26 neighbouring cells."""
+
+import numpy as np
+
+from ms3d_model.context import context_cues, with_context
+from ms3d_model.cues import CONTEXT_CUE_NAMES, CUE_NAMES, N_PAIR_CUES, PAIR_CUE_NAMES
+
+
+def _cues(values: dict[str, list[float]], n: int) -> np.ndarray:
+    c = np.zeros((n, N_PAIR_CUES), np.float32)
+    for name, v in values.items():
+        c[:, PAIR_CUE_NAMES.index(name)] = v
+    return c
+
+
+def test_block_of_cells_sees_its_neighbours_and_nothing_beyond():
+    ijk = np.array([[i, j, 0] for i in range(3) for j in range(3)] + [[10, 10, 0]])  # a 3 x 3 block and a loner
+    v = np.arange(10, dtype=float)
+    v[9] = 100.0  # the loner's large value must reach nobody
+    ctx = dict(zip(CONTEXT_CUE_NAMES, context_cues(_cues({"p2m_p90": v}, 10), ijk).T))
+    centre = 4  # cell (1, 1): all 8 others of the block are its neighbours
+    assert ctx["nb_count"][centre] == 8
+    assert ctx["nb_max_p2m_p90"][centre] == 8.0
+    assert np.isclose(ctx["nb_mean_p2m_p90"][centre], (36 - 4) / 8)
+    assert ctx["nb_count"][0] == 3 and ctx["nb_max_p2m_p90"][0] == 4.0  # corner (0, 0): (0,1), (1,0), (1,1)
+    assert ctx["nb_count"][9] == 0 and ctx["nb_max_p2m_p90"][9] == 0.0 and ctx["nb_mean_p2m_p90"][9] == 0.0
+    assert ctx["nb_max_p2m_p90"][:9].max() < 100
+
+
+def test_vertical_and_diagonal_neighbours_count_and_nan_reads_as_zero():
+    ijk = np.array([[0, 0, 0], [1, 1, 1], [0, 0, 2]])
+    v = np.array([np.nan, 2.0, 3.0])
+    ctx = dict(zip(CONTEXT_CUE_NAMES, context_cues(_cues({"coverage_10cm": v}, 3), ijk).T))
+    assert ctx["nb_count"].tolist() == [1, 2, 1]
+    assert ctx["nb_max_coverage_10cm"].tolist() == [2.0, 3.0, 2.0]
+    assert ctx["nb_mean_coverage_10cm"][1] == 1.5  # the NaN neighbour counts as 0
+
+
+def test_with_context_appends_in_cue_name_order_and_order_does_not_matter():
+    rng = np.random.default_rng(0)
+    ijk = rng.integers(-3, 3, (40, 3))
+    ijk = np.unique(ijk, axis=0)
+    pc = rng.random((len(ijk), N_PAIR_CUES)).astype(np.float32)
+    full = with_context(pc, ijk)
+    assert full.shape == (len(ijk), len(CUE_NAMES))
+    np.testing.assert_array_equal(full[:, :N_PAIR_CUES], pc)
+    perm = rng.permutation(len(ijk))
+    np.testing.assert_allclose(with_context(pc[perm], ijk[perm]), full[perm], rtol=1e-6)
+    assert with_context(np.zeros((0, N_PAIR_CUES)), np.zeros((0, 3), int)).shape == (0, len(CUE_NAMES))
