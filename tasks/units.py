@@ -40,7 +40,7 @@ STAGE_VERSIONS = {
     "outliers": 2,   # v2: flags in outliers.parquet, not in patches.parquet
     "classify": 2,   # v2: points-only patches inside the solid are bad (evidence.inside_solid)
     "regions": 1,
-    "region": 2,     # v2: conformal charts, unseen zone surface kept, one vertex-id namespace
+    "region": 3,     # v3: zone faces the MLS did not see kept as they are; v2: conformal charts, one vertex-id namespace
     "merge": 2,      # v2: faces graded under repair.grades (the regions stage's rule), not grades-else-labels
 }
 

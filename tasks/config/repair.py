@@ -100,6 +100,10 @@ class MeshConfig(_Section):
     fill_clears_replaced: bool = Field(True, description="no input-surface sample within fill_step_m of a vertex the "
                                        "fusion replaced (a protrusion cut back is not put back); false: only the fused "
                                        "points' feet clear the input surface")
+    keep_unseen_m: float = Field(0.5, ge=0, description="zone faces with no MLS point within this distance and no "
+                                 "vertex the MLS surface covers (a roof strip the street scanner never saw) stay as "
+                                 "they are and the rebuild stitches to them (tasks.repair.keep); 0: every zone face "
+                                 "is rebuilt (the paper)")
     free_surface: bool = Field(True, description="MLS points of a region farther than max_map_distance_m from every "
                                "face (a passage through a block model, a wall the mesh lost) are meshed on their own "
                                "(Poisson, cut back to the points: tasks.repair.free) and added, not welded")

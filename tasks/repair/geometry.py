@@ -10,7 +10,7 @@ Frames and units: campus-local metres (float64 inside).
 from __future__ import annotations
 
 import time
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 
 import numpy as np
 from scipy.spatial import cKDTree
@@ -20,6 +20,7 @@ from storage.vertex_ids import local_ids
 from tasks.repair.chart import zone_charts
 from tasks.repair.fill import SOURCE_FILL, unseen_samples
 from tasks.repair.free import behind_surface, far_points, free_surface
+from tasks.repair.keep import covered_along_normal, expand_replaced, keep_faces, unseen_faces
 from tasks.repair.support import unsupported_share
 from tasks.repair.defect_types import DefectEvidence, classify_evidence, repair_plan
 from tasks.repair.fuse import (
@@ -187,15 +188,35 @@ def _finish_stats(stats: dict, data: RegionInput, mesh: RebuiltMesh, replaced: n
 
 
 def repair_region_geometry(data: RegionInput, cfg) -> RegionGeometry:
-    """Fuse, classify the defect, triangulate and stitch one region. cfg: ``RepairConfig``."""
+    """Fuse, classify the defect, triangulate and stitch one region. cfg: ``RepairConfig``.
+
+    Zone faces the MLS did not see (``mesh.keep_unseen_m``, :mod:`tasks.repair.keep`) join the retained
+    mesh first; the rest is rebuilt and stitched to them. ``replaced`` is over all zone faces."""
+    fc, mc = cfg.fusion, cfg.mesh
+    vn = vertex_normals(data.xyz, np.concatenate([data.zone_faces, data.context_faces]), data.face_normals)
+    thinned = _thinned_mls(data, fc, np.unique(data.zone_faces), vn)
+    keep = np.zeros(len(data.zone_faces), bool)
+    if mc.keep_unseen_m > 0 and len(data.zone_faces):
+        _, _, both, nrm = thinned
+        covered = covered_along_normal(data.xyz, vn, both, nrm, depth_m=fc.point_depth_m,
+                                       lateral_m=1.5 * fc.mls_spacing_m)
+        keep = unseen_faces(data.xyz, data.zone_faces, both, covered, clear_m=mc.keep_unseen_m, step_m=mc.fill_step_m)
+        keep = keep if not keep.all() else np.zeros(len(keep), bool)  # all unseen: the typed plan leaves it
+    geo = _repair(keep_faces(data, keep), cfg, vn, thinned)
+    geo.stats["kept_unseen_faces"] = int(keep.sum())
+    return replace(geo, replaced=expand_replaced(geo.replaced, keep)) if keep.any() else geo
+
+
+def _repair(data: RegionInput, cfg, vn: np.ndarray, thinned: tuple) -> RegionGeometry:
+    """:func:`repair_region_geometry` on the zone left to rebuild; vn: (n, 3) vertex normals; thinned: the
+    region's thinned MLS points (:func:`_thinned_mls`)."""
     t0 = time.perf_counter()
     fc, mc, tc = cfg.fusion, cfg.mesh, cfg.typed
     params = FusionParams.from_config(fc)
     mz = len(data.zone_faces)
-    vn = vertex_normals(data.xyz, np.concatenate([data.zone_faces, data.context_faces]), data.face_normals)
     zone_v = np.unique(data.zone_faces)
     locked = np.isin(zone_v, border_edges(data.zone_faces, data.context_faces, len(data.xyz)).ravel())
-    mls, mls_n, both, nrm = _thinned_mls(data, fc, zone_v, vn)
+    mls, mls_n, both, nrm = thinned
     stats: dict = {"mls_points": len(data.mls_xyz), "mls_thinned": len(mls)}
     t1 = time.perf_counter()
     # evidence (typed repair) from the MLS surface over zone + context

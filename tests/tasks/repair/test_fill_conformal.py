@@ -130,7 +130,8 @@ def test_unseen_part_keeps_the_input_and_unsupported_rebuilds_fall_back():
     from tasks.repair.geometry import repair_region_geometry
 
     data = _half_seen_region()
-    geo = repair_region_geometry(data, RepairConfig())
+    cfg = RepairConfig.model_validate({"mesh": {"keep_unseen_m": 0}})  # the fill path: every zone face rebuilt
+    geo = repair_region_geometry(data, cfg)
     m = geo.mesh
     assert m.n_faces and geo.replaced.all()
     c = m.xyz[m.faces].mean(axis=1)
@@ -140,7 +141,8 @@ def test_unseen_part_keeps_the_input_and_unsupported_rebuilds_fall_back():
     assert np.mean(np.abs(c[inner, 1] - 0.5) < 0.05) > 0.99  # the seen half moves onto the MLS surface
     share = geo.stats["unsupported_share"]
     assert 0 < share < 0.3  # only the step between the two halves rests on neither
-    strict = repair_region_geometry(data, RepairConfig.model_validate({"mesh": {"max_unsupported_share": share / 2}}))
+    strict = repair_region_geometry(data, RepairConfig.model_validate({"mesh": {"max_unsupported_share": share / 2,
+                                                                                "keep_unseen_m": 0}}))
     assert strict.mesh.n_faces == 0 and not strict.replaced.any()
     assert strict.stats["plan"].startswith("fallback")
 
@@ -161,3 +163,64 @@ def test_points_in_front_of_the_surface_are_never_meshed_freely():
                        near_zone=np.zeros(len(v), bool), mls_xyz=tree, mls_class=np.zeros(len(tree), np.uint8),
                        ctx_xyz=np.zeros((0, 3)), face_normals=np.asarray(block.face_normals, np.float32))
     assert repair_region_geometry(data, RepairConfig()).mesh.n_faces == 0
+
+
+def _edge_is_mesh_edge():
+    from tasks.config.repair import RepairConfig
+
+    # a free-standing test band's outline (26 m) would count as a hole to fill; in a campus it is the mesh's edge
+    return RepairConfig.model_validate({"mesh": {"max_hole_loop_m": 5.0}})
+
+
+EDGE_IS_MESH_EDGE = _edge_is_mesh_edge()
+
+
+def test_unseen_zone_faces_stay_verbatim_and_the_rebuild_stitches_to_them():
+    """The default: the unseen half of the zone is not rebuilt at all; its faces stay, and the rebuilt half
+    welds to their vertices (no gap)."""
+    from tasks.config.repair import RepairConfig
+    from tasks.repair.geometry import repair_region_geometry
+
+    data = _half_seen_region()
+    geo = repair_region_geometry(data, EDGE_IS_MESH_EDGE)
+    c_in = data.xyz[data.zone_faces].mean(axis=1)
+    kept = ~geo.replaced
+    assert geo.stats["kept_unseen_faces"] == kept.sum() > 0
+    assert c_in[kept, 0].min() > 5.0 and (c_in[:, 0] > 6.0).sum() <= kept.sum()  # only, and all of, the far half
+    m = geo.mesh
+    c = m.xyz[m.faces].mean(axis=1)
+    assert c[:, 0].max() < 6.0  # nothing rebuilt over the kept faces
+    assert geo.stats["border"]["max_gap_m"] < 1e-6
+    kept_v = np.unique(data.zone_faces[kept])
+    shared = np.intersect1d(m.vertex_id, data.vertex_id[kept_v])
+    assert len(shared) >= 5  # the seam between the halves is welded by id
+
+
+def test_a_roof_strip_in_a_facade_zone_is_never_rebuilt():
+    """A zone over a wall's top storey takes a strip of the roof with it. The street MLS sees the wall
+    only: the roof faces come out exactly as they went in, and no rebuilt triangle cuts across the eave."""
+    from tasks.config.repair import RepairConfig
+    from tasks.repair.geometry import RegionInput, repair_region_geometry
+
+    wv, wf = _band(length=8.0, height=3.0, nx=16, nz=6)  # wall in the x-z plane at y = 0, z in [0, 3]
+    rv = np.array([[x, y, 3.0] for x in np.linspace(0, 8, 17) for y in np.linspace(0, 3, 7)])  # roof behind it
+    idx = lambda i, j: len(wv) + i * 7 + j  # noqa: E731
+    rf = [[idx(i, j), idx(i + 1, j + 1), idx(i + 1, j)] for i in range(16) for j in range(6)]
+    rf += [[idx(i, j), idx(i, j + 1), idx(i + 1, j + 1)] for i in range(16) for j in range(6)]
+    v, f = np.concatenate([wv, rv]), np.concatenate([wf, np.array(rf, np.int64)])
+    rng = np.random.default_rng(0)
+    wall_pts = np.c_[rng.uniform(0, 8, 6000), rng.normal(0.15, 0.005, 6000), rng.uniform(0, 2.9, 6000)]  # 15 cm off
+    data = RegionInput(xyz=v, vertex_id=np.arange(len(v)), zone_faces=f, context_faces=np.zeros((0, 3), np.int64),
+                       near_zone=np.ones(len(v), bool), mls_xyz=wall_pts, mls_class=np.zeros(len(wall_pts), np.uint8),
+                       ctx_xyz=np.zeros((0, 3)), face_normals=None)
+    geo = repair_region_geometry(data, EDGE_IS_MESH_EDGE)
+    roof = np.arange(len(f)) >= len(wf)
+    cz = v[f].mean(axis=1)
+    deep_roof = roof & (cz[:, 1] > 1.2)  # every vertex more than clear_m back from the scanned wall top
+    assert (~geo.replaced[deep_roof]).all()
+    assert geo.replaced[~roof & (cz[:, 2] < 2.0)].all()  # the seen wall is rebuilt
+    m = geo.mesh
+    c = m.xyz[m.faces].mean(axis=1)
+    assert not ((c[:, 1] > 1.2) & (c[:, 2] > 2.5)).any()  # nothing rebuilt over the kept roof
+    mid = (c[:, 2] > 0.5) & (c[:, 2] < 2.0) & (c[:, 0] > 0.5) & (c[:, 0] < 7.5)
+    assert np.median(np.abs(c[mid, 1] - 0.15)) < 0.02  # the wall moved onto the scan
