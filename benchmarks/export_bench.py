@@ -10,11 +10,18 @@ its own):
 3. ``run_export`` on a campus ``--replicate`` times larger (the demo's tiles copied side by side, same
    content per tile): peak RSS, which must not grow with the campus (memory is bounded by a tile).
 
+Every run prints per node (leaf, parent, overview) its seconds and peak RSS (VmHWM reset before each node,
+as a flow's worker records it) and the RSS the node started from. ``--merged WORKDIR`` exports the merged
+tiles of a processed work dir (``tiles/*/merged.*`` and the textures they name; copied, never written)
+instead of the fake merge; ``--code DIR`` runs the export of another checkout (e.g. ``git archive HEAD``
+unpacked) for a side-by-side before/after; ``--quick`` skips the Draco and 2-process runs.
+
 Target (issue 10): >= 40 k triangles/s for merge + export on this 2-core machine; this script measures
 export (merge comes later); peak RSS < 2 GB. Always exits 0: it reports.
 
     .venv/bin/python benchmarks/export_bench.py                     # ms3d-work/demo-input (made if missing)
     .venv/bin/python benchmarks/export_bench.py --input ms3d-work/tiny-input --tile-size 25 --work /tmp/eb
+    .venv/bin/python benchmarks/export_bench.py --merged /tmp/demo-work --quick --work /tmp/eb [--code /tmp/old]
 """
 
 from __future__ import annotations
@@ -46,22 +53,52 @@ def _vm_hwm_mb() -> float:
     return resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024.0
 
 
+def _vm_rss_mb() -> float:
+    for line in Path("/proc/self/status").read_text().splitlines():
+        if line.startswith("VmRSS:"):
+            return int(line.split()[1]) / 1024.0
+    return float("nan")
+
+
+def _timed_nodes(jobs: list, per_node: list[dict]) -> list[dict]:
+    """map_jobs for run_export: build each node here, noting its seconds and peak RSS (VmHWM reset first)."""
+    from tasks.export import build_node
+    from tasks.units import peak_rss_mb, reset_peak_rss
+
+    out = []
+    for job in jobs:
+        start_mb = _vm_rss_mb()
+        reset_peak_rss()
+        t, c = time.perf_counter(), time.process_time()
+        out.append(build_node(job))
+        per_node.append({"node": job.node.key, "s": round(time.perf_counter() - t, 2),
+                         "cpu_s": round(time.process_time() - c, 2), "peak_rss_mb": round(peak_rss_mb()),
+                         "start_rss_mb": round(start_mb), "faces": out[-1].get("faces")})
+    return out
+
+
 def _child(work: str, compression: str, workers: int = 1) -> None:
     """Run one export in this (fresh) process and print its summary with peak RSS and CPU seconds."""
+    from functools import partial
+
     from tasks.config import ExportConfig
     from tasks.export import run_export
 
+    per_node: list[dict] = []
     t0, c0 = time.perf_counter(), time.process_time()
-    summary = run_export(work, ExportConfig(compression=compression), workers=workers)
+    mapper = partial(_timed_nodes, per_node=per_node) if workers == 1 else None
+    summary = run_export(work, ExportConfig(compression=compression), workers=workers, map_jobs=mapper)
     summary.update(wall_s=time.perf_counter() - t0, cpu_s=time.process_time() - c0, peak_rss_mb=_vm_hwm_mb(),
-                   children_peak_rss_mb=resource.getrusage(resource.RUSAGE_CHILDREN).ru_maxrss / 1024.0)
+                   children_peak_rss_mb=resource.getrusage(resource.RUSAGE_CHILDREN).ru_maxrss / 1024.0,
+                   per_node=per_node)
     summary.pop("built"), summary.pop("reused")
     print(json.dumps(summary))
 
 
-def _run_child(work: Path, compression: str, workers: int = 1) -> dict:
-    run = subprocess.run([sys.executable, __file__, "--child", str(work), compression, str(workers)], capture_output=True,
-                         text=True, cwd=REPO, check=False)  # fmt: skip
+def _run_child(work: Path, compression: str, workers: int = 1, code: Path = REPO) -> dict:
+    env = {**os.environ, "PYTHONPATH": str(code), "OMP_NUM_THREADS": "1"}
+    run = subprocess.run([sys.executable, __file__, "--child", str(work), compression, str(workers), "--code", str(code)],
+                         capture_output=True, text=True, cwd=code, check=False, env=env)  # fmt: skip
     if run.returncode != 0:
         raise RuntimeError(run.stderr[-3000:])
     return json.loads(run.stdout.strip().splitlines()[-1])
@@ -79,6 +116,24 @@ def make_merged(input_dir: Path, work: Path, tile_size_m: float, seed: int = 0) 
     frame = CampusFrame(origin=origin, crs=cfg["inputs"]["crs"], vertical_datum="ellipsoidal (WGS 84), synthetic")
     fake_merged_workdir(mesh, frame, work, tile_size_m=tile_size_m, seed=seed)
     return work, _footprint_km2(work, tile_size_m)
+
+
+def copy_merged(src: Path, work: Path, tile_size_m: float) -> tuple[Path, float]:
+    """Copy a processed work dir's campus.json and merged tiles (texture paths made absolute, so the
+    copies read the source's textures); returns (work dir, footprint km²)."""
+    from storage.tile_mesh import read_tile_mesh, write_tile_mesh
+
+    (work / "tiles").mkdir(parents=True)
+    shutil.copy(src / "campus.json", work / "campus.json")
+    for meta in sorted((src / "tiles").glob("*/merged.json")):
+        write_tile_mesh(work / "tiles" / meta.parent.name, read_tile_mesh(meta.parent))
+    return work, _footprint_km2(work, tile_size_m)
+
+
+def _print_nodes(name: str, r: dict) -> None:
+    for n in r.get("per_node", []):
+        print(f"  {name} {n['node']:10s} {n['s']:7.2f} s ({n['cpu_s']:.2f} s CPU), peak RSS {n['peak_rss_mb']:6,} MB "
+              f"(from {n['start_rss_mb']:,} MB), faces {n['faces']}")
 
 
 def _footprint_km2(work: Path, tile_size_m: float) -> float:
@@ -114,12 +169,16 @@ def main(argv: list[str] | None = None) -> dict:
     p.add_argument("--work", type=Path, default=REPO / "ms3d-work" / "export-bench")
     p.add_argument("--tile-size", type=float, default=50.0)
     p.add_argument("--replicate", type=int, default=2, help="the larger campus is this many times the input")
+    p.add_argument("--merged", type=Path, help="a processed work dir whose merged tiles to export (copied)")
+    p.add_argument("--code", type=Path, default=REPO, help="the checkout whose export runs (default: this one)")
+    p.add_argument("--quick", action="store_true", help="skip the Draco and 2-process runs")
     p.add_argument("--child", nargs=3, metavar=("WORK", "COMPRESSION", "WORKERS"), help=argparse.SUPPRESS)
     a = p.parse_args(argv)
     if a.child:
+        sys.path.insert(0, str(a.code.resolve()))
         _child(a.child[0], a.child[1], int(a.child[2]))
         return {}
-    if not (a.input / "campus.yaml").exists():  # the demo campus, generated once (~3 min)
+    if a.merged is None and not (a.input / "campus.yaml").exists():  # the demo campus, generated once (~3 min)
         subprocess.run([sys.executable, "-m", "flows.cli", "synth", "--preset", "demo", "--seed", "7", "--out",
                         str(a.input), "--overwrite"], check=True, cwd=REPO)  # fmt: skip
     load = os.getloadavg()
@@ -127,17 +186,23 @@ def main(argv: list[str] | None = None) -> dict:
     if base.exists():
         shutil.rmtree(base)
     t = time.perf_counter()
-    base, km2 = make_merged(a.input, base, a.tile_size)
-    print(f"input {a.input.name}: {len(list((base / 'tiles').glob('*/merged.json')))} tiles of {a.tile_size:g} m, "
+    if a.merged is not None:
+        tile_m = float(json.loads((a.merged / "campus.json").read_text()).get("grid", {}).get("tile_size_m", 100.0))
+        a.tile_size = tile_m
+        base, km2 = copy_merged(a.merged, base, tile_m)
+    else:
+        base, km2 = make_merged(a.input, base, a.tile_size)
+    print(f"input {(a.merged or a.input).name} (export code {a.code}): {len(list((base / 'tiles').glob('*/merged.json')))} tiles of {a.tile_size:g} m, "
           f"{km2:.4f} km² (fake merge {time.perf_counter() - t:.1f} s); load average {load[0]:.1f}")
 
     results = {}
-    for name, compression, workers in (("none", "none", 1), ("draco", "draco", 1), ("none-2w", "none", 2)):
+    runs = (("none", "none", 1),) if a.quick else (("none", "none", 1), ("draco", "draco", 1), ("none-2w", "none", 2))
+    for name, compression, workers in runs:
         work = a.work / f"run-{name}"
         if work.exists():
             shutil.rmtree(work)
         shutil.copytree(base, work)
-        results[name] = r = _run_child(work, compression, workers)
+        results[name] = r = _run_child(work, compression, workers, a.code)
         rss_note = (f"peak RSS {r['peak_rss_mb']:,.0f} MB" if workers == 1 else
                     f"peak RSS of the parent {r['peak_rss_mb']:,.0f} MB (pool workers not measured)")
         print(f"export {name:7s} ({workers} process{'es' if workers > 1 else ''}): {r['leaf_faces']:,} triangles in "
@@ -145,8 +210,10 @@ def main(argv: list[str] | None = None) -> dict:
               f"(target >= {TARGET_TRIANGLES_PER_S:,} for merge + export); {r['bytes'] / 1e6:,.1f} MB = "
               f"{r['bytes'] / 1e6 / km2:,.0f} MB/km² (textures {r['texture_bytes'] / 1e6 / km2:,.0f}); "
               f"{rss_note}")
+        _print_nodes(name, r)
     big = replicate(base, a.work / "big", a.replicate, a.tile_size)
-    results["big"] = rb = _run_child(big, "none")
+    results["big"] = rb = _run_child(big, "none", 1, a.code)
+    _print_nodes("big", rb)
     load_end = os.getloadavg()[0]
     km2_big = _footprint_km2(big, a.tile_size)
     rss = [results["none"]["peak_rss_mb"], rb["peak_rss_mb"]]
@@ -156,11 +223,13 @@ def main(argv: list[str] | None = None) -> dict:
     figures = {
         "triangles_per_s": results["none"]["leaf_faces"] / results["none"]["wall_s"],
         "triangles_per_cpu_s": results["none"]["leaf_faces"] / results["none"]["cpu_s"],
-        "triangles_per_s_2_processes": results["none-2w"]["leaf_faces"] / results["none-2w"]["wall_s"],
         "mb_per_km2": results["none"]["bytes"] / 1e6 / km2,
-        "mb_per_km2_draco": results["draco"]["bytes"] / 1e6 / km2,
+        "node_peak_rss_mb": [max(n["peak_rss_mb"] for n in results[k]["per_node"]) for k in ("none", "big")],
         "peak_rss_mb": rss, "area_km2": [km2, km2_big], "load_average": [load[0], load_end],
     }
+    if not a.quick:
+        figures["triangles_per_s_2_processes"] = results["none-2w"]["leaf_faces"] / results["none-2w"]["wall_s"]
+        figures["mb_per_km2_draco"] = results["draco"]["bytes"] / 1e6 / km2
     print(json.dumps(figures))
     return {"figures": figures, "runs": results}
 

@@ -11,7 +11,8 @@ export parameters, the georeference (CRS, origin, footprint centre) or ``EXPORT_
 any child. Nodes, glbs and cached meshes the plan no longer names are removed.
 
 Modules: ``tree`` (quadtree, tileset.json), ``content`` (a node's glTF content), ``nodes`` (one node's
-build), ``gltf`` / ``lod`` / ``georef`` (glb writer, decimation, ENU frame), ``check`` (validation:
+build), ``gltf`` / ``vertex_split`` / ``lod`` / ``georef`` (glb writer, per-feature vertices, block-wise
+decimation, ENU frame), ``check`` (validation:
 ``python -m tasks.export.check WORKDIR``), ``stage`` (the run and its records).
 """
 

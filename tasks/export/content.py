@@ -64,9 +64,11 @@ def prepare_texture(path: str, uv: np.ndarray, max_px: int, quality: int) -> tup
         if fmt == "JPEG" and scale < 1.0:
             im.draft("RGB", (math.ceil(w0 * scale), math.ceil(h0 * scale)))  # decode at 1/2, 1/4.. directly
         f = im.size[0] / w0
-        rgb = im.convert("RGB")
+        rgb = im if im.mode == "RGB" else im.convert("RGB")  # no full-size copy of an RGB atlas
         if not whole:
             rgb = rgb.crop((math.floor(x0 * f), math.floor(y0 * f), math.ceil(x1 * f), math.ceil(y1 * f)))
+        if rgb is not im:
+            im.close()  # frees the decoded atlas now, not at the end of the block
         size = (max(1, round(cw * scale)), max(1, round(ch * scale)))
         if rgb.size != size:
             rgb = rgb.resize(size, Image.BILINEAR)
@@ -92,25 +94,32 @@ def leaf_content(tm: TileMesh, projector: EnuProjector, cfg: ExportConfig) -> tu
     """A ground tile's full-resolution content (glTF, y-up) and its vertex-coloured LodMesh (ENU)."""
     # one vertex per (vertex, texture) so each texture's crop can remap its own uvs
     faces, src, group = split_by_feature(tm.faces, tm.face_texture.astype(np.int64) + 1)
+    faces = faces.astype(np.int32)  # < 2**31 vertices (glTF indices are uint32); shared by the glTF and the LodMesh
     group -= 1
-    enu = projector.local_to_enu(tm.vertices)[src]
+    enu = projector.local_to_enu(tm.vertices).astype(np.float32)[src]  # float32 first: same bits, half the memory
     uv = np.zeros((len(src), 2), np.float32)
     colors = (tm.vertex_colors[src] if tm.vertex_colors is not None else np.full((len(src), 3), 180, np.uint8)).copy()
     images = []
-    used_textures = sorted(int(g) for g in np.unique(group) if g >= 0)
-    face_texture = np.full(len(faces), -1, np.int16)
-    for new_index, k in enumerate(used_textures):
-        sel = group == k
+    order = np.argsort(group, kind="stable")  # the vertices of each texture: one slice of order (no scan per texture)
+    sorted_group = group[order]
+    used_textures = [int(g) for g in np.unique(sorted_group) if g >= 0]
+    starts = np.searchsorted(sorted_group, used_textures, side="left")
+    ends = np.searchsorted(sorted_group, used_textures, side="right")
+    new_texture = np.full(len(tm.textures) + 1, -1, np.int16)  # old texture + 1 -> its index among the used
+    for new_index, (k, a, b) in enumerate(zip(used_textures, starts, ends)):
+        sel = order[a:b]
         uv_gltf = np.stack([tm.uv[src[sel], 0], 1.0 - tm.uv[src[sel], 1]], axis=1)
         image, pixels, uv[sel] = prepare_texture(tm.textures[k], uv_gltf, cfg.max_texture_px, cfg.jpeg_quality)
         colors[sel] = sample_colors(pixels, uv[sel])
         images.append(image)
-        face_texture[tm.face_texture == k] = new_index
+        new_texture[k + 1] = new_index
+    face_texture = new_texture[tm.face_texture.astype(np.int64) + 1]
+    del order, sorted_group, group, src
     feature, g_rows, s_rows, r_rows = feature_rows(tm.grade, tm.source, tm.region)
     gltf = GltfMesh(positions=enu_to_gltf(enu), faces=faces, feature=feature, grade=g_rows, source=s_rows,
                     region=r_rows, face_texture=face_texture, uv=uv if images else None, vertex_colors=colors,
                     images=images)  # fmt: skip
-    lod = weld(LodMesh(enu.astype(np.float32), faces.astype(np.int32), colors, tm.grade, tm.source, tm.region))
+    lod = weld(LodMesh(enu, faces, colors, tm.grade, tm.source, tm.region))
     return gltf, lod
 
 

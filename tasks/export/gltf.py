@@ -25,6 +25,8 @@ from functools import lru_cache
 
 import numpy as np
 
+from tasks.export.vertex_split import split_by_feature
+
 GLB_MAGIC, CHUNK_JSON, CHUNK_BIN = 0x46546C67, 0x4E4F534A, 0x004E4942
 MAX_GLB_BYTES = 1 << 30  # far below the uint32 length field and what viewers load
 FLOAT, UBYTE, USHORT, UINT = 5126, 5121, 5123, 5125
@@ -87,33 +89,6 @@ class GltfMesh:
     images: list[GltfImage] = field(default_factory=list)
 
 
-def split_by_feature(faces: np.ndarray, feature: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """Compact the vertices of ``faces`` so that no vertex is shared by faces of different features.
-
-    faces: (m, 3) int; feature: (m,) int >= 0. Returns (new faces (m, 3) int64, source vertex per new
-    vertex (k,) int64, feature per new vertex (k,) int64); new vertices ordered by (source, feature).
-
-    >>> f, src, fid = split_by_feature(np.array([[0, 1, 2], [2, 1, 3]]), np.array([0, 1]))
-    >>> f.tolist(), src.tolist(), fid.tolist()
-    ([[0, 1, 3], [4, 2, 5]], [0, 1, 1, 2, 2, 3], [0, 0, 1, 0, 1, 1])
-    """
-    faces = np.asarray(faces, np.int64)
-    if len(faces) == 0:
-        return faces.reshape(0, 3), np.zeros(0, np.int64), np.zeros(0, np.int64)
-    n_feat = int(feature.max()) + 1
-    key = (faces * n_feat + np.asarray(feature, np.int64)[:, None]).reshape(-1)
-    space = (int(faces.max()) + 1) * n_feat
-    if space <= max(1 << 26, 8 * key.size):  # a dense table: linear time, no sort
-        used = np.zeros(space, bool)
-        used[key] = True
-        uniq = np.flatnonzero(used)
-        new_id = np.cumsum(used) - 1
-        inverse = new_id[key]
-    else:
-        uniq, inverse = np.unique(key, return_inverse=True)
-    return inverse.reshape(-1, 3), uniq // n_feat, uniq % n_feat
-
-
 def vertex_normals(positions: np.ndarray, faces: np.ndarray) -> np.ndarray:
     """(n, 3) float32 unit area-weighted vertex normals; (0, 1, 0) (up) where undefined."""
     p = positions.astype(np.float64)
@@ -146,11 +121,14 @@ class _Builder:
         self.length = 0
         self.doc: dict = {"bufferViews": [], "accessors": []}
 
-    def view(self, data: bytes, target: int | None = None, stride: int | None = None, align: int = 8) -> int:
+    def view(self, data: bytes | np.ndarray, target: int | None = None, stride: int | None = None, align: int = 8) -> int:
+        """Append ``data`` (bytes, or a C-contiguous array kept as it is: no copy until the glb is written)."""
         pad = (-self.length) % align
         if pad:
             self.chunks.append(b"\0" * pad)
             self.length += pad
+        if isinstance(data, np.ndarray):
+            data = memoryview(np.ascontiguousarray(data)).cast("B")
         bv = {"buffer": 0, "byteOffset": self.length, "byteLength": len(data)}
         if target is not None:
             bv["target"] = target
@@ -165,7 +143,7 @@ class _Builder:
                  normalized=False, minmax=False, view=True) -> int:
         acc = {"componentType": ctype, "count": int(count), "type": atype}
         if view:
-            acc["bufferView"] = self.view(np.ascontiguousarray(array).tobytes(), target, stride)
+            acc["bufferView"] = self.view(np.ascontiguousarray(array), target, stride)
         if normalized:
             acc["normalized"] = True
         if minmax:
@@ -242,6 +220,20 @@ def _primitive(b: _Builder, pos, faces, normals, uv, colors, fid, material: int,
 
 def build_glb(mesh: GltfMesh, compression: str = "none") -> bytes:
     """glb bytes of ``mesh`` (see the module docstring). compression: "none" or "draco"."""
+    return b"".join(glb_parts(mesh, compression))
+
+
+def write_glb(path, mesh: GltfMesh, compression: str = "none") -> int:
+    """Write ``mesh``'s glb to ``path`` (a file name) piece by piece, never holding it whole; returns bytes."""
+    n = 0
+    with open(path, "wb") as f:
+        for part in glb_parts(mesh, compression):
+            n += f.write(part)
+    return n
+
+
+def glb_parts(mesh: GltfMesh, compression: str = "none") -> list:
+    """The glb of ``mesh`` as a list of bytes-like pieces (header, JSON, the binary chunk's views)."""
     if compression not in ("none", "draco"):
         raise ValueError(f"compression must be 'none' or 'draco', not {compression!r}")
     b = _Builder()
@@ -292,23 +284,23 @@ def build_glb(mesh: GltfMesh, compression: str = "none") -> bytes:
     doc["meshes"] = [{"primitives": primitives, "name": "tile"}]
     doc["extensionsUsed"] = used
     doc["buffers"] = [{"byteLength": b.length}]
-    return _pack(doc, b.chunks, b.length)
+    return _pack_parts(doc, b.chunks, b.length)
 
 
-def _pack(doc: dict, chunks: list[bytes], length: int) -> bytes:
+def _pack(doc: dict, chunks: list, length: int) -> bytes:
+    return b"".join(_pack_parts(doc, chunks, length))
+
+
+def _pack_parts(doc: dict, chunks: list, length: int) -> list:
+    """glb header + JSON chunk, then the binary chunk's pieces as they are (no copy) and its padding."""
     js = json.dumps(doc, separators=(",", ":")).encode()
     js += b" " * ((-len(js)) % 4)
     bin_pad = (-length) % 4
     total = 12 + 8 + len(js) + 8 + length + bin_pad
     if total > MAX_GLB_BYTES:
         raise ValueError(f"glb of {total:,} bytes exceeds {MAX_GLB_BYTES:,}: use smaller tiles")
-    out = bytearray(struct.pack("<III", GLB_MAGIC, 2, total))
-    out += struct.pack("<II", len(js), CHUNK_JSON) + js
-    out += struct.pack("<II", length + bin_pad, CHUNK_BIN)
-    for c in chunks:
-        out += c
-    out += b"\0" * bin_pad
-    return bytes(out)
+    head = struct.pack("<III", GLB_MAGIC, 2, total) + struct.pack("<II", len(js), CHUNK_JSON) + js
+    return [head + struct.pack("<II", length + bin_pad, CHUNK_BIN), *chunks, b"\0" * bin_pad]
 
 
 def read_glb(data: bytes) -> tuple[dict, bytes]:

@@ -10,6 +10,7 @@ so a parent's ``geometricError`` is a measured bound of its distance to the full
 
 from __future__ import annotations
 
+import math
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -36,7 +37,12 @@ class LodMesh:
 
     def bounds(self) -> tuple[np.ndarray, np.ndarray]:
         """(lo, hi) (3,) float64 of the positions used by faces."""
-        used = self.positions[np.unique(self.faces)] if self.n_faces else self.positions
+        if not self.n_faces:
+            used = self.positions
+        else:
+            mask = np.zeros(len(self.positions), bool)
+            mask[self.faces.reshape(-1)] = True  # linear, no sort
+            used = self.positions if mask.all() else self.positions[mask]
         return used.min(axis=0).astype(np.float64), used.max(axis=0).astype(np.float64)
 
 
@@ -81,18 +87,22 @@ def weld(lod: LodMesh) -> LodMesh:
     sb = bits[order]
     new_group = np.ones(len(sb), bool)
     new_group[1:] = (sb[1:] != sb[:-1]).any(axis=1)
-    group_of_sorted = np.cumsum(new_group) - 1
-    remap = np.empty(len(order), np.int64)
-    remap[order] = group_of_sorted
+    del sb
+    remap = np.empty(len(order), np.int32)  # int32 like the faces: half the memory of int64
+    remap[order] = np.cumsum(new_group, dtype=np.int32) - 1
     rep = order[new_group]  # first (in sorted order) vertex of each group
+    del order, new_group
     faces = remap[lod.faces]
+    del remap
     keep = (faces[:, 0] != faces[:, 1]) & (faces[:, 1] != faces[:, 2]) & (faces[:, 0] != faces[:, 2])
-    return _compact(LodMesh(lod.positions[rep], faces[keep].astype(np.int32), lod.colors[rep],
+    return _compact(LodMesh(lod.positions[rep], faces[keep], lod.colors[rep],
                             lod.grade[keep], lod.source[keep], lod.region[keep]))
 
 
 def _compact(lod: LodMesh) -> LodMesh:
-    used = np.unique(lod.faces)
+    mask = np.zeros(len(lod.positions), bool)
+    mask[lod.faces.reshape(-1)] = True  # linear, no sort
+    used = np.flatnonzero(mask)
     if len(used) == len(lod.positions):
         return lod
     remap = np.full(len(lod.positions), -1, np.int64)
@@ -172,7 +182,37 @@ def quadric_backend() -> str:
     return "fqmr"
 
 
-def decimate(lod: LodMesh, target_faces: int, samples: int = 50_000, backend: str | None = None) -> Decimation:
+MAX_BLOCK_FACES = 400_000  # faces decimated at once: pyfqmr needs ~530 bytes per face, the deviation ~400
+
+
+def split_blocks(positions: np.ndarray, faces: np.ndarray, max_faces: int) -> list[np.ndarray]:
+    """Face indices (int64, ascending) of ground blocks of at most ``max_faces`` faces each: the faces'
+    centroids are split at the median of the block's longer horizontal side (x or y), recursively.
+
+    positions: (n, 3) float32 ENU metres; faces: (m, 3) int.
+
+    >>> p = np.array([[0, 0, 0], [1, 0, 0], [0, 1, 0], [9, 0, 0], [10, 0, 0], [9, 1, 0]], np.float32)
+    >>> [b.tolist() for b in split_blocks(p, np.array([[3, 4, 5], [0, 1, 2]]), 1)]
+    [[1], [0]]
+    """
+    xy = positions[:, :2]
+    cent = (xy[faces[:, 0]] + xy[faces[:, 1]] + xy[faces[:, 2]]) / np.float32(3)  # (m, 2) float32
+    todo, out = [np.arange(len(faces))], []
+    while todo:
+        idx = todo.pop()
+        if len(idx) <= max_faces:
+            out.append(np.sort(idx))
+            continue
+        c = cent[idx]
+        axis = int(np.argmax(c.max(axis=0) - c.min(axis=0)))
+        half = len(idx) // 2
+        order = np.argpartition(c[:, axis], half)  # the median split in linear time
+        todo += [idx[order[half:]], idx[order[:half]]]
+    return out
+
+
+def decimate(lod: LodMesh, target_faces: int, samples: int = 50_000, backend: str | None = None,
+             max_block_faces: int = MAX_BLOCK_FACES) -> Decimation:
     """Quadric edge-collapse decimation to about ``target_faces``, open boundaries kept (tile borders
     stay where the neighbour expects them).
 
@@ -181,7 +221,31 @@ def decimate(lod: LodMesh, target_faces: int, samples: int = 50_000, backend: st
     whose centroid is nearest its centroid. The deviation is measured both ways
     (open3d ray-casting distances) at ``samples`` area-uniform points on each surface plus the
     simplified mesh's vertices.
+
+    A mesh of more than ``max_block_faces`` faces is decimated block by block (:func:`split_blocks`),
+    each to its share of ``target_faces`` and with its share of ``samples``, its borders kept like a
+    tile's, then welded: memory is bounded by a block, not by the mesh. The deviation is then the max over
+    blocks (a bound: a point of a block is no farther from the whole than from its block), the mean the
+    face-weighted mean.
     """
+    if lod.n_faces <= target_faces or lod.n_faces < 4:
+        return Decimation(lod, 0.0, 0.0)
+    if lod.n_faces <= max_block_faces:
+        return _decimate_block(lod, target_faces, samples, backend)
+    parts, shares = [], []
+    for idx in split_blocks(lod.positions, lod.faces, max_block_faces):
+        block = _compact(LodMesh(lod.positions, lod.faces[idx], lod.colors, lod.grade[idx], lod.source[idx],
+                                 lod.region[idx]))
+        shares.append(len(idx) / lod.n_faces)
+        parts.append(_decimate_block(block, math.ceil(target_faces * shares[-1]),
+                                     max(1000, math.ceil(samples * shares[-1])), backend))
+        del block
+    mesh = weld(concat_lods([d.mesh for d in parts]))
+    return Decimation(mesh, max(d.hausdorff_m for d in parts), float(sum(d.mean_m * w for d, w in zip(parts, shares))))
+
+
+def _decimate_block(lod: LodMesh, target_faces: int, samples: int, backend: str | None) -> Decimation:
+    """:func:`decimate` of one block (the whole mesh at once)."""
     if lod.n_faces <= target_faces or lod.n_faces < 4:
         return Decimation(lod, 0.0, 0.0)
     backend = backend or quadric_backend()

@@ -16,12 +16,12 @@ from pathlib import Path
 
 import numpy as np
 
-from storage.atomic import file_fingerprint, file_sha256, write_bytes_atomic
+from storage.atomic import atomic_path, file_fingerprint, file_sha256
 from storage.tile_mesh import read_tile_mesh, tile_mesh_paths
 from tasks.config import ExportConfig
 from tasks.export.content import box_from_bounds, leaf_content, lod_gltf
 from tasks.export.georef import EnuProjector, GeoRef
-from tasks.export.gltf import GltfMesh, build_glb
+from tasks.export.gltf import GltfMesh, write_glb
 from tasks.export.lod import concat_lods, decimate, load_lod, save_lod, weld
 from tasks.export.tree import QuadNode
 
@@ -44,9 +44,9 @@ def leaf_fingerprint(tile_dir: Path, base: str) -> str:
 
 
 def _write_glb(out: Path, uri: str, mesh: GltfMesh, compression: str) -> int:
-    data = build_glb(mesh, compression)
-    write_bytes_atomic(out / uri, data)
-    return len(data)
+    """Stream the glb to a temporary name and rename it into place (never the whole glb in memory)."""
+    with atomic_path(out / uri) as tmp:
+        return write_glb(tmp, mesh, compression)
 
 
 def _backend(cfg: ExportConfig) -> str | None:
@@ -74,13 +74,14 @@ def _build_leaf(job: NodeJob) -> dict:
     uri = f"content/tiles/{tm.tile}.glb"
     nbytes = _write_glb(job.out, uri, gltf, job.cfg.compression)
     texture_bytes = sum(len(im.data) for im in gltf.images)
-    del gltf
+    tile, n_faces = tm.tile, tm.n_faces
+    del gltf, tm  # the decimation below needs only the LodMesh
     dec = decimate(lod, math.ceil(lod.n_faces / job.cfg.lod_reduction), job.cfg.hausdorff_samples, _backend(job.cfg))
     save_lod(job.cache / f"{job.node.key}.npz", dec.mesh)
     lo, hi = lod.bounds()
-    return {"fingerprint": job.fingerprint, "uri": uri, "tile": tm.tile, "lo": lo.tolist(), "hi": hi.tolist(),
+    return {"fingerprint": job.fingerprint, "uri": uri, "tile": tile, "lo": lo.tolist(), "hi": hi.tolist(),
             "box": box_from_bounds(lo, hi), "geometricError": 0.0, "up_hausdorff_m": dec.hausdorff_m,
-            "faces": tm.n_faces, "bytes": nbytes, "texture_bytes": texture_bytes}  # fmt: skip
+            "faces": n_faces, "bytes": nbytes, "texture_bytes": texture_bytes}  # fmt: skip
 
 
 def _build_parent(job: NodeJob) -> dict:
@@ -101,12 +102,33 @@ def _build_parent(job: NodeJob) -> dict:
             "faces": content.n_faces, "bytes": nbytes, "texture_bytes": 0}  # fmt: skip
 
 
+def release_freed_memory() -> None:
+    """Give the heap's free pages back to the OS (glibc ``malloc_trim``; a no-op elsewhere).
+
+    A node frees its arrays when it ends, but glibc keeps freed heap pages mapped, so a worker's RSS would
+    stay at its largest node's peak and count against every later unit it runs (measured: 1.28 GB left
+    after a 2.4 M-face leaf)."""
+    import ctypes
+    import gc
+
+    gc.collect()
+    try:
+        ctypes.CDLL("libc.so.6").malloc_trim(0)
+    except (OSError, AttributeError):
+        pass
+
+
 def build_node(job: NodeJob) -> dict:
     """Build one node of the export quadtree (a leaf from its merged tile, a parent from its children's
-    cached meshes, or the overview); picklable, so a flow can map it over workers."""
-    if job.node.h < 0:
-        return _build_overview(job)
-    return _build_leaf(job) if job.node.h == 0 else _build_parent(job)
+    cached meshes, or the overview); picklable, so a flow can map it over workers. Freed memory goes back
+    to the OS before and after, so a node's peak is its own working set."""
+    release_freed_memory()
+    try:
+        if job.node.h < 0:
+            return _build_overview(job)
+        return _build_leaf(job) if job.node.h == 0 else _build_parent(job)
+    finally:
+        release_freed_memory()
 
 
 def _build_overview(job: NodeJob) -> dict:
