@@ -83,7 +83,7 @@ def weld(lod: LodMesh) -> LodMesh:
     (3, [[0, 2, 1], [2, 1, 0]])
     """
     bits = lod.positions.view(np.uint32)
-    order = np.lexsort((bits[:, 2], bits[:, 1], bits[:, 0]))
+    order = _lexsort_xyz(bits)
     sb = bits[order]
     new_group = np.ones(len(sb), bool)
     new_group[1:] = (sb[1:] != sb[:-1]).any(axis=1)
@@ -97,6 +97,14 @@ def weld(lod: LodMesh) -> LodMesh:
     keep = (faces[:, 0] != faces[:, 1]) & (faces[:, 1] != faces[:, 2]) & (faces[:, 0] != faces[:, 2])
     return _compact(LodMesh(lod.positions[rep], faces[keep], lod.colors[rep],
                             lod.grade[keep], lod.source[keep], lod.region[keep]))
+
+
+def _lexsort_xyz(bits: np.ndarray) -> np.ndarray:
+    """``np.lexsort((bits[:, 2], bits[:, 1], bits[:, 0]))`` for (n, 3) uint32, in two stable sorts (by z, then by
+    the 64-bit (x, y) key): the same order, about twice as fast."""
+    xy = (bits[:, 0].astype(np.uint64) << np.uint64(32)) | bits[:, 1]
+    by_z = np.argsort(bits[:, 2], kind="stable")
+    return by_z[np.argsort(xy[by_z], kind="stable")]
 
 
 def _compact(lod: LodMesh) -> LodMesh:
@@ -255,17 +263,25 @@ def _decimate_block(lod: LodMesh, target_faces: int, samples: int, backend: str 
     from scipy.spatial import cKDTree
 
     rng = np.random.default_rng(0)
-    _, nearest_vertex = cKDTree(lod.positions).query(positions, workers=1)
+    # unbalanced trees: half the build time, the same nearest neighbours
+    _, nearest_vertex = cKDTree(lod.positions, balanced_tree=False).query(positions, workers=1)
     colors = lod.colors[nearest_vertex]
-    centroids_in = lod.positions[lod.faces].astype(np.float64).mean(axis=1)
-    centroids_out = positions[faces].astype(np.float64).mean(axis=1)
-    _, nearest = cKDTree(centroids_in).query(centroids_out, workers=1)
+    tree = cKDTree(face_centroids(lod.positions, lod.faces), balanced_tree=False)
+    _, nearest = tree.query(face_centroids(positions, faces), workers=1)
+    del tree
     to_original = _distances(_scene(lod.positions, lod.faces),
                              np.concatenate([positions, sample_surface(positions, faces, samples, rng)]))
     to_simplified = _distances(_scene(positions, faces), sample_surface(lod.positions, lod.faces, samples, rng))
     simplified = _compact(LodMesh(positions, faces, colors, lod.grade[nearest], lod.source[nearest], lod.region[nearest]))
     dist = np.concatenate([to_original, to_simplified])
     return Decimation(simplified, float(dist.max()), float(dist.mean()))
+
+
+def face_centroids(positions: np.ndarray, faces: np.ndarray) -> np.ndarray:
+    """(m, 3) float64 centroids of the faces (m, 3) over positions (n, 3) float32 (what
+    ``positions[faces].astype(np.float64).mean(axis=1)`` gives, without its (m, 3, 3) temporaries)."""
+    p = positions.astype(np.float64)
+    return (p[faces[:, 0]] + p[faces[:, 1]] + p[faces[:, 2]]) / 3.0
 
 
 def sample_colors(image: np.ndarray, uv_gltf: np.ndarray) -> np.ndarray:

@@ -82,3 +82,11 @@ def test_write_glb_streams_the_bytes_build_glb_returns(tmp_path):
     n = write_glb(tmp_path / "a.glb", mesh)
     data = (tmp_path / "a.glb").read_bytes()
     assert n == len(data) and data == build_glb(mesh) and len(data) % 4 == 0
+
+
+def test_two_pass_sort_is_lexsort_on_ties():
+    from tasks.export.lod import _lexsort_xyz
+
+    bits = np.random.default_rng(2).integers(0, 3, (500, 3)).astype(np.uint32)  # many ties
+    bits[:5, 0] = np.uint32(0xFFFFFFFF)  # the top bit of the 64-bit key
+    assert np.array_equal(_lexsort_xyz(bits), np.lexsort((bits[:, 2], bits[:, 1], bits[:, 0])))
