@@ -90,3 +90,18 @@ def test_two_pass_sort_is_lexsort_on_ties():
     bits = np.random.default_rng(2).integers(0, 3, (500, 3)).astype(np.uint32)  # many ties
     bits[:5, 0] = np.uint32(0xFFFFFFFF)  # the top bit of the 64-bit key
     assert np.array_equal(_lexsort_xyz(bits), np.lexsort((bits[:, 2], bits[:, 1], bits[:, 0])))
+
+
+def test_leaf_batches_balance_merged_bytes_not_counts(tmp_path):
+    from tasks.export import NodeJob, node_batches
+    from tasks.export.tree import QuadNode
+
+    jobs = []
+    for i, size in enumerate([900, 10, 10, 10, 10, 10, 10, 10, 10, 10]):
+        tile = tmp_path / f"{i}_0"
+        tile.mkdir()
+        (tile / "merged.npz").write_bytes(b"x" * size)
+        jobs.append(NodeJob(QuadNode(0, i, 0), "fp", tmp_path, tmp_path, None, None, tile_dir=tile))
+    batches = node_batches(jobs, 1)  # at most 4 batches
+    assert [i for i, _ in batches[0]] == [0]  # the big tile alone; the nine small ones share 3
+    assert sorted(len(b) for b in batches) == [1, 3, 3, 3]
