@@ -72,8 +72,10 @@ def prepare_campus(seed: int, data: str, preset: str = "demo") -> str:
         generate(preset, seed=seed, out=inp, overwrite=True)
     if not any(work.glob("tiles/*/labels.parquet")):
         log.info("processing campus seed %d into %s", seed, work)
+        # the labelled patch stores are all training needs: no grades, so no region is rebuilt, and no report
         cfg = CampusConfig.from_yaml(inp / "campus.yaml", {"work_dir": str(work.absolute()), "runner": "inline",
-                                                           "classify": {"enabled": False}})
+                                                           "classify": {"enabled": False},
+                                                           "repair": {"grades": "model"}, "report": {"enabled": False}})
         run_campus(cfg, progress=False)
     return str(work)
 
