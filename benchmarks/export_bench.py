@@ -77,13 +77,41 @@ def _timed_nodes(jobs: list, per_node: list[dict]) -> list[dict]:
     return out
 
 
-def _child(work: str, compression: str, workers: int = 1) -> None:
+def _leave_residue(mb: int) -> None:
+    """Emulate what earlier stages leave in a Dask worker: ``mb`` MB allocated and freed (1 in 16 blocks
+    kept, so the heap cannot shrink from its top) by another thread, i.e. in another glibc malloc arena,
+    as a worker's thread pool does. Freed, but still resident until someone trims it."""
+    import threading
+
+    import numpy as np
+
+    kept: list = []
+
+    def churn() -> None:
+        big = np.ones(30 << 20, np.uint8)  # freeing a 30 MB mapping raises glibc's mmap threshold to it
+        del big
+        blocks = [np.ones(1 << 20, np.uint8) for _ in range(mb)]  # 1 MB blocks: now from this thread's heap
+        kept.extend(blocks[15::16])
+        blocks.clear()
+
+    t = threading.Thread(target=churn)
+    t.start()
+    t.join()
+    _RESIDUE.extend(kept)
+
+
+_RESIDUE: list = []
+
+
+def _child(work: str, compression: str, workers: int = 1, residue_mb: int = 0) -> None:
     """Run one export in this (fresh) process and print its summary with peak RSS and CPU seconds."""
     from functools import partial
 
     from tasks.config import ExportConfig
     from tasks.export import run_export
 
+    if residue_mb:
+        _leave_residue(residue_mb)
     per_node: list[dict] = []
     t0, c0 = time.perf_counter(), time.process_time()
     mapper = partial(_timed_nodes, per_node=per_node) if workers == 1 else None
@@ -95,10 +123,11 @@ def _child(work: str, compression: str, workers: int = 1) -> None:
     print(json.dumps(summary))
 
 
-def _run_child(work: Path, compression: str, workers: int = 1, code: Path = REPO) -> dict:
+def _run_child(work: Path, compression: str, workers: int = 1, code: Path = REPO, residue_mb: int = 0) -> dict:
     env = {**os.environ, "PYTHONPATH": str(code), "OMP_NUM_THREADS": "1"}
-    run = subprocess.run([sys.executable, __file__, "--child", str(work), compression, str(workers), "--code", str(code)],
-                         capture_output=True, text=True, cwd=code, check=False, env=env)  # fmt: skip
+    run = subprocess.run([sys.executable, __file__, "--child", str(work), compression, str(workers), "--code", str(code),
+                          "--residue-mb", str(residue_mb)], capture_output=True, text=True, cwd=code, check=False,
+                         env=env)  # fmt: skip
     if run.returncode != 0:
         raise RuntimeError(run.stderr[-3000:])
     return json.loads(run.stdout.strip().splitlines()[-1])
@@ -172,11 +201,14 @@ def main(argv: list[str] | None = None) -> dict:
     p.add_argument("--merged", type=Path, help="a processed work dir whose merged tiles to export (copied)")
     p.add_argument("--code", type=Path, default=REPO, help="the checkout whose export runs (default: this one)")
     p.add_argument("--quick", action="store_true", help="skip the Draco and 2-process runs")
+    p.add_argument("--residue-mb", type=int, default=0,
+                   help="also run the demo export after leaving this many MB freed in another malloc arena "
+                        "(what earlier stages leave in a Dask worker)")
     p.add_argument("--child", nargs=3, metavar=("WORK", "COMPRESSION", "WORKERS"), help=argparse.SUPPRESS)
     a = p.parse_args(argv)
     if a.child:
         sys.path.insert(0, str(a.code.resolve()))
-        _child(a.child[0], a.child[1], int(a.child[2]))
+        _child(a.child[0], a.child[1], int(a.child[2]), a.residue_mb)
         return {}
     if a.merged is None and not (a.input / "campus.yaml").exists():  # the demo campus, generated once (~3 min)
         subprocess.run([sys.executable, "-m", "flows.cli", "synth", "--preset", "demo", "--seed", "7", "--out",
@@ -211,6 +243,15 @@ def main(argv: list[str] | None = None) -> dict:
               f"{r['bytes'] / 1e6 / km2:,.0f} MB/km² (textures {r['texture_bytes'] / 1e6 / km2:,.0f}); "
               f"{rss_note}")
         _print_nodes(name, r)
+    if a.residue_mb:
+        work = a.work / "run-residue"
+        if work.exists():
+            shutil.rmtree(work)
+        shutil.copytree(base, work)
+        results["residue"] = r = _run_child(work, "none", 1, a.code, a.residue_mb)
+        print(f"export after {a.residue_mb:,} MB of freed residue in another arena: {r['wall_s']:.1f} s wall; "
+              f"max node peak RSS {max(n['peak_rss_mb'] for n in r['per_node']):,} MB")
+        _print_nodes("residue", r)
     big = replicate(base, a.work / "big", a.replicate, a.tile_size)
     results["big"] = rb = _run_child(big, "none", 1, a.code)
     _print_nodes("big", rb)
