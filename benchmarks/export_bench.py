@@ -192,6 +192,18 @@ def replicate(src: Path, dst: Path, times: int, tile_size_m: float) -> Path:
     return dst
 
 
+def _residue_run(base: Path, work: Path, code: Path, residue_mb: int) -> dict:
+    """The export in a process that first leaves ``residue_mb`` MB freed in another arena; prints per node."""
+    if work.exists():
+        shutil.rmtree(work)
+    shutil.copytree(base, work)
+    r = _run_child(work, "none", 1, code, residue_mb)
+    print(f"export after {residue_mb:,} MB of freed residue in another arena: {r['wall_s']:.1f} s wall; "
+          f"max node peak RSS {max(n['peak_rss_mb'] for n in r['per_node']):,} MB")
+    _print_nodes("residue", r)
+    return r
+
+
 def main(argv: list[str] | None = None) -> dict:
     p = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     p.add_argument("--input", type=Path, default=REPO / "ms3d-work" / "demo-input")
@@ -244,14 +256,7 @@ def main(argv: list[str] | None = None) -> dict:
               f"{rss_note}")
         _print_nodes(name, r)
     if a.residue_mb:
-        work = a.work / "run-residue"
-        if work.exists():
-            shutil.rmtree(work)
-        shutil.copytree(base, work)
-        results["residue"] = r = _run_child(work, "none", 1, a.code, a.residue_mb)
-        print(f"export after {a.residue_mb:,} MB of freed residue in another arena: {r['wall_s']:.1f} s wall; "
-              f"max node peak RSS {max(n['peak_rss_mb'] for n in r['per_node']):,} MB")
-        _print_nodes("residue", r)
+        results["residue"] = _residue_run(base, a.work / "run-residue", a.code, a.residue_mb)
     big = replicate(base, a.work / "big", a.replicate, a.tile_size)
     results["big"] = rb = _run_child(big, "none", 1, a.code)
     _print_nodes("big", rb)
