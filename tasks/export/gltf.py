@@ -128,7 +128,7 @@ class _Builder:
             self.chunks.append(b"\0" * pad)
             self.length += pad
         if isinstance(data, np.ndarray):
-            data = memoryview(np.ascontiguousarray(data)).cast("B")
+            data = np.ascontiguousarray(data).reshape(-1).view(np.uint8)  # bytes-like, len = bytes (also when empty)
         bv = {"buffer": 0, "byteOffset": self.length, "byteLength": len(data)}
         if target is not None:
             bv["target"] = target

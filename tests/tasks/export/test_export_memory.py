@@ -105,3 +105,14 @@ def test_leaf_batches_balance_merged_bytes_not_counts(tmp_path):
     batches = node_batches(jobs, 1)  # at most 4 batches
     assert [i for i, _ in batches[0]] == [0]  # the big tile alone; the nine small ones share 3
     assert sorted(len(b) for b in batches) == [1, 3, 3, 3]
+
+
+def test_glb_views_of_arrays_empty_or_strided_are_their_bytes():
+    from tasks.export.gltf import _Builder
+
+    b = _Builder()
+    arrays = [np.zeros((0, 3), np.float32), np.arange(10, dtype=np.uint16).reshape(5, 2)[:, 0], np.ones((3, 4), np.uint8)]
+    for a in arrays:
+        b.view(a, align=1)
+    assert b"".join(b.chunks) == b"".join(np.ascontiguousarray(a).tobytes() for a in arrays)
+    assert [v["byteLength"] for v in b.doc["bufferViews"]] == [0, 10, 12]
