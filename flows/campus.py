@@ -27,6 +27,7 @@ from prefect.artifacts import create_table_artifact
 
 from flows.executors import InlineExecutor, PrefectExecutor
 from flows.planned import map_pending, pending, submit_pending
+from flows.remote import SyncExecutor, is_remote, local_view, remote_run, work_dir_of
 from flows.summary import CampusRunFailed, summarise
 from flows.tasks import (
     classify_task,
@@ -67,8 +68,9 @@ def reprocess_campus(cfg_json: dict, progress: bool = True) -> dict:
 def reprocess(cfg: CampusConfig, ex, publish=None) -> dict:
     """The campus run on an executor (:class:`PrefectExecutor` inside the flow, :class:`InlineExecutor`
     for a run without Prefect). Raises CampusRunFailed when units failed or the campus is incomplete."""
-    wd = WorkDir(cfg.work_dir)
-    with work_dir_lock(wd):
+    wd = work_dir_of(cfg)
+    with remote_run(cfg) if is_remote(cfg) else work_dir_lock(wd) as mirror:  # a URL: lease, sweep, pull
+        ex = SyncExecutor(ex, mirror) if mirror is not None else ex
         summary = _reprocess(_Run(cfg, cfg.model_dump(mode="json"), wd, ex))
     if publish is not None:
         publish(summary)
@@ -196,7 +198,7 @@ def _tiles(run: _Run, inputs: dict) -> dict:
     drop_unplanned_records(wd, "classify", set(tiles))
     plan = submit_pending(wd, ex, regions_task, cj).result()
     run.note("regions", [plan], per_unit=False)
-    todo, unchanged = pending_regions(plan["regions"], cfg, wd)  # one read of the plan and the records
+    todo, unchanged = pending_regions(plan["regions"], local_view(cfg, "texture"), wd)  # one read of the plan, records
     weight = dict(zip(plan["regions"], plan["weights"]))
     region_batches = balanced_batches(todo, [weight.get(k, 1.0) for k in todo], 4 * run.n_workers)
     repairs = run.note("region", unchanged + ex.map(repair_task, region_batches, "repair", cfg_json=cj).results())
@@ -218,7 +220,7 @@ def _outputs(run: _Run) -> tuple[dict, dict]:
         results = ex.map(export_nodes_task, node_batches(jobs, run.n_workers), "export").results()
         return node_records(results, len(jobs))
 
-    qplan = quality_plan(cfg, wd) if cfg.report.enabled and cfg.report.quality else None
+    qplan = quality_plan(local_view(cfg, "truth"), wd) if cfg.report.enabled and cfg.report.quality else None
     shares = [ex.submit(quality_task, cj, qplan, part) for part in quality_parts(qplan, run.n_workers)] \
         if qplan else []
     exported = run_export_stage(cfg, wd, map_jobs=map_jobs)
@@ -270,7 +272,7 @@ def run_campus(cfg: CampusConfig, progress: bool = True) -> dict:
     from flows.runtime import embedded_prefect
     from storage.housekeeping import check_work_dir_writable
 
-    wd = WorkDir(cfg.work_dir)
+    wd = work_dir_of(cfg)  # a work dir by URL: this process's mirror (flows.remote)
     check_work_dir_writable(wd)
     if cfg.runner == "inline":
         return reprocess(cfg, InlineExecutor())

@@ -42,7 +42,7 @@ def _overrides(a) -> dict:
     if getattr(a, "workers", None):
         o["cluster.n_workers"] = a.workers
     if getattr(a, "work_dir", None):
-        o["work_dir"] = str(Path(a.work_dir).absolute())
+        o["work_dir"] = a.work_dir if a.work_dir.startswith(("s3://", "s3a://")) else str(Path(a.work_dir).absolute())
     for kv in getattr(a, "set", None) or []:
         k, _, v = kv.partition("=")
         try:

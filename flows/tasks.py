@@ -16,6 +16,7 @@ import numpy as np
 from prefect import task
 from prefect.cache_policies import NONE as NO_CACHE
 
+from flows.remote import local_truth_plan, local_view, synced, work_dir_of
 from storage.errors import InputError
 from storage.frame import CampusFrame
 from storage.ids import TileId
@@ -28,10 +29,11 @@ from tasks.units import Done, MustRun, is_planning, record_step, run_unit, skipp
 def config_of(cfg_json: dict) -> tuple[CampusConfig, WorkDir]:
     """The validated config of a task's JSON argument and its work dir."""
     cfg = CampusConfig.model_validate(cfg_json)
-    return cfg, WorkDir(cfg.work_dir)
+    return cfg, work_dir_of(cfg)  # a work dir by URL: this process's mirror (flows.remote)
 
 
 @task(name="scan", cache_policy=NO_CACHE)
+@synced
 def scan_task(files: list[dict], cfg_json: dict) -> list[dict]:
     """Scan a batch of input files ({"path", "kind", "source"}), one summary each."""
     from tasks.scan import run_scan_file
@@ -41,6 +43,7 @@ def scan_task(files: list[dict], cfg_json: dict) -> list[dict]:
 
 
 @task(name="register", cache_policy=NO_CACHE)
+@synced
 def register_task(records: list[dict], frame_json: dict, cfg_json: dict) -> dict:
     """The campus registration ({"matrix", "scale", ...}), or {"error": one line}."""
     from tasks.register import run_register
@@ -53,6 +56,7 @@ def register_task(records: list[dict], frame_json: dict, cfg_json: dict) -> dict
 
 
 @task(name="ingest", cache_policy=NO_CACHE)
+@synced
 def ingest_task(units: list[dict], cfg_json: dict, frame_json: dict, matrix: list | None) -> list[dict]:
     """Route a batch of ingest units to staging files; matrix: the (4, 4) registration (None for meshes)."""
     from tasks.ingest import IngestUnit, run_ingest_unit
@@ -64,6 +68,7 @@ def ingest_task(units: list[dict], cfg_json: dict, frame_json: dict, matrix: lis
 
 
 @task(name="partition", cache_policy=NO_CACHE)
+@synced
 def partition_task(tile_keys: list[str], cfg_json: dict, frame_json: dict, blocked: dict[str, str]) -> list[dict]:
     """Partition a batch of tiles into patch stores, then label each one partitioned (a labels failure
     comes back as the tile's ``labels_error``)."""
@@ -88,6 +93,7 @@ def partition_task(tile_keys: list[str], cfg_json: dict, frame_json: dict, block
 
 
 @task(name="outliers", cache_policy=NO_CACHE)
+@synced
 def outliers_task(cfg_json: dict) -> dict:
     """The campus-wide patch outlier fit; skipped while no live store changed (``flows.campus_steps``)."""
     import json
@@ -111,6 +117,7 @@ def _per_tile(run, tile_keys: list[str], cfg_json: dict) -> list[dict]:
 
 
 @task(name="classify", cache_policy=NO_CACHE)
+@synced
 def classify_task(tile_keys: list[str], cfg_json: dict) -> list[dict]:
     """Grade the pairs of a batch of tiles (MS3DQE-Net); one summary per tile that has a live store."""
     from tasks.classify import run_classify_tile
@@ -119,6 +126,7 @@ def classify_task(tile_keys: list[str], cfg_json: dict) -> list[dict]:
 
 
 @task(name="regions", cache_policy=NO_CACHE)
+@synced
 def regions_task(cfg_json: dict) -> dict:
     """Plan the bad regions of the campus: {"status", "regions": [keys], "weights": [bytes per key], ...}."""
     from flows.campus_steps import regions_fingerprint, regions_params
@@ -145,17 +153,20 @@ def regions_task(cfg_json: dict) -> dict:
 
 
 @task(name="repair", cache_policy=NO_CACHE)
+@synced
 def repair_task(region_keys: list[str], cfg_json: dict) -> list[dict]:
     """Repair a batch of regions (fuse -> mesh -> stitch -> texture), one summary each."""
     from storage.region_plan import read_plan
     from tasks.repair import run_region
 
     cfg, wd = config_of(cfg_json)
+    cfg = local_view(cfg, "texture")  # cameras and images by URL: this worker's staged copies
     plan = {r.key: r for r in read_plan(wd.root)}  # once per batch, not once per region
     return [run_region(k, cfg, wd, plan) for k in region_keys]
 
 
 @task(name="merge", cache_policy=NO_CACHE)
+@synced
 def merge_task(tile_keys: list[str], cfg_json: dict) -> list[dict]:
     """Merge a batch of tiles into one clean mesh each (retained faces + rebuilt regions)."""
     from tasks.merge import run_merge_tile
@@ -164,6 +175,7 @@ def merge_task(tile_keys: list[str], cfg_json: dict) -> list[dict]:
 
 
 @task(name="export-nodes", cache_policy=NO_CACHE)
+@synced
 def export_nodes_task(jobs: list) -> list[dict]:
     """Build a batch of 3D Tiles nodes ((index, job) pairs); one {"index", "status", "record" | "error"} each."""
     from tasks.export import build_nodes
@@ -172,16 +184,19 @@ def export_nodes_task(jobs: list) -> list[dict]:
 
 
 @task(name="quality", cache_policy=NO_CACHE)
+@synced
 def quality_task(cfg_json: dict, plan: dict, part: tuple[int, int]) -> dict:
     """One share of the model's quality against the truth: {"status", "sums": {model: partial sums}}."""
     from tasks.quality import run_quality_share
 
     cfg, wd = config_of(cfg_json)
+    plan = local_truth_plan(cfg, plan)  # a truth by URL: this worker's staged copy
     return record_step(wd, "quality", f"share-{part[0]}-of-{part[1]}",
                        lambda: {"sums": run_quality_share(cfg, wd, plan, tuple(part))})
 
 
 @task(name="report", cache_policy=NO_CACHE)
+@synced
 def report_task(cfg_json: dict) -> dict:
     """Write the run report (``output/report.html``)."""
     from flows.campus_steps import report_fingerprint, report_params

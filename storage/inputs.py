@@ -122,6 +122,15 @@ def discover(mesh_entries: list[str], point_entries: list[str]) -> Discovery:
     for kind, entries, suffixes in (("mesh", mesh_entries, MESH_SUFFIXES), ("points", point_entries, POINT_SUFFIXES)):
         files: list[str] = []
         for e in entries:
+            if e.startswith(("s3://", "s3a://")):  # an input by URL: storage.remote_inputs
+                from .remote_inputs import discover_url
+
+                found = discover_url(e, kind, suffixes, skipped)
+                if kind == "mesh":
+                    found, coarser = finest_lod(found)
+                    skipped += coarser
+                files += found
+                continue
             p = Path(e)
             if p.is_dir():
                 found = _scan_folder(p, suffixes, kind, skipped)
@@ -145,5 +154,10 @@ def discover(mesh_entries: list[str], point_entries: list[str]) -> Discovery:
 
 
 def fingerprint(path: str | Path) -> str:
-    """Content fingerprint of an input file (size, mtime and the first and last MiB)."""
+    """Content fingerprint of an input file (size, mtime and the first and last MiB); of an input by URL,
+    its ETag and size (one HEAD request, :func:`storage.remote_inputs.url_fingerprint`)."""
+    if isinstance(path, str) and path.startswith(("s3://", "s3a://")):
+        from .remote_inputs import url_fingerprint
+
+        return url_fingerprint(path)
     return file_fingerprint(path)

@@ -103,6 +103,10 @@ def production_key(root: str | Path) -> int:
 def production_root(mesh_path: str | Path) -> Path | None:
     """The root folder of the production a mesh file belongs to (module doc), or None for an ordinary
     file. Looks only at the path and at whether ``metadata.xml`` exists beside the file."""
+    if isinstance(mesh_path, str) and mesh_path.startswith(("s3://", "s3a://")):  # an input by URL
+        from .remote_inputs import remote_production_root
+
+        return remote_production_root(mesh_path)
     folder = Path(mesh_path).absolute().parent
     if folder.name.startswith(TILE_PREFIX):
         return folder.parent.parent if folder.parent.name == "Data" else folder.parent
@@ -116,6 +120,10 @@ def production_root(mesh_path: str | Path) -> Path | None:
 def production_of(mesh_path: str | Path) -> Production | None:
     """The :class:`Production` of a mesh file (its metadata read), or None for an ordinary file.
     Raises InputError (naming ``metadata.xml``) when the metadata exists but cannot be used."""
+    if isinstance(mesh_path, str) and mesh_path.startswith(("s3://", "s3a://")):  # an input by URL
+        from .remote_inputs import remote_production_of
+
+        return remote_production_of(mesh_path)
     root = production_root(mesh_path)
     if root is None:
         return None

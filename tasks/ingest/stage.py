@@ -18,6 +18,7 @@ from storage.grid import PatchGrid
 from storage.manifest import combine_fingerprints
 from storage.mesh_io import read_mesh
 from storage.pointcloud_io import iter_points, iter_points_range
+from storage.remote_inputs import local_input
 from storage.staging import remove_unit_runs, run_name
 from storage.workdir import WorkDir
 from tasks.config import CampusConfig
@@ -48,10 +49,11 @@ def _route_points(unit: IngestUnit, cfg: CampusConfig, frame: CampusFrame, matri
     """Route a point range chunk by chunk (registered by ``matrix``); appends written paths to ``outputs``
     and rows per tile key to ``tiles``."""
     grid = cfg.grid()
+    src = local_input(unit.path)  # an input by URL is read from a staged copy
     if Path(unit.path).suffix.lower() in LAS_SUFFIXES:
-        chunks = iter_points_range(unit.path, unit.start, unit.stop, cfg.tiling.chunk_points, cfg.inputs.units_scale)
+        chunks = iter_points_range(src, unit.start, unit.stop, cfg.tiling.chunk_points, cfg.inputs.units_scale)
     else:
-        chunks = iter_points(unit.path, cfg.tiling.chunk_points, cfg.inputs.units_scale)
+        chunks = iter_points(src, cfg.tiling.chunk_points, cfg.inputs.units_scale)
     n = 0
     for k, chunk in enumerate(chunks):
         local64 = to_campus(chunk.xyz, frame, matrix, unit.path)
@@ -71,7 +73,7 @@ def _route_mesh(unit: IngestUnit, cfg: CampusConfig, frame: CampusFrame, wd: Wor
     mesh's clean-up counts."""
     grid = cfg.grid()
     placement = mesh_placement(unit.path, cfg)  # a production's metadata.xml, else inputs.mesh_offset
-    mesh = read_mesh(unit.path, offset=placement.offset, units_scale=cfg.inputs.units_scale)
+    mesh = read_mesh(local_input(unit.path, siblings=True), offset=placement.offset, units_scale=cfg.inputs.units_scale)
     vids = vertex_ids(unit.source, mesh.faces, weld_vertex_index(mesh.vertices), mesh.vertices, placement.seam_key)
     normals = face_normals(mesh.vertices, mesh.faces)
     local64 = to_campus(mesh.vertices, frame, None, unit.path)

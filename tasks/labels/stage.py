@@ -13,6 +13,7 @@ from storage.ids import TileId
 from storage.labels import bad_keys_from_csv, bad_keys_from_defects
 from storage.manifest import combine_fingerprints
 from storage.patch_store import PATCHES_FILE, PatchStore, side_table_path, write_side_table
+from storage.remote_inputs import is_url, local_input
 from storage.workdir import STALE_FILE, WorkDir
 from tasks.config import CampusConfig
 from tasks.units import Done, run_unit
@@ -35,9 +36,9 @@ def run_labels_tile(tile: TileId, cfg: CampusConfig, wd: WorkDir) -> dict | None
         return None
     if not (tile_dir / PATCHES_FILE).exists() or (tile_dir / STALE_FILE).exists():
         return None
-    labels = Path(cfg.inputs.labels)
+    labels = Path(cfg.inputs.labels) if not is_url(cfg.inputs.labels) else cfg.inputs.labels  # identity
     try:
-        labels_fp = file_sha256(labels)
+        labels_fp = file_sha256(local_input(str(labels)) if is_url(labels) else labels)
     except OSError as e:
         return {"unit": tile.key, "status": "failed", "error": f"{labels}: cannot read the labels file ({e.strerror})"}
     fp = combine_fingerprints([labels_fp, str(labels), f"{(tile_dir / PATCHES_FILE).stat().st_mtime_ns}"])
@@ -45,7 +46,7 @@ def run_labels_tile(tile: TileId, cfg: CampusConfig, wd: WorkDir) -> dict | None
     def work() -> Done:
         store = PatchStore(tile_dir)
         keys = store.patches()["patch"]
-        bad = bad_patch_keys(str(labels), cfg)
+        bad = bad_patch_keys(local_input(str(labels)), cfg)
         lab = np.isin(keys, bad).astype(np.int8)
         write_side_table(tile_dir, "labels", {"patch": keys, "label": lab}, store.meta, labels_file=str(labels))
         return Done(outputs=[str(side_table_path(tile_dir, "labels").relative_to(wd.root))],

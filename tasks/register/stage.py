@@ -33,6 +33,7 @@ from storage.frame import CampusFrame
 from storage.inputs import InputFile
 from storage.manifest import combine_fingerprints
 from storage.pointcloud_io import iter_points, iter_points_range
+from storage.remote_inputs import local_input
 from storage.surface_samples import read_surface_samples, samples_path
 from storage.workdir import WorkDir
 from tasks.config import CampusConfig
@@ -46,7 +47,7 @@ REGISTRATION_FILE = "registration.json"
 def sample_points_for_registration(rec: InputFile, n_target: int, cfg: CampusConfig, n_ranges: int = 16) -> np.ndarray:
     """About n_target world points spread over a cloud file: ``n_ranges`` short ranges (LAS/LAZ) or a
     strided pass (other formats). A file that breaks part-way ends its sample early (logged)."""
-    path = Path(rec.path)
+    path = Path(local_input(rec.path))  # an input by URL is read from a staged copy
     out = []
     try:
         if path.suffix.lower() in (".las", ".laz") and rec.count > n_target:

@@ -10,6 +10,7 @@ from pathlib import Path
 from storage.cameras import read_cameras
 from storage.errors import InputError
 from storage.inputs import Discovery, InputFile, assign_source_ids, discover
+from storage.remote_inputs import input_is_file, local_input
 from tasks.batches import balanced_batches
 from tasks.config import CampusConfig
 from tasks.scan.placement import check_productions
@@ -24,10 +25,10 @@ def scan_files(cfg: CampusConfig) -> tuple[Discovery, dict[str, int], list[dict]
     (:func:`tasks.scan.placement.check_productions`)."""
     found = discover(cfg.inputs.mesh, cfg.inputs.points)
     check_productions(found.meshes, cfg)
-    if cfg.inputs.labels and not Path(cfg.inputs.labels).is_file():
+    if cfg.inputs.labels and not input_is_file(cfg.inputs.labels):
         raise InputError(cfg.inputs.labels, "labels file not found (inputs.labels in the config)")
     if cfg.inputs.cameras:  # a broken camera file stops the run before any work, not in the last stage
-        read_cameras(cfg.inputs.cameras)
+        read_cameras(local_input(cfg.inputs.cameras))
     ids = assign_source_ids(list(found.meshes) + list(found.points))
     files = [{"path": p, "kind": "mesh", "source": ids[p]} for p in found.meshes] + \
             [{"path": p, "kind": "points", "source": ids[p]} for p in found.points]

@@ -30,6 +30,7 @@ from storage.inputs import InputFile, fingerprint
 from storage.manifest import combine_fingerprints
 from storage.mesh_io import read_mesh
 from storage.pointcloud_io import read_header
+from storage.remote_inputs import local_input
 from storage.surface_samples import samples_path, write_surface_samples
 from storage.workdir import WorkDir
 from tasks.config import CampusConfig
@@ -53,7 +54,7 @@ def surface_samples(vertices: np.ndarray, faces: np.ndarray, spacing_m: float, s
 
 
 def _scan_mesh(rec: InputFile, cfg: CampusConfig, wd: WorkDir, placement: MeshPlacement) -> list[str]:
-    path = Path(rec.path)
+    path = Path(local_input(rec.path, siblings=True))  # an input by URL is read from a staged copy
     rec.crs = placement.crs
     try:
         mesh = read_mesh(path, offset=placement.offset, units_scale=cfg.inputs.units_scale)
@@ -75,7 +76,7 @@ def _scan_mesh(rec: InputFile, cfg: CampusConfig, wd: WorkDir, placement: MeshPl
 
 
 def _scan_points(rec: InputFile, cfg: CampusConfig) -> None:
-    path = Path(rec.path)
+    path = Path(local_input(rec.path))
     try:
         info = read_header(path)
         s = cfg.inputs.units_scale

@@ -1,0 +1,207 @@
+"""The flow's side of object storage: inputs named by URL and a work dir on a bucket.
+
+**Work dir by URL** (``work_dir: s3://bucket/prefix``): every process works on its own local mirror of
+the recorded work dir (:mod:`storage.remote_workdir`). A task pulls before it runs and pushes what it
+changed when it returns (:func:`synced`); the driver holds the run lease (:func:`remote_run`), sweeps
+unrecorded leftovers, and pulls after each stage and pushes its own writes before the next
+(:class:`SyncExecutor`). Everything else is the local code, unchanged, on the mirror.
+
+**Inputs by URL**: local views of the inputs that stages owned by others read through the config
+(texture cameras and images, the synth truth beside the labels).
+
+Stages that open input files by their recorded identity call :func:`storage.remote_inputs.local_input`
+themselves; the texture step and the quality stage read ``cfg.inputs.images`` / ``cameras`` / ``labels``
+as folders, so their tasks get a config whose URLs are replaced by this process's staged copies
+(:func:`local_view`). Only those tasks use it: the labels stage keeps the URL (its fingerprint names the
+input), and nothing a local view holds is written to the work dir by path. A config without URLs is
+returned as it is (the local path pays one string test per field).
+"""
+
+from __future__ import annotations
+
+import contextlib
+import functools
+import logging
+import os
+from pathlib import Path
+
+from storage.workdir import WorkDir
+from tasks.config import CampusConfig
+
+log = logging.getLogger("ms3d.flow")
+
+__all__ = ["SyncExecutor", "is_remote", "local_truth_plan", "local_view", "mirror_for", "remote_run", "synced",
+           "uses_urls", "work_dir_of"]
+
+SWEEP_GRACE_S = 600.0  # unrecorded objects younger than this may belong to a task of a killed run still writing
+
+
+def is_remote(cfg_or_url) -> bool:
+    """Whether a config's work dir (or a work-dir string) is an object-store URL."""
+    from storage.remote_inputs import is_url
+
+    return is_url(getattr(cfg_or_url, "work_dir", cfg_or_url))
+
+
+def cache_dir() -> Path:
+    """This process's cache folder (``$MS3D_CACHE`` or ``./.ms3d-cache``): input copies and work-dir mirrors."""
+    from storage.remote_inputs import cache_root
+
+    return cache_root().parent
+
+
+def mirror_for(url: str):
+    """This process's :class:`storage.remote_workdir.Mirror` of the work dir ``url``."""
+    from storage.objstore import open_store
+    from storage.remote_workdir import mirror_of
+
+    return mirror_of(open_store(url), cache_dir())
+
+
+def work_dir_of(cfg: CampusConfig) -> WorkDir:
+    """The WorkDir the local code uses: the configured folder, or this process's mirror of a URL."""
+    if not is_remote(cfg):
+        return WorkDir(cfg.work_dir)
+    return WorkDir(mirror_for(cfg.work_dir).root)
+
+
+def _cfg_json_of(args, kwargs) -> dict | None:
+    cj = kwargs.get("cfg_json")
+    if cj is None:
+        cj = next((a for a in args if isinstance(a, dict) and "work_dir" in a and "inputs" in a), None)
+    return cj
+
+
+def synced(fn):
+    """Decorate a task function: with a work dir by URL, pull before and push after (a task that raises
+    pushes nothing: its units are not recorded and run again). Inside planning it only runs ``fn``."""
+    @functools.wraps(fn)
+    def wrapper(*args, **kwargs):
+        from tasks.units import is_planning
+
+        cj = _cfg_json_of(args, kwargs)
+        if cj is None or not is_remote(cj.get("work_dir")) or is_planning():
+            return fn(*args, **kwargs)
+        mirror = mirror_for(cj["work_dir"])
+        mirror.pull()
+        out = fn(*args, **kwargs)
+        mirror.push(getattr(fn, "__name__", "task"))
+        return out
+    return wrapper
+
+
+@contextlib.contextmanager
+def remote_run(cfg: CampusConfig):
+    """The driver's hold on a work dir by URL: the run lease, a sweep of unrecorded leftovers older than
+    SWEEP_GRACE_S, a pull; at exit (also on error) a push of the driver's writes. Yields the Mirror."""
+    from storage.objstore_commit import sweep_unrecorded
+    from storage.objstore_lock import DEFAULT_TTL_S, run_lock
+
+    mirror = mirror_for(cfg.work_dir)
+    ttl_s = float(os.environ.get("MS3D_LEASE_TTL_S", DEFAULT_TTL_S))  # how long a killed run blocks the next
+    with run_lock(mirror.store, ttl_s=ttl_s):
+        gone = sweep_unrecorded(mirror.store, grace_s=float(os.environ.get("MS3D_SWEEP_GRACE_S", SWEEP_GRACE_S)))
+        if gone:
+            log.info("swept %d unrecorded objects of earlier runs from %s", len(gone), mirror.store.describe())
+        mirror.pull()
+        try:
+            yield mirror
+        finally:
+            mirror.push("driver")
+
+
+class SyncExecutor:
+    """An executor (``flows.executors``) of a run whose work dir is a URL: the driver pushes its writes
+    before tasks start and pulls their results when they are collected. Tasks in ``LOCAL_TASKS`` (export
+    nodes, whose jobs name driver paths) run in the driver process."""
+
+    LOCAL_TASKS = ("export-nodes",)
+
+    def __init__(self, inner, mirror):
+        self.inner, self.mirror = inner, mirror
+
+    @property
+    def task_runs(self) -> int:
+        return getattr(self.inner, "task_runs", 0)
+
+    def map(self, tsk, batches: list, label: str, **consts):
+        if getattr(tsk, "name", "") in self.LOCAL_TASKS:
+            return _Pulled(_Value([r for b in batches for r in tsk.fn(b, **consts)]), self.mirror)
+        self.mirror.push("driver")
+        return _Pulled(self.inner.map(tsk, batches, label, **consts), self.mirror)
+
+    def submit(self, tsk, *args):
+        self.mirror.push("driver")
+        return _Pulled(self.inner.submit(tsk, *args), self.mirror)
+
+
+class _Value:
+    def __init__(self, value):
+        self.value = value
+
+    def results(self):
+        return self.value
+
+
+class _Pulled:
+    """A mapped or submitted result whose collection pulls the mirror up to date."""
+
+    def __init__(self, inner, mirror):
+        self.inner, self.mirror = inner, mirror
+
+    def results(self):
+        out = self.inner.results()
+        self.mirror.pull()
+        return out
+
+    def result(self):
+        out = self.inner.result()
+        self.mirror.pull()
+        return out
+
+
+def uses_urls(cfg: CampusConfig) -> bool:
+    """Whether any input of ``cfg`` is named by an object-store URL."""
+    from storage.remote_inputs import is_url
+
+    i = cfg.inputs
+    return any(is_url(p) for p in [*i.mesh, *i.points, i.labels, i.images, i.cameras])
+
+
+def local_view(cfg: CampusConfig, what: str) -> CampusConfig:
+    """``cfg`` with the inputs ``what`` needs staged locally: "texture" (images and cameras; without them
+    configured, an ``images`` folder beside the first mesh URL) or "truth" (the labels file and the
+    ``truth/`` folder beside its folder, where the synth campus keeps its truth mesh)."""
+    from storage.remote_inputs import input_exists, is_url, local_input
+
+    i = cfg.inputs
+    change: dict = {}
+    if what == "texture":
+        images, cams = i.images, i.cameras
+        if images is None and cams is None and i.mesh and is_url(i.mesh[0]):
+            guess = i.mesh[0].rstrip("/").rsplit("/", 1)[0] + "/images"
+            images = guess if input_exists(guess + "/cameras.json") else None
+        for key, value in (("images", images), ("cameras", cams)):
+            if is_url(value):
+                change[key] = local_input(value)
+    elif what == "truth" and is_url(i.labels):
+        change["labels"] = local_input(i.labels)
+        truth = i.labels.rsplit("/", 2)[0] + "/truth"
+        if truth.count("/") > 3 and input_exists(truth):
+            local_input(truth)
+    if not change:
+        return cfg
+    return cfg.model_copy(update={"inputs": i.model_copy(update=change)})
+
+
+def local_truth_plan(cfg: CampusConfig, plan: dict) -> dict:
+    """A quality plan whose ``truth`` folder is this process's staged copy (the driver planned it with
+    its own); ``plan`` unchanged when the labels are not a URL."""
+    from storage.remote_inputs import is_url
+
+    if not is_url(cfg.inputs.labels):
+        return plan
+    from tasks.quality import truth_dir_of
+
+    truth = truth_dir_of(local_view(cfg, "truth"))
+    return {**plan, "truth": str(truth)} if truth is not None else plan

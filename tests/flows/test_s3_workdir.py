@@ -1,0 +1,198 @@
+"""A work dir on S3 used through per-process mirrors (storage.remote_workdir, flows.remote), against moto's
+S3 server on 127.0.0.1: a commit is seen whole by another process's mirror (files, producer mtimes,
+deletions), a task killed between writing its objects and recording them leaves nothing trusted, and the
+hand-made campus run with inputs and work dir on S3 equals the local run by content and reruns as a no-op
+from a fresh mirror."""
+
+from __future__ import annotations
+
+import json
+import os
+import uuid
+from pathlib import Path
+
+import numpy as np
+import pyarrow.parquet as pq
+import pytest
+
+from synth.handmade import build_campus
+
+BUCKET = "ms3d-workdir-test"
+KEY_ID = "AKIAMS3DWORKDIRKEY01"
+SECRET = "ms3d-workdir-secret-DO-NOT-LOG-9e1d"
+IDENTITY = {"source", "vid0", "vid1", "vid2"}  # derived from the inputs' paths / URLs: differ by design
+
+
+@pytest.fixture(scope="module")
+def s3_server():
+    import boto3
+    from moto.server import ThreadedMotoServer
+
+    server = ThreadedMotoServer(ip_address="127.0.0.1", port=0, verbose=False)
+    server.start()
+    host, port = server.get_host_and_port()
+    assert host == "127.0.0.1"
+    endpoint = f"http://{host}:{port}"
+    boto3.client("s3", endpoint_url=endpoint, aws_access_key_id=KEY_ID, aws_secret_access_key=SECRET,
+                 region_name="us-east-1").create_bucket(Bucket=BUCKET)
+    yield endpoint
+    server.stop()
+
+
+@pytest.fixture
+def s3(s3_server, monkeypatch, tmp_path):
+    """AWS environment on the local server, a fresh cache; yields the test's URL prefix."""
+    from storage import remote_inputs, remote_workdir
+
+    for k in ("AWS_PROFILE", "AWS_ENDPOINT_URL_S3", "AWS_SESSION_TOKEN"):
+        monkeypatch.delenv(k, raising=False)
+    for k, v in {"AWS_ENDPOINT_URL": s3_server, "AWS_ACCESS_KEY_ID": KEY_ID, "AWS_SECRET_ACCESS_KEY": SECRET,
+                 "AWS_DEFAULT_REGION": "us-east-1", "MS3D_CACHE": str(tmp_path / "cache-a")}.items():
+        monkeypatch.setenv(k, v)
+    monkeypatch.setattr(remote_inputs, "_STORES", {})
+    monkeypatch.setattr(remote_workdir, "_MIRRORS", {})
+    return f"s3://{BUCKET}/{uuid.uuid4().hex[:10]}"
+
+
+def fresh_process(monkeypatch, cache: Path) -> None:
+    """Look at the bucket as another process would: an empty cache and no mirror in memory."""
+    from storage import remote_inputs, remote_workdir
+
+    monkeypatch.setenv("MS3D_CACHE", str(cache))
+    monkeypatch.setattr(remote_inputs, "_STORES", {})
+    monkeypatch.setattr(remote_workdir, "_MIRRORS", {})
+
+
+def upload(folder: Path, url: str) -> None:
+    from storage.objstore import open_store
+
+    store = open_store(url)
+    for p in sorted(folder.rglob("*")):
+        if p.is_file():
+            store.put_file(p.relative_to(folder).as_posix(), p)
+
+
+def tables_by_content(work: Path) -> dict:
+    """Every tile's parquet tables as sorted rows (identity columns left out) and merged triangles."""
+    out = {}
+    for d in sorted((work / "tiles").iterdir()):
+        for f in sorted(d.glob("*.parquet")):
+            t = pq.read_table(f)
+            cols = [c for c in t.column_names if c not in IDENTITY]
+            arrays = [t.column(c).to_numpy(zero_copy_only=False) for c in cols]
+            arrays = [np.nan_to_num(a, nan=-1e30).tolist() if a.dtype.kind == "f" else a.tolist() for a in arrays]
+            rows = sorted(zip(*arrays)) if t.num_rows else []  # NaN (no uv) made comparable
+            out[f"{d.name}/{f.name}"] = (cols, rows)
+        if (d / "merged.npz").exists():
+            m = np.load(d / "merged.npz")
+            tri = np.round(m["vertices"][m["faces"]].reshape(len(m["faces"]), -1).astype(np.float64), 4)
+            out[f"{d.name}/merged"] = np.unique(tri, axis=0).tolist()
+    return out
+
+
+def test_a_commit_is_seen_whole_by_another_mirror(s3, tmp_path):
+    from storage.objstore import open_store
+    from storage.remote_workdir import Mirror
+
+    store = open_store(s3 + "/work")
+    a = Mirror(store, tmp_path / "a")
+    (a.root / "tiles" / "0_0").mkdir(parents=True)
+    (a.root / "tiles" / "0_0" / "points.parquet").write_bytes(b"P" * 100)
+    (a.root / "manifest.d" / "partition").mkdir(parents=True)
+    (a.root / "manifest.d" / "partition" / "0_0.json").write_text("{}")
+    (a.root / "tiles" / "0_0" / ".points.tmp").write_bytes(b"half")  # being written: never pushed
+    rec = a.push("partition")
+    assert sorted(rec.files) == ["manifest.d/partition/0_0.json", "tiles/0_0/points.parquet"]
+    assert a.push() is None  # nothing changed since
+    b = Mirror(store, tmp_path / "b")
+    assert b.pull() == 2
+    src, dst = a.root / "tiles/0_0/points.parquet", b.root / "tiles/0_0/points.parquet"
+    assert dst.read_bytes() == b"P" * 100 and dst.stat().st_mtime_ns == src.stat().st_mtime_ns
+    assert not (b.root / "tiles/0_0/.points.tmp").exists()
+    (b.root / "manifest.d" / "partition" / "0_0.json").unlink()  # b drops the record ...
+    b.push("drop")
+    a.pull()
+    assert not (a.root / "manifest.d/partition/0_0.json").exists()  # ... and a sees it gone
+    assert (a.root / "tiles/0_0/points.parquet").exists()
+
+
+def test_a_task_killed_before_its_record_leaves_nothing_trusted(s3, tmp_path, monkeypatch):
+    """A scan task on S3 dies after uploading its objects, before its commit record: another process
+    sees neither its outputs nor its manifest record, plans the unit to run again, and the sweep removes
+    the orphans."""
+    from flows.planned import pending
+    from flows.remote import mirror_for
+    from flows.tasks import scan_task
+    from storage.objstore_commit import sweep_unrecorded
+    from tasks.config import CampusConfig
+    from tasks.scan import scan_files
+
+    campus = build_campus(tmp_path / "campus")
+    upload(campus.parent, s3 + "/campus")
+    cfg = CampusConfig.from_yaml(campus, {"work_dir": s3 + "/work", "inputs.mesh": [s3 + "/campus/mesh"],
+                                          "inputs.points": [s3 + "/campus/mls"]})
+    cj = cfg.model_dump(mode="json")
+    _, _, files = scan_files(cfg)
+    mesh = [f for f in files if f["kind"] == "mesh"][:1]
+
+    class Killed(BaseException):
+        pass
+
+    store = mirror_for(cfg.work_dir).store
+    real_put = store.put
+
+    def put_then_die(key, data):  # the worker dies after its objects, before the record
+        if key.startswith("records/"):
+            raise Killed
+        return real_put(key, data)
+
+    monkeypatch.setattr(store, "put", put_then_die)
+    with pytest.raises(Killed):
+        scan_task.fn(mesh, cj)
+    orphans = [o.key for o in store.list("objects")]
+    assert any(k.endswith(".npz") for k in orphans) and any("manifest.d/scan/" in k for k in orphans)
+
+    fresh_process(monkeypatch, tmp_path / "cache-b")
+    other = mirror_for(cfg.work_dir)
+    other.pull()
+    assert not list(other.root.rglob("*.npz")) and not (other.root / "manifest.d").exists()
+    from storage.workdir import WorkDir
+
+    todo, done = pending(WorkDir(other.root), scan_task, mesh, "scan", cfg_json=cj)
+    assert todo == mesh and not done  # nothing trusted: the unit runs again
+    assert sorted(sweep_unrecorded(other.store, grace_s=0)) == sorted(orphans)
+    assert scan_task.fn(mesh, cj)[0]["status"] == "done"
+    fresh_process(monkeypatch, tmp_path / "cache-c")
+    third = mirror_for(cfg.work_dir)
+    third.pull()
+    assert len(list(third.root.rglob("*.npz"))) == 1
+    todo, _ = pending(WorkDir(third.root), scan_task, mesh, "scan", cfg_json=cj)
+    assert todo == []  # the recorded unit is done for every process
+
+
+@pytest.mark.slow
+def test_handmade_campus_on_s3_equals_local_and_reruns_as_noop(s3, tmp_path, monkeypatch):
+    from flows.campus import InlineExecutor, reprocess
+    from tasks.config import CampusConfig
+
+    campus = build_campus(tmp_path / "campus")
+    upload(campus.parent, s3 + "/campus")
+    over = {"runner": "inline", "classify.enabled": False, "report.enabled": False}
+    local = CampusConfig.from_yaml(campus, {**over, "work_dir": str(tmp_path / "local")})
+    reprocess(local, InlineExecutor())
+    remote = CampusConfig.from_yaml(campus, {**over, "work_dir": s3 + "/work", "inputs.mesh": [s3 + "/campus/mesh"],
+                                             "inputs.points": [s3 + "/campus/mls"]})
+    reprocess(remote, InlineExecutor())
+    fresh_process(monkeypatch, tmp_path / "cache-b")
+    again = reprocess(remote, InlineExecutor())  # another process, an empty mirror: nothing to redo
+    ran = {k: v for k, v in again["stages"].items() if isinstance(v, dict) and v.get("run")}
+    assert not ran, ran
+    from flows.remote import mirror_for
+
+    mirror = mirror_for(remote.work_dir)
+    assert tables_by_content(mirror.root) == tables_by_content(tmp_path / "local")
+    secret_free = [p for p in mirror.root.rglob("*") if p.is_file() and SECRET.encode() in p.read_bytes()]
+    assert not secret_free
+    records = [o.key for o in mirror.store.list("records")]
+    assert records and all(json.loads(mirror.store.get(k))["files"] is not None for k in records[:3])
+    assert os.environ["MS3D_CACHE"] == str(tmp_path / "cache-b")
