@@ -63,6 +63,10 @@ class TypedRepairConfig(_Section):
                                      "similar one contradicts the scan and is cut (measured: such vertices lie "
                                      "within 5 cm of the truth in 0-23 % of cases; F@5cm 0.798 / 0.826 / 0.827 at "
                                      "0.3 / 0.5 / 0.8 m); 0 disables")
+    conflict_cone_deg: float = Field(45.0, gt=0, le=90, description="the contradicting MLS point must lie within "
+                                     "this angle of the vertex normal line (in front or behind): a scanned wall top "
+                                     "beside a roof edge the scanner never saw does not cut the roof; 90: any point "
+                                     "within conflict_radius_m")
     front_m: float = Field(0.0, ge=0, description="a mesh vertex farther than conflict_radius_m from the MLS but this far "
                            "in front of the nearest scanned surface (on the scanner's side of it) stands where the "
                            "laser passed: cut it (melted eaves hanging off a scanned wall); 0 disables (the default: "

@@ -118,9 +118,9 @@ def _conflicts(data: RegionInput, zone_v: np.ndarray, vn: np.ndarray, mls: np.nd
         return None
     from tasks.repair.fuse import best_similarity
 
-    dn = cKDTree(mls).query(data.xyz[zone_v], distance_upper_bound=tc.conflict_radius_m)[0]
+    near = in_view(data.xyz[zone_v], vn[zone_v], mls, radius_m=tc.conflict_radius_m, cone_deg=tc.conflict_cone_deg)
     sim = best_similarity(data.xyz[zone_v], vn[zone_v], mls, mls_n, cKDTree(mls), params)
-    conflict = np.isfinite(dn) & (sim < params.similarity_threshold)
+    conflict = near & (sim < params.similarity_threshold)
     stats["conflict"] = int(conflict.sum())
     if tc.front_m > 0:
         far = ~np.isfinite(dn)
@@ -133,6 +133,25 @@ def _conflicts(data: RegionInput, zone_v: np.ndarray, vn: np.ndarray, mls: np.nd
         conflict |= front
         stats["in_front"] = int(front.sum())
     return conflict
+
+
+def in_view(xyz: np.ndarray, normals: np.ndarray, pts: np.ndarray, *, radius_m: float, cone_deg: float,
+            k: int = 16) -> np.ndarray:
+    """(v,) bool: vertices (v, 3) with one of their ``k`` nearest points (p, 3) within ``radius_m`` inside
+    the double cone of half-angle ``cone_deg`` around the vertex normal (v, 3): in front of or behind the
+    vertex, where the scan says something about it. A scanned wall top beside an unseen roof edge is not
+    (it lies off to the side); ``cone_deg`` >= 90 accepts any point within the radius."""
+    if not (len(xyz) and len(pts)):
+        return np.zeros(len(xyz), bool)
+    d, j = cKDTree(pts).query(xyz, k=min(k, len(pts)), distance_upper_bound=radius_m)
+    d, j = d.reshape(len(xyz), -1), j.reshape(len(xyz), -1)
+    ok = np.isfinite(d)
+    if cone_deg >= 90:
+        return ok.any(axis=1)
+    delta = pts[np.where(ok, j, 0)] - xyz[:, None, :]
+    axial = np.abs(np.einsum("vkd,vd->vk", delta, normals))
+    lateral = np.sqrt(np.maximum(np.einsum("vkd,vkd->vk", delta, delta) - axial**2, 0.0))
+    return (ok & (lateral <= axial * np.tan(np.radians(cone_deg)))).any(axis=1)
 
 
 def _mesh_points(fused_xyz: np.ndarray, fused_n: np.ndarray, fused_src: np.ndarray, fused_vertex: np.ndarray, fc, mc,

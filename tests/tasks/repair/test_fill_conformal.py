@@ -224,3 +224,17 @@ def test_a_roof_strip_in_a_facade_zone_is_never_rebuilt():
     assert not ((c[:, 1] > 1.2) & (c[:, 2] > 2.5)).any()  # nothing rebuilt over the kept roof
     mid = (c[:, 2] > 0.5) & (c[:, 2] < 2.0) & (c[:, 0] > 0.5) & (c[:, 0] < 7.5)
     assert np.median(np.abs(c[mid, 1] - 0.15)) < 0.02  # the wall moved onto the scan
+
+
+def test_a_scanned_wall_top_beside_a_roof_edge_does_not_contradict_it():
+    """Conflicts need the contradicting point on the vertex's normal line (a 45° cone), not off to the side."""
+    from tasks.repair.geometry import in_view
+
+    wall = np.array([[x, 0.0, z] for x in np.arange(0, 2, 0.05) for z in np.arange(2.0, 2.9, 0.05)])  # y = 0 wall top
+    roof_edge = np.array([[1.0, 0.3, 3.0]])  # 0.3 m behind the wall plane, 0.1 m above its top: normal up
+    facade = np.array([[1.0, 0.25, 2.5]])  # 0.25 m in front of the wall: normal along y
+    up, along_y = np.array([[0, 0, 1.0]]), np.array([[0, 1.0, 0]])
+    assert not in_view(roof_edge, up, wall, radius_m=0.5, cone_deg=45)[0]
+    assert in_view(roof_edge, up, wall, radius_m=0.5, cone_deg=90)[0]  # the old rule: anything within 0.5 m
+    assert in_view(facade, along_y, wall, radius_m=0.5, cone_deg=45)[0]
+    assert not in_view(facade, along_y, wall[:0], radius_m=0.5, cone_deg=45)[0]
