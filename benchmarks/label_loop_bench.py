@@ -214,14 +214,19 @@ def main(argv=None) -> dict:
     out.mkdir(parents=True, exist_ok=True)
     cfg, cfg_path = campus_config(a.config, a.work, out)
     walls = {}
-    g0, walls["grade_before_s"] = grade_campus(cfg, a.work, a.base)
+    from ms3d_model.train import model_hash
+
+    base = str(Path(a.base).resolve()) if a.base else str(DEFAULT_MODEL)
+    print(f"base checkpoint {base} (sha256 {model_hash(base)[:16]}); synth mix: seeds {a.seeds} + {a.mix_work_dir}",
+          flush=True)
+    g0, walls["grade_before_s"] = grade_campus(cfg, a.work, base)
     truth = truth_of(a.work, g0)
     before = flatten(g0, truth)
     user_keys, user_labels = simulate_user(a.work, before, a.n_labels)
     print(f"graded {len(before['keys'])} patches ({int(np.isfinite(before['score']).sum())} pairs) in "
           f"{walls['grade_before_s']:.0f} s; simulated user labelled {len(user_keys)} least-sure patches "
           f"({int(user_labels.sum())} bad) into {a.work / 'labels'}", flush=True)
-    spec = FinetuneSpec(campus=str(cfg_path), base=str(a.base or DEFAULT_MODEL), out=str(out / "finetune"),
+    spec = FinetuneSpec(campus=str(cfg_path), base=base, out=str(out / "finetune"),
                         seeds=a.seeds, work_dirs=a.mix_work_dir, data=a.data)
     t0 = time.perf_counter()
     ft = finetune(spec)
@@ -241,7 +246,8 @@ def main(argv=None) -> dict:
         walls["quality_s"] = time.perf_counter() - t0
         text = print_table(rows, quality)
     print("wall seconds: " + ", ".join(f"{k} {v:.1f}" for k, v in walls.items()))
-    summary = {"rows": dict(rows), "quality": quality, "walls": walls, "n_labels": len(user_keys),
+    summary = {"base": base, "base_sha256": model_hash(base), "rows": dict(rows), "quality": quality,
+               "walls": walls, "n_labels": len(user_keys),
                "n_labels_bad": int(user_labels.sum()), "finetune": {k: ft[k] for k in (
                    "checkpoint", "n_user_train", "n_user_heldout", "n_synth_train", "fit_seconds", "wall_seconds",
                    "heldout_user", "validation")}, "table": text}
