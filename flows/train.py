@@ -138,8 +138,11 @@ def fit_tree_model(prof, tr, va, out: Path) -> dict:
     from ms3d_model.net import build_net
     from ms3d_model.train import predict, save_checkpoint, validation_row
 
+    from ms3d_model.context import clean_context_copies
+
     t0, c0 = time.perf_counter(), time.process_time()
-    clf = fit_gbm(tr.cues, tr.labels, seed=prof.seed, max_iter=prof.gbm_max_iter, learning_rate=prof.gbm_lr,
+    cues, labels = clean_context_copies(tr.cues, tr.labels, prof.gbm_clean_context_share, prof.seed)
+    clf = fit_gbm(cues, labels, seed=prof.seed, max_iter=prof.gbm_max_iter, learning_rate=prof.gbm_lr,
                   max_leaf_nodes=prof.gbm_leaves, l2=prof.gbm_l2, balanced=prof.gbm_balanced)
     arrays = tree_arrays(clf)
     prof = replace(prof, net=replace(prof.net, tree_depth=tree_depth(arrays)))

@@ -61,6 +61,7 @@ class Profile:
     gbm_lr: float = 0.05  # (chosen on validation AP on bad, model card; the first shipped trees: 31, 0.1, 500, 0)
     gbm_max_iter: int = 1500
     gbm_l2: float = 1.0  # L2 regularisation of the leaf values
+    gbm_clean_context_share: float = 0.25  # copies of training pairs in a clean neighbourhood (ms3d_model.context)
     gbm_balanced: bool = False  # inverse-frequency class weights (measured: no gain in AP on bad for the trees)
 
     def to_json(self) -> dict:

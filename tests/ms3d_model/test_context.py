@@ -47,3 +47,27 @@ def test_with_context_appends_in_cue_name_order_and_order_does_not_matter():
     perm = rng.permutation(len(ijk))
     np.testing.assert_allclose(with_context(pc[perm], ijk[perm]), full[perm], rtol=1e-6)
     assert with_context(np.zeros((0, N_PAIR_CUES)), np.zeros((0, 3), int)).shape == (0, len(CUE_NAMES))
+
+
+def test_clean_context_copies_keep_the_own_cues_and_labels_and_take_a_clean_context():
+    from ms3d_model.context import clean_context_copies
+
+    rng = np.random.default_rng(1)
+    n = 200
+    cues = rng.random((n, len(CUE_NAMES))).astype(np.float32)
+    labels = (rng.random(n) < 0.3).astype(np.int8)
+    count, dirty = CUE_NAMES.index("nb_count"), CUE_NAMES.index("nb_max_p2m_frac_15cm")
+    cues[:, count] = rng.integers(0, 9, n)
+    out, lab = clean_context_copies(cues, labels, 0.25, seed=3)
+    assert out.shape == (n + 50, len(CUE_NAMES)) and lab.shape == (n + 50,)
+    np.testing.assert_array_equal(out[:n], cues)
+    copies = out[n:]
+    # each copy is some original pair's own cues with its label ...
+    src = [int(np.flatnonzero((cues[:, :N_PAIR_CUES] == c[:N_PAIR_CUES]).all(1))[0]) for c in copies]
+    np.testing.assert_array_equal(lab[n:], labels[src])
+    # ... and the context of a good pair with >= 2 neighbours, none dirty
+    donors = (labels == 0) & (cues[:, count] >= 2) & (cues[:, dirty] < 0.15)
+    for c in copies:
+        assert any((cues[d, N_PAIR_CUES:] == c[N_PAIR_CUES:]).all() for d in np.flatnonzero(donors))
+    assert clean_context_copies(cues, labels, 0.0)[0] is cues
+    assert clean_context_copies(cues[:, :N_PAIR_CUES], labels, 0.25)[0].shape == (n, N_PAIR_CUES)  # no context

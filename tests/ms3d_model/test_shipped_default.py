@@ -12,7 +12,9 @@ cells (so only real holes are open edges), and scanned MLS-like (~300 points/m^2
 - bad: the points lie 0.3 m in front of or behind the mesh, or the mesh has a 1.2 x 0.45 m hole the
   points cover.
 
-Balanced (12 good, 12 bad), so the majority class scores 50 %.
+Balanced (12 good, 12 bad), so the majority class scores 50 %. As on a campus, each scored pair lies in a
+wall (or ground) of good cells: its two neighbouring cells along the wall hold good pairs of their own,
+which the grader's neighbourhood cues see (:mod:`ms3d_model.context`); they are graded but not scored.
 """
 
 from __future__ import annotations
@@ -73,15 +75,26 @@ def _pair(kind: str, vertical: bool, seed: int):
 KINDS = ["good"] * 12 + ["front"] * 4 + ["behind"] * 4 + ["hole"] * 4
 
 
-def labelled_tile():
-    """The fixed labelled set as one tile's pairs (``TilePairs``): labels (24,) int8, 1 = bad."""
-    from tasks.classify.pairs import TilePairs
-
-    pts_all, pr, tris_all, vids_all, fr, context = [], [], [], [], [], []
-    n_pts = n_faces = n_vids = 0
+def _layout():
+    """[(kind, vertical, seed, cell (3,), scored)]: each scored pair b in cell (3b, 0, 0) between two good
+    neighbours in cells (3b - 1, 0, 0) and (3b + 1, 0, 0), like a patch of a longer wall."""
+    out = []
     for b, kind in enumerate(KINDS):
         vertical = b % 4 != 3  # a quarter of each class lies flat (ground)
-        pts, tris, faces, in_patch = _pair(kind, vertical, seed=100 + b)
+        out.append((kind, vertical, 100 + b, (3 * b, 0, 0), True))
+        out += [("good", vertical, 1000 + 2 * b + s, (3 * b + d, 0, 0), False) for s, d in ((0, -1), (1, 1))]
+    return out
+
+
+def labelled_tile():
+    """The fixed set as one tile's pairs (``TilePairs``; labels (P,) int8, 1 = bad) and which of them are
+    scored ((P,) bool: the 24 of :data:`KINDS`, in that order)."""
+    from tasks.classify.pairs import TilePairs
+
+    pts_all, pr, tris_all, vids_all, fr, context, cells, labels, scored = [], [], [], [], [], [], [], [], []
+    n_pts = n_faces = n_vids = 0
+    for b, (kind, vertical, seed, cell, is_scored) in enumerate(_layout()):
+        pts, tris, faces, in_patch = _pair(kind, vertical, seed=seed)
         shift = np.array([10.0 * b, 0.0, 0.0])  # pairs far apart in the tile
         yaw = (b % 4) * np.pi / 2 if vertical else 0.0  # walls facing the four ways
         rot = np.array([[np.cos(yaw), -np.sin(yaw), 0], [np.sin(yaw), np.cos(yaw), 0], [0, 0, 1]])
@@ -95,14 +108,17 @@ def labelled_tile():
         n_faces += int(in_patch.sum())
         context.append((tris[~in_patch], faces[~in_patch] + n_vids))
         n_vids += int(faces.max()) + 1
+        cells.append(cell)
+        labels.append(kind != "good")
+        scored.append(is_scored)
     # the neighbouring cells' faces sit after every pair's (in no pair's range), as another patch's would
     tris = np.concatenate(tris_all + [c[0] for c in context]).astype(np.float32)
     vids = np.concatenate(vids_all + [c[1] for c in context]).astype(np.int64)
-    n = len(KINDS)
-    labels = np.array([k != "good" for k in KINDS], np.int8)
-    return TilePairs("test", np.arange(n, dtype=np.int64) * 101 + 7, np.zeros((n, 3), np.int64), np.arange(n),
-                     labels, np.ones(n, bool), tuple(CELL_M), np.concatenate(pts_all).astype(np.float32), tris, vids,
-                     open_edge_flags(vids), np.array(pr, np.int64), np.array(fr, np.int64))
+    n = len(cells)
+    tp = TilePairs("test", np.arange(n, dtype=np.int64) * 101 + 7, np.array(cells, np.int64), np.arange(n),
+                   np.array(labels, np.int8), np.ones(n, bool), tuple(CELL_M), np.concatenate(pts_all).astype(np.float32),
+                   tris, vids, open_edge_flags(vids), np.array(pr, np.int64), np.array(fr, np.int64))
+    return tp, np.array(scored)
 
 
 @pytest.fixture(scope="module")
@@ -114,9 +130,13 @@ def shipped():
 
 
 def test_the_set_is_what_it_claims():
-    tp = labelled_tile()
-    pts, tris, _, oe = tp.raw(np.arange(len(tp)))
-    assert tp.labels.mean() == 0.5
+    tp, scored = labelled_tile()
+    pts, tris, _, oe = tp.raw(np.flatnonzero(scored))
+    assert tp.labels[scored].mean() == 0.5 and scored.sum() == len(KINDS) and tp.labels[~scored].sum() == 0
+    from ms3d_model.cues import CUE_NAMES
+
+    nb = tp.cues(0)[:, CUE_NAMES.index("nb_count")]
+    assert (nb[scored] == 2).all()  # every scored pair sees its two good neighbours, and only them
     open_m = [float((np.linalg.norm(np.roll(t, -1, 1) - t, axis=2) * o).sum()) for t, o in zip(tris, oe)]
     holes = [k == "hole" for k in KINDS]
     # holes are the only open edges in the tile's sense; their perimeter is about 2 x (1.2 + 0.45) m
@@ -128,7 +148,7 @@ def test_the_set_is_what_it_claims():
 def test_the_shipped_default_loads_and_grades(shipped):
     from tasks.classify.stage import grade_pairs
 
-    tp = labelled_tile()
+    tp, _ = labelled_tile()
     threshold = float(getattr(shipped, "threshold", 0.5))
     scores, grades = grade_pairs(shipped, tp, 16, threshold)
     assert scores.shape == (len(tp),) and scores.dtype == np.float32
@@ -142,10 +162,10 @@ def test_the_shipped_default_loads_and_grades(shipped):
 def test_the_shipped_default_beats_the_majority_class(shipped):
     from tasks.classify.stage import grade_pairs
 
-    tp = labelled_tile()
+    tp, scored = labelled_tile()
     threshold = float(getattr(shipped, "threshold", 0.5))
     scores, grades = grade_pairs(shipped, tp, 16, threshold)
-    lab = tp.labels
+    scores, grades, lab = scores[scored], grades[scored], tp.labels[scored]
     acc = float((grades == lab).mean())
     majority = max(lab.mean(), 1 - lab.mean())
     recall_bad = float(grades[lab == 1].mean())
