@@ -46,7 +46,7 @@ demo: $(STAMP) $(NPM_STAMP)
 	$(VENV)/bin/ms3d demo --out $(DEMO_OUT) --work $(DEMO_WORK)
 
 test: $(STAMP) $(NPM_STAMP)
-	$(PY) -m pytest -q tests
+	$(PY) -m pytest -q --durations=15 tests
 
 bench: $(STAMP)
 	$(PY) benchmarks/synth_bench.py
