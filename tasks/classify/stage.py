@@ -158,7 +158,8 @@ def run_classify_tile(tile: TileId, cfg, wd: WorkDir) -> dict | None:
     def work() -> Done:
         t0 = time.perf_counter()
         torch.set_num_threads(ccfg.threads)
-        tp = read_tile_pairs(tile_dir, cfg.partition.min_faces, cfg.partition.min_points)
+        # every pair with a face and a point, as in training: the neighbourhood cues see the same neighbours
+        tp = read_tile_pairs(tile_dir)
         t_read = time.perf_counter() - t0
         store = PatchStore(tile_dir)
         keys = store.patches()["patch"]
@@ -167,7 +168,8 @@ def run_classify_tile(tile: TileId, cfg, wd: WorkDir) -> dict | None:
         t1 = time.perf_counter()
         if len(tp):
             s, g = grade_pairs(model, tp, ccfg.batch_size, threshold)
-            score[tp.rows], grade[tp.rows] = s, g
+            ok = gradable_mask(store.patches(), cfg.partition.min_faces, cfg.partition.min_points)[tp.rows]
+            score[tp.rows[ok]], grade[tp.rows[ok]] = s[ok], g[ok]
         t_grade = time.perf_counter() - t1
         ev = tile_evidence(tp, store.patches(), ccfg) if ccfg.evidence else None
         if ev is not None:
@@ -176,7 +178,7 @@ def run_classify_tile(tile: TileId, cfg, wd: WorkDir) -> dict | None:
         write_side_table(tile_dir, "grades", {"patch": keys, "score": score, "grade": grade}, store.meta,
                          model_hash=model.hash, model=Path(model.path).name, profile=model.profile.name,
                          threshold=threshold)
-        summary = {"tile": tile.key, "n_patches": len(keys), "n_pairs": len(tp), "n_bad": int((grade == 1).sum()),
+        summary = {"tile": tile.key, "n_patches": len(keys), "n_pairs": int(np.isfinite(score).sum()), "n_bad": int((grade == 1).sum()),
                    "n_unknown": int((grade == -1).sum()), "model_hash": model.hash,
                    "n_evidence_bad": int(ev.bad.sum()) if ev is not None else 0,
                    "n_missing_surface": int(ev.missing.sum()) if ev is not None else 0,
