@@ -238,3 +238,19 @@ def test_a_scanned_wall_top_beside_a_roof_edge_does_not_contradict_it():
     assert in_view(roof_edge, up, wall, radius_m=0.5, cone_deg=90)[0]  # the old rule: anything within 0.5 m
     assert in_view(facade, along_y, wall, radius_m=0.5, cone_deg=45)[0]
     assert not in_view(facade, along_y, wall[:0], radius_m=0.5, cone_deg=45)[0]
+
+
+def test_front_rule_runs_and_cuts_only_what_stands_in_front():
+    """typed.front_m > 0: vertices beyond conflict_radius_m from the scan but in front of it (between the
+    scanner and the scanned wall: the mesh of a recess) are cut; a mesh behind the scan is not."""
+    from dataclasses import replace
+
+    from tasks.config.repair import RepairConfig
+    from tasks.repair.geometry import repair_region_geometry
+
+    data = _half_seen_region()  # the mesh (normal towards -y, the street) stands 0.5 m in front of the scan
+    cfg = RepairConfig.model_validate({"typed": {"front_m": 0.3}, "mesh": {"keep_unseen_m": 0}})
+    geo = repair_region_geometry(data, cfg)
+    assert geo.stats["in_front"] > 0 and geo.mesh.n_faces
+    behind = replace(data, mls_xyz=data.mls_xyz * [1, -1, 1])  # the same scan 0.5 m on the street side
+    assert repair_region_geometry(behind, cfg).stats["in_front"] == 0
