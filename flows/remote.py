@@ -100,14 +100,19 @@ def remote_run(cfg: CampusConfig):
     mirror = mirror_for(cfg.work_dir)
     ttl_s = float(os.environ.get("MS3D_LEASE_TTL_S", DEFAULT_TTL_S))  # how long a killed run blocks the next
     with run_lock(mirror.store, ttl_s=ttl_s):
+        mirror.pull()
+        mirror.compact()  # one record for the current state: superseded objects become sweepable
         gone = sweep_unrecorded(mirror.store, grace_s=float(os.environ.get("MS3D_SWEEP_GRACE_S", SWEEP_GRACE_S)))
         if gone:
             log.info("swept %d unrecorded objects of earlier runs from %s", len(gone), mirror.store.describe())
-        mirror.pull()
         try:
             yield mirror
         finally:
             mirror.push("driver")
+            st = mirror.store.stats
+            log.info("work dir %s: driver %d commits, %d files pushed, %d pulled; %d requests, %.1f MB read, "
+                     "%.1f MB written", mirror.store.describe(), mirror.stats["commits"], mirror.stats["pushed_files"],
+                     mirror.stats["pulled_files"], st.n_requests, st.bytes_read / 1e6, st.bytes_written / 1e6)
 
 
 class SyncExecutor:

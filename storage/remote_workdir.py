@@ -55,6 +55,8 @@ class Mirror:
         self.seen: set[str] = set()
         self.files: dict[str, tuple[int, int]] = {}  # folded remote state: rel -> (size, mtime_ns)
         self._pending: dict[str, str] = {}  # recorded files not downloaded yet: rel -> object key
+        self.refs: dict = {}  # folded remote state: rel -> OutputRef of its current object
+        self.last_utc = 0.0  # written_utc of the latest commit folded
         self.lock = threading.RLock()
         self.stats = {"pulled_files": 0, "pushed_files": 0, "commits": 0, "records_read": 0}
 
@@ -82,14 +84,17 @@ class Mirror:
         with self.lock:
             for rec in self._records():
                 meta = rec.meta or {}
+                self.last_utc = max(self.last_utc, rec.written_utc)
                 for rel in meta.get("deleted", []):
                     self.files.pop(rel, None)
+                    self.refs.pop(rel, None)
                     self._pending.pop(rel, None)
                     if rel in self.known:
                         (self.root / rel).unlink(missing_ok=True)
                         self.known.pop(rel, None)
                 for rel, ref in rec.files.items():
                     self.files[rel] = (ref.size, int(meta["mtime_ns"][rel]))
+                    self.refs[rel] = ref
                     self._pending[rel] = ref.key
             n = 0
             for rel in sorted(self._pending):
@@ -155,12 +160,36 @@ class Mirror:
             self.seen.add(f"{RECORDS}/{SYNC_STAGE}/{seq}.json")
             for r, s in changed.items():
                 self.known[r] = self.files[r] = s
+                self.refs[r] = rec.files[r]
             for r in deleted:
                 self.known.pop(r, None)
                 self.files.pop(r, None)
+                self.refs.pop(r, None)
+            self.last_utc = max(self.last_utc, rec.written_utc)
             self.stats["pushed_files"] += len(changed)
             self.stats["commits"] += 1
             return rec
+
+
+    def compact(self) -> int:
+        """Fold every commit this mirror has pulled into one record naming each live file's current object,
+        then delete the folded records: superseded objects become unrecorded, for the sweep. Call with
+        the run lease held, after :meth:`pull`. Returns the number of records folded away."""
+        with self.lock:
+            old = sorted(self.seen)
+            if len(old) < 2:
+                return 0
+            seq = f"{time.time_ns():020d}-{uuid.uuid4().hex[:8]}"
+            meta = {"mtime_ns": {r: self.files[r][1] for r in self.refs}, "deleted": [], "label": "compacted"}
+            # dated as the last commit it folds, so a commit it did not see (a task of a killed run still
+            # finishing) sorts after it and is not undone
+            rec = UnitRecord(SYNC_STAGE, seq, "compacted", dict(self.refs), self.last_utc, meta)
+            key = f"{RECORDS}/{SYNC_STAGE}/{seq}.json"
+            self.store.put(key, json.dumps(rec.to_json(), sort_keys=True).encode())  # the new state first
+            self.seen.add(key)
+            self.store.delete(old)
+            self.seen.difference_update(old)
+            return len(old)
 
 
 _MIRRORS: dict[tuple[str, str], Mirror] = {}

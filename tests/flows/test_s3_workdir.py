@@ -72,8 +72,18 @@ def upload(folder: Path, url: str) -> None:
             store.put_file(p.relative_to(folder).as_posix(), p)
 
 
+def _texture_names(t) -> list[str] | None:
+    """A faces table's texture list as file names: its ``texture`` column indexes a per-tile list in the
+    order of the staged runs (source ids), and holds the staging process's paths."""
+    from storage.patch_schema import META_KEY
+
+    raw = (t.schema.metadata or {}).get(META_KEY)
+    return [Path(p).name for p in json.loads(raw).get("textures", [])] if raw else None
+
+
 def tables_by_content(work: Path) -> dict:
-    """Every tile's parquet tables as sorted rows (identity columns left out) and merged triangles."""
+    """Every tile's parquet tables as sorted rows (identity columns left out, texture indices as texture file
+    names, NaN made comparable) and its merged triangles."""
     out = {}
     for d in sorted((work / "tiles").iterdir()):
         for f in sorted(d.glob("*.parquet")):
@@ -81,14 +91,16 @@ def tables_by_content(work: Path) -> dict:
             cols = [c for c in t.column_names if c not in IDENTITY]
             arrays = [t.column(c).to_numpy(zero_copy_only=False) for c in cols]
             arrays = [np.nan_to_num(a, nan=-1e30).tolist() if a.dtype.kind == "f" else a.tolist() for a in arrays]
-            rows = sorted(zip(*arrays)) if t.num_rows else []  # NaN (no uv) made comparable
-            out[f"{d.name}/{f.name}"] = (cols, rows)
+            names = _texture_names(t)
+            if names is not None and "texture" in cols:
+                i = cols.index("texture")
+                arrays[i] = [names[k] if k >= 0 else "" for k in arrays[i]]
+            out[f"{d.name}/{f.name}"] = (cols, sorted(zip(*arrays)) if t.num_rows else [])
         if (d / "merged.npz").exists():
             m = np.load(d / "merged.npz")
             tri = np.round(m["vertices"][m["faces"]].reshape(len(m["faces"]), -1).astype(np.float64), 4)
             out[f"{d.name}/merged"] = np.unique(tri, axis=0).tolist()
     return out
-
 
 def test_a_commit_is_seen_whole_by_another_mirror(s3, tmp_path):
     from storage.objstore import open_store
@@ -171,28 +183,50 @@ def test_a_task_killed_before_its_record_leaves_nothing_trusted(s3, tmp_path, mo
 
 
 @pytest.mark.slow
-def test_handmade_campus_on_s3_equals_local_and_reruns_as_noop(s3, tmp_path, monkeypatch):
+def test_tiny_campus_on_s3_equals_local_and_reruns_as_noop(tiny_campus, s3, tmp_path, monkeypatch):
+    """The synth tiny campus (a ContextCapture production, COLMAP cameras and images, labels) with inputs and
+    work dir on S3, inline, equals a local run by content, and reruns as a no-op from an empty mirror.
+    Registration is off: its sampling is seeded by the inputs' source ids, i.e. by their paths."""
     from flows.campus import InlineExecutor, reprocess
+    from flows.remote import mirror_for
     from tasks.config import CampusConfig
 
-    campus = build_campus(tmp_path / "campus")
-    upload(campus.parent, s3 + "/campus")
-    over = {"runner": "inline", "classify.enabled": False, "report.enabled": False}
-    local = CampusConfig.from_yaml(campus, {**over, "work_dir": str(tmp_path / "local")})
+    over = {"runner": "inline", "classify.enabled": False, "report.enabled": False, "registration.mode": "off"}
+    local = CampusConfig.from_yaml(tiny_campus / "campus.yaml", {**over, "work_dir": str(tmp_path / "local")})
     reprocess(local, InlineExecutor())
-    remote = CampusConfig.from_yaml(campus, {**over, "work_dir": s3 + "/work", "inputs.mesh": [s3 + "/campus/mesh"],
-                                             "inputs.points": [s3 + "/campus/mls"]})
-    reprocess(remote, InlineExecutor())
+    upload(tiny_campus, s3 + "/campus")
+    c = s3 + "/campus"
+    remote = CampusConfig.from_yaml(tiny_campus / "campus.yaml", {
+        **over, "work_dir": s3 + "/work", "inputs.mesh": [c + "/mesh"], "inputs.points": [c + "/mls"],
+        "inputs.labels": c + "/truth/defects.json", "inputs.images": c + "/images", "inputs.cameras": c + "/sparse/0"})
+    first = reprocess(remote, InlineExecutor())
+    assert first["stages"]["repair"]["run"] > 0  # rebuilt regions, textured from the staged images
     fresh_process(monkeypatch, tmp_path / "cache-b")
     again = reprocess(remote, InlineExecutor())  # another process, an empty mirror: nothing to redo
-    ran = {k: v for k, v in again["stages"].items() if isinstance(v, dict) and v.get("run")}
-    assert not ran, ran
-    from flows.remote import mirror_for
-
+    assert all(c["run"] == 0 for c in again["stages"].values()), again["stages"]
     mirror = mirror_for(remote.work_dir)
     assert tables_by_content(mirror.root) == tables_by_content(tmp_path / "local")
-    secret_free = [p for p in mirror.root.rglob("*") if p.is_file() and SECRET.encode() in p.read_bytes()]
-    assert not secret_free
-    records = [o.key for o in mirror.store.list("records")]
-    assert records and all(json.loads(mirror.store.get(k))["files"] is not None for k in records[:3])
+    assert not [p for p in mirror.root.rglob("*") if p.is_file() and SECRET.encode() in p.read_bytes()]
     assert os.environ["MS3D_CACHE"] == str(tmp_path / "cache-b")
+
+def test_compaction_keeps_the_state_and_frees_superseded_objects(s3, tmp_path):
+    from storage.objstore import open_store
+    from storage.objstore_commit import sweep_unrecorded
+    from storage.remote_workdir import Mirror
+
+    store = open_store(s3 + "/work")
+    a = Mirror(store, tmp_path / "a")
+    for version in (b"v1", b"v2-longer"):  # a file rewritten: its first object is superseded
+        (a.root / "tiles").mkdir(exist_ok=True)
+        (a.root / "tiles" / "t.parquet").write_bytes(version)
+        (a.root / f"keep-{len(version)}.json").write_text("{}")
+        a.push()
+    (a.root / "keep-2.json").unlink()
+    a.push()
+    assert a.compact() == 3 and len(store.list("records")) == 1
+    assert len(sweep_unrecorded(store, grace_s=0)) == 2  # the superseded v1 object and the deleted file's
+    b = Mirror(store, tmp_path / "b")
+    b.pull()
+    assert sorted(p.relative_to(b.root).as_posix() for p in b.root.rglob("*") if p.is_file()) == \
+        ["keep-9.json", "tiles/t.parquet"]
+    assert (b.root / "tiles/t.parquet").read_bytes() == b"v2-longer"
