@@ -21,6 +21,7 @@ from __future__ import annotations
 
 import contextlib
 import functools
+import inspect
 import logging
 import os
 from pathlib import Path
@@ -72,6 +73,35 @@ def _cfg_json_of(args, kwargs) -> dict | None:
     return cj
 
 
+# What a task reads from the work dir, by its function name: path prefixes ("{tile}" once per tile of its
+# batch). A task not listed pulls everything. From each stage's stage.py: scan checks its record and samples;
+# ingest its record and earlier staging outputs; partition (+ labels) a tile's staging runs and store;
+# merge the campus frame, the region plan and files, and the tile's store.
+TASK_READS = {
+    "scan_task": ("manifest.d/scan/", "scan/"),
+    "ingest_task": ("manifest.d/ingest/", "staging/"),
+    "partition_task": ("manifest.d/partition/", "manifest.d/labels/", "staging/{tile}/", "tiles/{tile}/"),
+    "merge_task": ("manifest.d/merge/", "campus.json", "regions/", "tiles/{tile}/"),
+}
+
+
+def task_reads(name: str, batch) -> tuple[str, ...] | None:
+    """The work-dir prefixes task ``name`` reads for ``batch`` (its first argument), or None for all.
+
+    >>> task_reads("merge_task", ["1_2"])
+    ('manifest.d/merge/', 'campus.json', 'regions/', 'tiles/1_2/')
+    >>> task_reads("regions_task", None) is None
+    True
+    """
+    spec = TASK_READS.get(name)
+    if spec is None:
+        return None
+    out: list[str] = []
+    for p in spec:
+        out += [p.format(tile=k) for k in batch] if "{tile}" in p else [p]
+    return tuple(out)
+
+
 def synced(fn):
     """Decorate a task function: with a work dir by URL, pull before and push after (a task that raises
     pushes nothing: its units are not recorded and run again). Inside planning it only runs ``fn``."""
@@ -83,7 +113,9 @@ def synced(fn):
         if cj is None or not is_remote(cj.get("work_dir")) or is_planning():
             return fn(*args, **kwargs)
         mirror = mirror_for(cj["work_dir"])
-        mirror.pull()
+        first = args[0] if args else kwargs.get(next(iter(inspect.signature(fn).parameters)))
+        reads = task_reads(fn.__name__, first if isinstance(first, list) else [])
+        mirror.pull(None if reads is None else (lambda rel: rel.startswith(reads)))
         out = fn(*args, **kwargs)
         mirror.push(getattr(fn, "__name__", "task"))
         return out

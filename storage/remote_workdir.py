@@ -161,6 +161,7 @@ class Mirror:
             for r, s in changed.items():
                 self.known[r] = self.files[r] = s
                 self.refs[r] = rec.files[r]
+                self._pending.pop(r, None)  # an older recorded version not fetched yet is superseded
             for r in deleted:
                 self.known.pop(r, None)
                 self.files.pop(r, None)
