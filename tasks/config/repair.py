@@ -67,6 +67,9 @@ class TypedRepairConfig(_Section):
                                      "this angle of the vertex normal line (in front or behind): a scanned wall top "
                                      "beside a roof edge the scanner never saw does not cut the roof; 90: any point "
                                      "within conflict_radius_m")
+    conflict_min_cos: float = Field(0.7, ge=0, le=1, description="... and face like the vertex (|cos| of the normals "
+                                    "at least this): a parallel surface displaced contradicts a vertex, a wall meeting "
+                                    "the roof at its edge does not; 0: any orientation")
     front_m: float = Field(0.0, ge=0, description="a mesh vertex farther than conflict_radius_m from the MLS but this far "
                            "in front of the nearest scanned surface (on the scanner's side of it) stands where the "
                            "laser passed: cut it (melted eaves hanging off a scanned wall); 0 disables (the default: "

@@ -118,7 +118,8 @@ def _conflicts(data: RegionInput, zone_v: np.ndarray, vn: np.ndarray, mls: np.nd
         return None
     from tasks.repair.fuse import best_similarity
 
-    near = in_view(data.xyz[zone_v], vn[zone_v], mls, radius_m=tc.conflict_radius_m, cone_deg=tc.conflict_cone_deg)
+    near = in_view(data.xyz[zone_v], vn[zone_v], mls, radius_m=tc.conflict_radius_m, cone_deg=tc.conflict_cone_deg,
+                   pts_n=mls_n, min_cos=tc.conflict_min_cos)
     sim = best_similarity(data.xyz[zone_v], vn[zone_v], mls, mls_n, cKDTree(mls), params)
     conflict = near & (sim < params.similarity_threshold)
     stats["conflict"] = int(conflict.sum())
@@ -136,14 +137,16 @@ def _conflicts(data: RegionInput, zone_v: np.ndarray, vn: np.ndarray, mls: np.nd
 
 
 def in_view(xyz: np.ndarray, normals: np.ndarray, pts: np.ndarray, *, radius_m: float, cone_deg: float,
-            k: int = 16) -> np.ndarray:
+            k: int = 16, pts_n: np.ndarray | None = None, min_cos: float = 0.0) -> np.ndarray:
     """(v,) bool: vertices (v, 3) with one of their ``k`` nearest points (p, 3) within ``radius_m`` inside
     the double cone of half-angle ``cone_deg`` around the vertex normal (v, 3): in front of or behind the
     vertex, where the scan says something about it. A scanned wall top beside an unseen roof edge is not
     (it lies off to the side); ``cone_deg`` >= 90 accepts any point within the radius. Only the nearest
     ``k`` are asked, by design: when the scanned surface nearest to a vertex lies off to its side, the
     vertex is beyond the scan's edge, and a point farther down the wall that happens to fall in the cone
-    says nothing of it (measured with k = 16 on the tiny campus: docs/repair.md)."""
+    says nothing of it (measured with k = 16 on the tiny campus: docs/repair.md). With ``pts_n`` (p, 3),
+    the point must also face like the vertex (|cos| >= ``min_cos``): a parallel surface displaced, not a
+    wall meeting the roof at its edge."""
     if not (len(xyz) and len(pts)):
         return np.zeros(len(xyz), bool)
     d, j = cKDTree(pts).query(xyz, k=min(k, len(pts)), distance_upper_bound=radius_m)
@@ -154,7 +157,10 @@ def in_view(xyz: np.ndarray, normals: np.ndarray, pts: np.ndarray, *, radius_m: 
     delta = pts[np.where(ok, j, 0)] - xyz[:, None, :]
     axial = np.abs(np.einsum("vkd,vd->vk", delta, normals))
     lateral = np.sqrt(np.maximum(np.einsum("vkd,vkd->vk", delta, delta) - axial**2, 0.0))
-    return (ok & (lateral <= axial * np.tan(np.radians(cone_deg)))).any(axis=1)
+    hit = ok & (lateral <= axial * np.tan(np.radians(cone_deg)))
+    if pts_n is not None and min_cos > 0:
+        hit &= np.abs(np.einsum("vkd,vd->vk", pts_n[np.where(ok, j, 0)], normals)) >= min_cos
+    return hit.any(axis=1)
 
 
 def _mesh_points(fused_xyz: np.ndarray, fused_n: np.ndarray, fused_src: np.ndarray, fused_vertex: np.ndarray, fc, mc,

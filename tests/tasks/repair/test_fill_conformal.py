@@ -254,3 +254,18 @@ def test_front_rule_runs_and_cuts_only_what_stands_in_front():
     assert geo.stats["in_front"] > 0 and geo.mesh.n_faces
     behind = replace(data, mls_xyz=data.mls_xyz * [1, -1, 1])  # the same scan 0.5 m on the street side
     assert repair_region_geometry(behind, cfg).stats["in_front"] == 0
+
+
+def test_a_wall_facing_away_does_not_contradict_a_roof_vertex_above_it():
+    """A roof edge flush with the wall: the wall's points lie straight below it, in the cone, but face the
+    street, not the sky. Only a parallel surface displaced contradicts a vertex (typed.conflict_min_cos)."""
+    from tasks.repair.geometry import in_view
+
+    wall = np.array([[x, 0.0, z] for x in np.arange(0, 2, 0.05) for z in np.arange(2.5, 2.95, 0.05)])
+    wall_n = np.tile([0, -1.0, 0], (len(wall), 1))
+    roof_edge, up = np.array([[1.0, 0.02, 3.0]]), np.array([[0, 0, 1.0]])
+    assert in_view(roof_edge, up, wall, radius_m=0.5, cone_deg=45)[0]  # orientation ignored: contradicted
+    assert not in_view(roof_edge, up, wall, radius_m=0.5, cone_deg=45, pts_n=wall_n, min_cos=0.7)[0]
+    lower_roof = wall * [1, 1, 0] + [0, 0, 2.7]  # a parallel roof 0.3 m below: that does contradict it
+    assert in_view(roof_edge, up, lower_roof, radius_m=0.5, cone_deg=45, pts_n=np.tile([0, 0, 1.0], (len(wall), 1)),
+                   min_cos=0.7)[0]
