@@ -65,15 +65,31 @@ class Lease:
     def renew(self, now: float | None = None) -> None:
         """Push the expiry to now + ttl_s. Raises LeaseLost when another run wrote the lock since."""
         expires = (time.time() if now is None else now) + self.ttl_s
+        body = self._body(expires)
         try:
-            self.etag = self.store.put_if_match(LOCK_KEY, self._body(expires), self.etag)
+            self.etag = self.store.put_if_match(LOCK_KEY, body, self.etag)
         except PreconditionFailed:
-            raise LeaseLost(f"{self.store.describe()}: the run lock was taken over by another run") from None
+            # a renewal whose response was lost (a transient error) may have landed: then the lock
+            # still holds our token under an ETag we never saw; adopt it and renew once more
+            current = self.store.get_with_etag(LOCK_KEY)
+            if current is None or _token(current[0]) != self.token:
+                raise LeaseLost(f"{self.store.describe()}: the run lock was taken over by another run") from None
+            try:
+                self.etag = self.store.put_if_match(LOCK_KEY, body, current[1])
+            except PreconditionFailed:
+                raise LeaseLost(f"{self.store.describe()}: the run lock was taken over by another run") from None
         self.expires_utc = expires
 
     def release(self) -> bool:
         """Delete the lock if it is still ours; False when it was taken over meanwhile."""
         return self.store.delete_if_match(LOCK_KEY, self.etag)
+
+
+def _token(raw: bytes) -> str | None:
+    try:
+        return str(json.loads(raw)["token"])
+    except (ValueError, KeyError, TypeError):
+        return None
 
 
 def _holder(raw: bytes) -> dict:
@@ -119,19 +135,38 @@ def acquire_lease(store: Store, owner: str | None = None, ttl_s: float = DEFAULT
 
 
 class _Renewer(threading.Thread):
-    """Renews a lease every ttl_s / 3 until stopped; remembers a LeaseLost for the holder to raise."""
+    """Renews a lease every ttl_s / 3 until stopped; remembers a lost lease for the holder to raise.
 
-    def __init__(self, lease: Lease):
+    A transient failure (InputError: network, 5xx, throttling) is retried with a doubling backoff
+    (from ttl_s / 30, at most ttl_s / 10) while more than ``GIVE_UP_FRACTION`` of the TTL is left
+    before the expiry we last wrote; only then is the lease recorded lost. LeaseLost (another run
+    wrote the lock) is recorded at once."""
+
+    GIVE_UP_FRACTION = 0.25
+
+    def __init__(self, lease: Lease, clock=time.time):
         super().__init__(name="ms3d-lease-renewer", daemon=True)
-        self.lease, self.stop_event, self.error = lease, threading.Event(), None
+        self.lease, self.stop_event, self.error, self.clock = lease, threading.Event(), None, clock
+        self.transient_failures = 0
 
     def run(self) -> None:
-        while not self.stop_event.wait(self.lease.ttl_s / 3):
+        ttl = self.lease.ttl_s
+        wait, backoff = ttl / 3, ttl / 30
+        while not self.stop_event.wait(wait):
             try:
                 self.lease.renew()
-            except (LeaseLost, InputError) as exc:
+            except LeaseLost as exc:
                 self.error = self.lease.lost = exc
                 return
+            except InputError as exc:
+                self.transient_failures += 1
+                left = self.lease.expires_utc - self.clock() - self.GIVE_UP_FRACTION * ttl
+                if left <= 0:
+                    self.error = self.lease.lost = exc
+                    return
+                wait, backoff = min(backoff, left), min(2 * backoff, ttl / 10)
+                continue
+            wait, backoff = ttl / 3, ttl / 30
 
 
 @contextlib.contextmanager

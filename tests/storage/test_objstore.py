@@ -15,7 +15,7 @@ from storage.errors import InputError
 from storage.grid import PatchGrid
 from storage.objstore import PreconditionFailed, open_store, redact
 from storage.objstore_commit import put_unit_outputs, read_output, resolve, sweep_unrecorded
-from storage.objstore_lock import LOCK_KEY, LeaseLost, acquire_lease, run_lock
+from storage.objstore_lock import LOCK_KEY, Lease, LeaseLost, _Renewer, acquire_lease, run_lock
 from storage.objstore_ranges import open_ranged, read_patch_rows
 from storage.patch_store import PatchStore, TileMeta, write_tile_tables
 from tasks.partition.kernels import build_tile_tables
@@ -164,6 +164,62 @@ def test_lock_is_exclusive_renews_and_expires(s3_store):
         with pytest.raises(InputError, match="run-c"):
             acquire_lease(s3_store, owner="run-d", ttl_s=30)
     assert not s3_store.exists(LOCK_KEY)
+
+
+def _flaky_put_if_match(store, monkeypatch, fail_calls, land_first=False):
+    """Make the store's put_if_match raise a transient InputError on the given call numbers (1-based);
+    with ``land_first`` the write reaches the server before the error (a lost response)."""
+    real, calls = store.put_if_match, []
+
+    def flaky(key, data, etag):
+        calls.append(key)
+        if len(calls) in fail_calls:
+            if land_first:
+                real(key, data, etag)
+            raise InputError(f"{store.describe()}: {key}", "cannot write (ConnectionResetError: reset by peer)")
+        return real(key, data, etag)
+    monkeypatch.setattr(store, "put_if_match", flaky)
+    return calls
+
+
+@pytest.mark.parametrize("land_first", [False, True])
+def test_renewal_survives_one_transient_error(s3_store, monkeypatch, land_first):
+    lease = acquire_lease(s3_store, owner="run-t", ttl_s=3.0)
+    first_expiry = lease.expires_utc
+    calls = _flaky_put_if_match(s3_store, monkeypatch, {1}, land_first)
+    renewer = _Renewer(lease)
+    renewer.start()  # the first renewal (at 1 s) fails; the retry (0.1 s later) succeeds
+    deadline = time.time() + 10
+    while lease.expires_utc == first_expiry and renewer.is_alive() and time.time() < deadline:
+        time.sleep(0.05)
+    renewer.stop_event.set()
+    renewer.join()
+    assert renewer.transient_failures == 1 and len(calls) >= 2
+    assert renewer.error is None and lease.lost is None
+    lease.check()
+    assert json.loads(s3_store.get(LOCK_KEY))["token"] == lease.token
+    assert lease.expires_utc > time.time()  # renewed after the failure
+    assert lease.release() and not s3_store.exists(LOCK_KEY)
+
+
+def test_renewal_gives_up_near_expiry_and_takeover_is_lost_at_once(s3_store, monkeypatch):
+    lease = acquire_lease(s3_store, owner="run-u", ttl_s=1.5)
+    _flaky_put_if_match(s3_store, monkeypatch, set(range(1, 1000)))  # the network never comes back
+    renewer = _Renewer(lease)
+    renewer.start()
+    renewer.join(timeout=10)
+    gave_up = time.time()
+    assert isinstance(lease.lost, InputError) and not isinstance(lease.lost, LeaseLost)
+    assert renewer.transient_failures >= 3  # retried, with backoff...
+    assert gave_up >= lease.expires_utc - 0.25 * 1.5 - 0.01  # ...until a quarter of the TTL was left
+    monkeypatch.undo()
+    lease = acquire_lease(s3_store, owner="run-v", ttl_s=0.6, now=time.time() + 5)  # took over
+    old = Lease(s3_store, "run-u", "not-ours", 0.6, "\"stale\"", 0.0)
+    renewer = _Renewer(old)
+    renewer.start()
+    renewer.join(timeout=5)
+    assert isinstance(old.lost, LeaseLost) and renewer.transient_failures == 0
+    assert lease.release()
 
 
 def test_local_lock_is_still_flock(tmp_path):
