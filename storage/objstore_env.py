@@ -15,18 +15,31 @@ _SECRET_OPTIONS = ("key", "secret", "token")
 _SIGNED = re.compile(r"(?i)(x-amz-signature=|x-amz-credential=|x-amz-security-token=|signature=|credential=)"
                      r"[^&\s,'\"]+")
 # botocore logs each signed request (its Authorization header names the access key) at DEBUG
-_LOGGERS = ("botocore.endpoint", "botocore.auth", "botocore.hooks", "aiobotocore.endpoint", "s3fs", "fsspec")
+_LOGGERS = ("botocore.endpoint", "botocore.auth", "botocore.hooks", "botocore.parsers", "botocore.credentials",
+            "aiobotocore.endpoint", "aiobotocore.parsers", "aiobotocore.credentials", "s3fs", "fsspec")
 _USERINFO = re.compile(r"(?i)\b([a-z][a-z0-9+.-]*://)[^/@\s]+@")
+# header or field style, as botocore's DEBUG logs print them with credentials that are not in the
+# environment (IRSA, profiles, instance roles): ``'X-Amz-Security-Token': b'...'``, ``'Authorization':
+# b'AWS4-HMAC-SHA256 Credential=..., Signature=...'``, an STS response's ``<SessionToken>...`` or JSON
+_SECRET_FIELDS = r"(?:x-amz-security-token|authorization|x-amz-credential|x-amz-signature|" \
+                 r"secretaccesskey|sessiontoken|accesskeyid|secret_?access_?key|session_?token|access_?key_?id|token)"
+_FIELD = re.compile(r"(?i)(['\"]" + _SECRET_FIELDS + r"['\"]\s*:\s*b?['\"])[^'\"]*")
+_XML_FIELD = re.compile(r"(?i)(<(?:SecretAccessKey|SessionToken|AccessKeyId|Token)>)[^<]*")
+# SigV4's canonical request lists ``x-amz-security-token:<token>``; botocore.auth logs ``Signature:\n<hex>``
+_CANONICAL = re.compile(r"(?i)(x-amz-security-token:|\bsignature:\s*)[^\s'\"]+")
 
 
 def redact(text: str, secrets=()) -> str:
     """``text`` with every credential replaced by ``***``: the given ``secrets`` and those of the
-    environment (SECRET_ENV), URL user-info (``s3://key:secret@bucket``), and signed-URL parameters."""
+    environment (SECRET_ENV), URL user-info (``s3://key:secret@bucket``), signed-URL parameters, and
+    credential headers/fields printed as botocore logs them (security token, Authorization, STS keys),
+    so credentials that are not in the environment (IRSA, profile, instance role) are caught too."""
     out = str(text)
     known = [s for s in (*secrets, *(os.environ.get(k) for k in SECRET_ENV)) if s and len(s) >= 4]
     for s in sorted(set(known), key=len, reverse=True):
         out = out.replace(s, "***")
-    out = _SIGNED.sub(lambda m: m.group(1) + "***", out)
+    for pattern in (_FIELD, _XML_FIELD, _CANONICAL, _SIGNED):
+        out = pattern.sub(lambda m: m.group(1) + "***", out)
     return _USERINFO.sub(lambda m: m.group(1) + "***@", out)
 
 
