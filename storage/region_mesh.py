@@ -151,6 +151,15 @@ def write_region_doc(out_dir: Path, doc: dict) -> None:
     write_json_atomic(out_dir / REGION_FILE, doc, indent=None)
 
 
+def _rebuilt_meta(d: Path) -> dict | None:
+    """A region folder's region.json when the region was rebuilt; None when unreadable or not rebuilt."""
+    try:
+        meta = json.loads((d / REGION_FILE).read_text())
+    except (OSError, ValueError):
+        return None
+    return meta if meta.get("status") == "rebuilt" else None
+
+
 def region_meshes_for_tile(root: str | Path, tile: TileId) -> list[RegionMesh]:
     """The rebuilt regions of the current plan that reach into ``tile`` (work dir at ``root``).
 
@@ -168,11 +177,8 @@ def region_meshes_for_tile(root: str | Path, tile: TileId) -> list[RegionMesh]:
         if tile.key not in entry["tiles"]:
             continue
         d = region_dir(root, entry["key"])
-        try:
-            meta = json.loads((d / REGION_FILE).read_text())
-        except (OSError, ValueError):
-            continue
-        if meta.get("status") != "rebuilt":
+        meta = _rebuilt_meta(d)
+        if meta is None:
             continue
         with np.load(d / MESH_FILE) as z:
             arr = {k: z[k] for k in z.files}
@@ -235,11 +241,8 @@ def region_files_for_tile(root: str | Path, tile: TileId) -> list[RegionFiles]:
     out = []
     for number, key in _tiles_of_plan(str(p), st.st_ino, st.st_mtime_ns, st.st_size).get(tile.key, ()):
         d = region_dir(root, key)
-        try:
-            meta = json.loads((d / REGION_FILE).read_text())
-        except (OSError, ValueError):
-            continue
-        if meta.get("status") != "rebuilt":
+        meta = _rebuilt_meta(d)
+        if meta is None:
             continue
         atlas = d / meta["atlas"] if meta.get("atlas") else None
         fp = ":".join(file_fingerprint(f) for f in (d / MESH_FILE, d / REGION_FILE, atlas) if f is not None)

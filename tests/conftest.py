@@ -75,3 +75,25 @@ def tiny_work(tiny_campus, tmp_path_factory):
                                                               "classify": {"enabled": False}})
     run_campus(cfg, progress=False)
     return cfg, WorkDir(work)
+
+
+@pytest.fixture(scope="session")
+def moto_s3():
+    """moto's S3 server (it speaks the S3 HTTP API) on 127.0.0.1 with an ephemeral port, one per test session;
+    yields ``make_bucket(bucket, key_id, secret) -> endpoint URL``. Never bound to a public interface."""
+    import boto3
+    from moto.server import ThreadedMotoServer
+
+    server = ThreadedMotoServer(ip_address="127.0.0.1", port=0, verbose=False)
+    server.start()
+    host, port = server.get_host_and_port()
+    assert host == "127.0.0.1"
+    endpoint = f"http://{host}:{port}"
+
+    def make_bucket(bucket: str, key_id: str, secret: str) -> str:
+        boto3.client("s3", endpoint_url=endpoint, aws_access_key_id=key_id, aws_secret_access_key=secret,
+                     region_name="us-east-1").create_bucket(Bucket=bucket)
+        return endpoint
+
+    yield make_bucket
+    server.stop()

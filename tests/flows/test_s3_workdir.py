@@ -24,19 +24,9 @@ IDENTITY = {"source", "vid0", "vid1", "vid2"}  # derived from the inputs' paths 
 
 
 @pytest.fixture(scope="module")
-def s3_server():
-    import boto3
-    from moto.server import ThreadedMotoServer
-
-    server = ThreadedMotoServer(ip_address="127.0.0.1", port=0, verbose=False)
-    server.start()
-    host, port = server.get_host_and_port()
-    assert host == "127.0.0.1"
-    endpoint = f"http://{host}:{port}"
-    boto3.client("s3", endpoint_url=endpoint, aws_access_key_id=KEY_ID, aws_secret_access_key=SECRET,
-                 region_name="us-east-1").create_bucket(Bucket=BUCKET)
-    yield endpoint
-    server.stop()
+def s3_server(moto_s3):
+    """The session's moto S3 server on 127.0.0.1 with this module's bucket; yields the endpoint URL."""
+    return moto_s3(BUCKET, KEY_ID, SECRET)
 
 
 @pytest.fixture
