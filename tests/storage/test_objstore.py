@@ -199,7 +199,8 @@ def test_renewal_gives_up_near_expiry_and_takeover_is_lost_at_once(s3_store, mon
     renewer.join(timeout=10)
     gave_up = time.time()
     assert isinstance(lease.lost, InputError) and not isinstance(lease.lost, LeaseLost)
-    assert renewer.transient_failures >= 2  # retried, with backoff (more on an idle machine)...
+    assert renewer.transient_failures >= 1  # retried after the first failure (how many fit depends on the load)...
+    # a renewer that gave up at its first failure would fail the time check below
     assert gave_up >= lease.expires_utc - 0.25 * 1.5 - 0.01  # ...until a quarter of the TTL was left
     monkeypatch.undo()
     lease = acquire_lease(s3_store, owner="run-v", ttl_s=0.6, now=time.time() + 5)  # took over
