@@ -131,7 +131,8 @@ def remote_run(cfg: CampusConfig):
 
     mirror = mirror_for(cfg.work_dir)
     ttl_s = float(os.environ.get("MS3D_LEASE_TTL_S", DEFAULT_TTL_S))  # how long a killed run blocks the next
-    with run_lock(mirror.store, ttl_s=ttl_s):
+    with run_lock(mirror.store, ttl_s=ttl_s) as lease:
+        mirror.lease = lease  # SyncExecutor checks it before every stage's tasks
         mirror.pull()
         mirror.compact()  # one record for the current state: superseded objects become sweepable
         gone = sweep_unrecorded(mirror.store, grace_s=float(os.environ.get("MS3D_SWEEP_GRACE_S", SWEEP_GRACE_S)))
@@ -140,7 +141,9 @@ def remote_run(cfg: CampusConfig):
         try:
             yield mirror
         finally:
-            mirror.push("driver")
+            mirror.lease = None
+            if lease.lost is None:  # a run that lost its lease writes nothing more
+                mirror.push("driver")
             st = mirror.store.stats
             log.info("work dir %s: driver %d commits, %d files pushed, %d pulled; %d requests, %.1f MB read, "
                      "%.1f MB written", mirror.store.describe(), mirror.stats["commits"], mirror.stats["pushed_files"],
@@ -161,13 +164,21 @@ class SyncExecutor:
     def task_runs(self) -> int:
         return getattr(self.inner, "task_runs", 0)
 
+    def _check_lease(self) -> None:
+        """Stop the run (LeaseLost, one line) when its lease was taken over: another run owns the work dir."""
+        lease = getattr(self.mirror, "lease", None)
+        if lease is not None:
+            lease.check()
+
     def map(self, tsk, batches: list, label: str, **consts):
+        self._check_lease()
         if getattr(tsk, "name", "") in self.LOCAL_TASKS:
             return _Pulled(_Value([r for b in batches for r in tsk.fn(b, **consts)]), self.mirror)
         self.mirror.push("driver")
         return _Pulled(self.inner.map(tsk, batches, label, **consts), self.mirror)
 
     def submit(self, tsk, *args):
+        self._check_lease()
         self.mirror.push("driver")
         return _Pulled(self.inner.submit(tsk, *args), self.mirror)
 
@@ -188,6 +199,8 @@ class _Pulled:
 
     def results(self):
         out = self.inner.results()
+        if (lease := getattr(self.mirror, "lease", None)) is not None:
+            lease.check()
         self.mirror.pull()
         return out
 

@@ -271,7 +271,9 @@ def texture_image(mesh: MeshData, index: int) -> np.ndarray:
     ref = mesh.textures[index]
     if ref in mesh.embedded_textures:
         return mesh.embedded_textures[ref]
-    with Image.open(ref) as image:
+    from .remote_inputs import readable
+
+    with Image.open(readable(ref)) as image:
         return np.asarray(image.convert("RGB"))
 
 

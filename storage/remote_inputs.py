@@ -200,6 +200,30 @@ def local_input(path, siblings: bool = False) -> str:
     return str(local)
 
 
+def staged_ref(local: str, url: str) -> str:
+    """What a store records for a file read beside the input ``url`` (an OBJ's texture image): the URL of
+    the object ``local`` was staged from, when ``url`` is a URL and ``local`` lies in the staged copy of
+    its folder, so another process (another cache) stages it again; else ``local`` unchanged.
+
+    >>> staged_ref("/data/mesh/t.jpg", "/data/mesh/a.obj")
+    '/data/mesh/t.jpg'
+    """
+    if not is_url(url):
+        return local
+    parent = url.rsplit("/", 1)[0]
+    try:
+        rel = Path(local).resolve().relative_to(mirror_path(parent).resolve())
+    except ValueError:
+        return local
+    return f"{parent}/{rel.as_posix()}"
+
+
+def readable(ref) -> str:
+    """A local path to open a recorded file reference: a URL is staged into this process's cache (once per
+    content), a path is returned as it is."""
+    return local_input(ref) if is_url(ref) else ref
+
+
 def input_exists(path) -> bool:
     """Whether an input file or folder exists (a local path, or an object / non-empty prefix)."""
     if not is_url(path):
@@ -247,6 +271,23 @@ def remote_production_of(mesh_url: str):
     return Production(root, meta, int.from_bytes(hashlib.sha256(root.encode()).digest()[:8], "big"))
 
 
-__all__ = ["ObjectHead", "bucket_store", "cache_root", "discover_url", "head", "input_exists", "input_is_file",
-           "is_url", "list_url", "local_input", "mirror_path", "remote_production_of", "remote_production_root", "split_url",
-           "stage_folder", "url_fingerprint"]
+__all__ = [
+    "ObjectHead",
+    "bucket_store",
+    "cache_root",
+    "discover_url",
+    "head",
+    "input_exists",
+    "input_is_file",
+    "is_url",
+    "list_url",
+    "local_input",
+    "mirror_path",
+    "readable",
+    "remote_production_of",
+    "remote_production_root",
+    "split_url",
+    "stage_folder",
+    "staged_ref",
+    "url_fingerprint",
+]

@@ -58,6 +58,7 @@ class Mirror:
         self.refs: dict = {}  # folded remote state: rel -> OutputRef of its current object
         self.last_utc = 0.0  # written_utc of the latest commit folded
         self.lock = threading.RLock()
+        self.lease = None  # the run's Lease while the driver holds it (flows.remote.remote_run)
         self.stats = {"pulled_files": 0, "pushed_files": 0, "commits": 0, "records_read": 0}
 
     # ------------------------------------------------------------------ pull

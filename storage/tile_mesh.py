@@ -28,6 +28,7 @@ import numpy as np
 
 from .atomic import atomic_path, write_json_atomic
 from .errors import InputError
+from .remote_inputs import is_url, url_fingerprint
 
 TILE_MESH_SCHEMA_VERSION = 1
 GRADE_GOOD, GRADE_BAD, GRADE_UNKNOWN = 0, 1, -1
@@ -106,6 +107,9 @@ def write_tile_mesh(tile_dir: str | Path, mesh: TileMesh) -> Path:
         np.savez(f, **arrays)
     textures = []
     for t in mesh.textures:
+        if is_url(t):  # a texture of an input named by URL: staged again wherever it is read
+            textures.append(t)
+            continue
         p = Path(t).absolute()
         inside = os.path.commonpath([p, tile_dir.parent.parent]) == str(tile_dir.parent.parent)
         textures.append(os.path.relpath(p, tile_dir) if inside else str(p))
@@ -114,6 +118,18 @@ def write_tile_mesh(tile_dir: str | Path, mesh: TileMesh) -> Path:
         "n_vertices": mesh.n_vertices, "n_faces": mesh.n_faces,
     })  # fmt: skip
     return npz
+
+
+def texture_refs(tile_dir: str | Path, recorded: list[str]) -> list[str]:
+    """merged.json's texture list as references: a URL as it is, a path resolved against ``tile_dir``."""
+    return [t if is_url(t) else str((Path(tile_dir) / t).resolve()) for t in recorded]
+
+
+def texture_fingerprint(ref: str) -> str:
+    """Content fingerprint of a texture reference: a URL's ETag and size, a file's size and mtime."""
+    from .atomic import file_fingerprint
+
+    return url_fingerprint(ref) if is_url(ref) else file_fingerprint(ref)
 
 
 def read_tile_mesh(tile_dir: str | Path) -> TileMesh:
@@ -129,9 +145,9 @@ def read_tile_mesh(tile_dir: str | Path) -> TileMesh:
         raise InputError(meta, f"corrupt JSON ({e})") from None
     if doc.get("schema_version") != TILE_MESH_SCHEMA_VERSION:
         raise InputError(meta, f"schema_version {doc.get('schema_version')} is not {TILE_MESH_SCHEMA_VERSION}")
-    textures = [str((tile_dir / t).resolve()) for t in doc["textures"]]
+    textures = texture_refs(tile_dir, doc["textures"])
     for t in textures:
-        if not Path(t).is_file():
+        if not is_url(t) and not Path(t).is_file():
             raise InputError(meta, f"texture image {t} not found")
     try:
         with np.load(npz, allow_pickle=False) as z:

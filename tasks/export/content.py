@@ -9,6 +9,7 @@ from pathlib import Path
 
 import numpy as np
 
+from storage.remote_inputs import readable
 from storage.tile_mesh import TileMesh
 from tasks.config import ExportConfig
 from tasks.export.georef import EnuProjector, enu_to_gltf
@@ -52,6 +53,7 @@ def prepare_texture(path: str, uv: np.ndarray, max_px: int, quality: int) -> tup
     """
     from PIL import Image
 
+    path = readable(path)  # a texture of an input named by URL: staged in this process's cache
     with Image.open(path) as im:
         fmt, (w0, h0) = im.format, im.size
         x0 = max(0, math.floor(float(uv[:, 0].min()) * w0) - 2) if len(uv) else 0

@@ -16,8 +16,8 @@ from pathlib import Path
 
 import numpy as np
 
-from storage.atomic import atomic_path, file_fingerprint, file_sha256
-from storage.tile_mesh import read_tile_mesh, tile_mesh_paths
+from storage.atomic import atomic_path, file_sha256
+from storage.tile_mesh import read_tile_mesh, texture_fingerprint, texture_refs, tile_mesh_paths
 from tasks.config import ExportConfig
 from tasks.export.content import box_from_bounds, leaf_content, lod_gltf
 from tasks.export.georef import EnuProjector, GeoRef
@@ -39,7 +39,7 @@ def leaf_fingerprint(tile_dir: Path, base: str) -> str:
     (``merged.npz``, ``merged.json`` and its textures)."""
     npz, meta = tile_mesh_paths(tile_dir)
     doc = json.loads(meta.read_text())
-    textures = [file_fingerprint((tile_dir / t).resolve()) for t in doc["textures"]]
+    textures = [texture_fingerprint(t) for t in texture_refs(tile_dir, doc["textures"])]
     return content_hash(base, file_sha256(npz), meta.read_bytes(), textures)
 
 

@@ -18,7 +18,7 @@ from storage.grid import PatchGrid
 from storage.manifest import combine_fingerprints
 from storage.mesh_io import read_mesh
 from storage.pointcloud_io import iter_points, iter_points_range
-from storage.remote_inputs import local_input
+from storage.remote_inputs import local_input, staged_ref
 from storage.staging import remove_unit_runs, run_name
 from storage.workdir import WorkDir
 from tasks.config import CampusConfig
@@ -89,7 +89,7 @@ def _route_mesh(unit: IngestUnit, cfg: CampusConfig, frame: CampusFrame, wd: Wor
     cols["patch"] = grid.pack(cells)
     for v in range(3):
         cols[f"vp{v}"] = vkeys[:, v]
-    meta = {"textures": mesh.textures, "source": unit.path,
+    meta = {"textures": [staged_ref(t, unit.path) for t in mesh.textures], "source": unit.path,
             "n_degenerate_dropped": mesh.n_degenerate_dropped, "n_duplicate_dropped": mesh.n_duplicate_dropped}
     _write_runs(wd, unit.key, 0, cols, cells, grid, meta, outputs, tiles)
     return {"n_degenerate_dropped": mesh.n_degenerate_dropped, "n_duplicate_dropped": mesh.n_duplicate_dropped,

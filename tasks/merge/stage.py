@@ -50,10 +50,12 @@ from storage.atomic import file_fingerprint
 from storage.errors import InputError
 from storage.ids import TileId
 from storage.manifest import combine_fingerprints
+from storage.objstore import redact
 from storage.patch_store import FACES_FILE, PATCHES_FILE, PatchStore
 from storage.region_mesh import RegionMesh, region_files_for_tile, region_meshes_for_tile
+from storage.remote_inputs import input_exists
 from storage.store_state import grades_identity, patch_grades
-from storage.tile_mesh import TileMesh, tile_mesh_paths, write_tile_mesh
+from storage.tile_mesh import TileMesh, texture_refs, tile_mesh_paths, write_tile_mesh
 from storage.workdir import STALE_FILE, WorkDir, campus_frame, read_campus
 from tasks.merge.soup import FaceSoup, concat_soups
 from tasks.merge.tile import STORE_FACE_COLUMNS, rebuilt_parts, retained_soup, weld_tile
@@ -104,8 +106,8 @@ def _same_on_disk(tile_dir: Path, mesh: TileMesh) -> bool:
     npz, meta = tile_mesh_paths(tile_dir)
     try:
         doc = json.loads(meta.read_text())
-        textures = [str((tile_dir / t).resolve()) for t in doc["textures"]]
-        if doc.get("tile") != mesh.tile or textures != [str(Path(t).resolve()) for t in mesh.textures]:
+        textures = texture_refs(tile_dir, doc["textures"])
+        if doc.get("tile") != mesh.tile or textures != texture_refs(Path.cwd(), mesh.textures):
             return False
         with np.load(npz, allow_pickle=False) as z:
             for name in ("faces", "face_texture", "grade", "source", "region", "vertices", "uv", "vertex_colors"):
@@ -155,8 +157,8 @@ def _merge_work(tile: TileId, cfg, wd: WorkDir, frame_json: dict, regions: Seque
     mesh, stats = weld_tile(tile, retained, rebuilt, n_retained, n_replaced)
     del retained
     for t in mesh.textures:
-        if not Path(t).is_file():
-            raise InputError(t, f"texture image of tile {tile.key} not found")
+        if not input_exists(t):
+            raise InputError(redact(t), f"texture image of tile {tile.key} not found")
     rewritten = not _same_on_disk(tile_dir, mesh)
     if rewritten:
         write_tile_mesh(tile_dir, mesh)

@@ -22,6 +22,7 @@ from storage.atomic import atomic_path
 from storage.cameras import Camera, CameraSet, read_cameras
 from storage.errors import InputError
 from storage.patch_store import PatchStore
+from storage.remote_inputs import readable
 from storage.store_state import store_fingerprint
 from tasks.config import CampusConfig
 
@@ -151,7 +152,7 @@ def reduced_texture(path: str, max_side: int = 2048):
 
     if path not in _CACHE:
         try:
-            im = Image.open(path)
+            im = Image.open(readable(path))
             im.draft("RGB", (max_side, max_side))
             _CACHE[path] = np.asarray(im.convert("RGB"))
         except OSError:

@@ -8,6 +8,7 @@ from __future__ import annotations
 
 import json
 import os
+import shutil
 import uuid
 from pathlib import Path
 
@@ -91,6 +92,19 @@ def tables_by_content(work: Path) -> dict:
             tri = np.round(m["vertices"][m["faces"]].reshape(len(m["faces"]), -1).astype(np.float64), 4)
             out[f"{d.name}/merged"] = np.unique(tri, axis=0).tolist()
     return out
+
+def _recorded_textures(work: Path) -> set[str]:
+    """Every texture reference the work dir records: the faces tables' metadata and the merged tiles'."""
+    from storage.patch_schema import META_KEY
+
+    refs = set()
+    for f in (work / "tiles").glob("*/faces.parquet"):
+        raw = (pq.read_schema(f).metadata or {}).get(META_KEY)
+        refs.update(json.loads(raw).get("textures", []) if raw else [])
+    for f in (work / "tiles").glob("*/merged.json"):
+        refs.update(json.loads(f.read_text())["textures"])
+    return refs
+
 
 def _region_files(work: Path) -> dict[str, list[str]]:
     return {d.name: sorted(p.name for p in d.iterdir()) for d in sorted((work / "regions").iterdir())
@@ -197,7 +211,14 @@ def test_tiny_campus_on_s3_equals_local_and_reruns_as_noop(tiny_campus, s3, tmp_
         "inputs.labels": c + "/truth/defects.json", "inputs.images": c + "/images", "inputs.cameras": c + "/sparse/0"})
     first = reprocess(remote, InlineExecutor())
     assert first["stages"]["repair"]["run"] > 0  # rebuilt regions, textured from the staged images
+    refs = _recorded_textures(mirror_for(remote.work_dir).root)
+    inputs = sorted(t for t in refs if t.startswith(c + "/mesh/"))  # never this process's cache paths:
+    assert inputs and all(t in inputs or t.startswith("../../regions/") for t in refs), refs  # URL or work dir
+    shutil.rmtree(tmp_path / "cache-a")  # the first process's copies are gone: another worker stages its own
     fresh_process(monkeypatch, tmp_path / "cache-b")
+    from storage.remote_inputs import readable
+
+    assert Path(readable(inputs[0])).is_relative_to(tmp_path / "cache-b")
     again = reprocess(remote, InlineExecutor())  # another process, an empty mirror: nothing to redo
     assert all(c["run"] == 0 for c in again["stages"].values()), again["stages"]
     mirror = mirror_for(remote.work_dir)
@@ -231,3 +252,33 @@ def test_compaction_keeps_the_state_and_frees_superseded_objects(s3, tmp_path):
     assert sorted(p.relative_to(b.root).as_posix() for p in b.root.rglob("*") if p.is_file()) == \
         ["keep-9.json", "tiles/t.parquet"]
     assert (b.root / "tiles/t.parquet").read_bytes() == b"v2-longer"
+
+
+def test_a_run_that_lost_its_lease_starts_no_more_tasks(tmp_path):
+    """The driver checks its lease before each stage's tasks and when it collects them: a run whose lease
+    was taken over stops with LeaseLost and pushes nothing more."""
+    from types import SimpleNamespace
+
+    from flows.remote import SyncExecutor
+    from storage.objstore_lock import LeaseLost
+
+    calls = []
+
+    class Inner:
+        def map(self, tsk, batches, label, **consts):
+            calls.append(label)
+            return SimpleNamespace(results=lambda: [1])
+
+    lease = SimpleNamespace(lost=None)
+    lease.check = lambda: (_ for _ in ()).throw(lease.lost) if lease.lost else None
+    mirror = SimpleNamespace(lease=lease, push=lambda *a: calls.append("push"), pull=lambda: calls.append("pull"))
+    ex = SyncExecutor(Inner(), mirror)
+    assert ex.map(SimpleNamespace(name="scan"), [[1]], "scan").results() == [1]
+    assert calls == ["push", "scan", "pull"]
+    pending = ex.map(SimpleNamespace(name="ingest"), [[1]], "ingest")
+    lease.lost = LeaseLost("s3://b/w: the run lock was taken over by another run")
+    with pytest.raises(LeaseLost):
+        pending.results()  # collected after the loss: not pulled into the driver
+    with pytest.raises(LeaseLost):
+        ex.map(SimpleNamespace(name="partition"), [[1]], "partition")
+    assert calls == ["push", "scan", "pull", "push", "ingest"]  # no task of partition, no push after the loss
