@@ -76,13 +76,19 @@ def _cfg_json_of(args, kwargs) -> dict | None:
 # What a task reads from the work dir, by its function name: path prefixes ("{tile}" once per tile of its
 # batch). A task not listed pulls everything. From each stage's stage.py: scan checks its record and samples;
 # ingest its record and earlier staging outputs; partition (+ labels) a tile's staging runs and store;
-# merge the campus frame, the region plan and files, and the tile's store.
+# classify its tile's store (a pair's neighbourhood cues stay within the tile); merge the campus frame,
+# the region plan and files, and the tile's store.
 TASK_READS = {
     "scan_task": ("manifest.d/scan/", "scan/"),
     "ingest_task": ("manifest.d/ingest/", "staging/"),
     "partition_task": ("manifest.d/partition/", "manifest.d/labels/", "staging/{tile}/", "tiles/{tile}/"),
+    "classify_task": ("manifest.d/classify/", "tiles/{tile}/"),
     "merge_task": ("manifest.d/merge/", "campus.json", "regions/", "tiles/{tile}/"),
 }
+# What a task that pulls everything else never reads: the ingest runs (``staging/``, the largest part of a
+# work dir: only partition and the driver's planning read them) and what export writes in the driver.
+TASK_SKIPS = {name: ("staging/", "export/", "output/") for name in
+              ("outliers_task", "regions_task", "repair_task", "quality_task")}
 
 
 def task_reads(name: str, batch) -> tuple[str, ...] | None:
@@ -115,7 +121,9 @@ def synced(fn):
         mirror = mirror_for(cj["work_dir"])
         first = args[0] if args else kwargs.get(next(iter(inspect.signature(fn).parameters)))
         reads = task_reads(fn.__name__, first if isinstance(first, list) else [])
-        mirror.pull(None if reads is None else (lambda rel: rel.startswith(reads)))
+        skips = TASK_SKIPS.get(fn.__name__, ())
+        mirror.pull((lambda rel: rel.startswith(reads)) if reads is not None else
+                    (lambda rel: not rel.startswith(skips)) if skips else None)
         out = fn(*args, **kwargs)
         mirror.push(getattr(fn, "__name__", "task"))
         return out

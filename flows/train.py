@@ -54,7 +54,7 @@ def suite() -> dict[str, dict]:
     from ms3d_model.cues import N_CUES
     from ms3d_model.net import ABLATIONS, MESHNET
 
-    s = {"ms3dqe": {}, "ms3dqe_plus": {"n_cues": N_CUES}, "pointnet": {"arch": "pointnet"}, "meshnet": MESHNET,
+    s = {"ms3dqe": {}, "ms3dqe_plus": {"n_cues": N_CUES}, "ms3dqe_geo": {"geometry": True}, "pointnet": {"arch": "pointnet"}, "meshnet": MESHNET,
          "gbm": {"arch": "gbm", "n_cues": N_CUES}}
     s.update({f"ablation{k.strip('()')}": v for k, v in ABLATIONS.items()})  # ablationFull: Table 4's budget
     return s

@@ -106,7 +106,10 @@ def to_batch(feats: PairFeatures | None, cues: np.ndarray | None = None, noise_m
          "normals": torch.from_numpy(feats.normals.astype(np.float32)),
          "corners": torch.from_numpy(feats.corners.astype(np.float32)),
          "face_nbr": torch.from_numpy(feats.face_nbr.astype(np.int64)),
-         "centre_knn": torch.from_numpy(feats.centre_knn.astype(np.int64))}
+         "centre_knn": torch.from_numpy(feats.centre_knn.astype(np.int64)),
+         "scale": torch.from_numpy(feats.scale.astype(np.float32)),
+         "n_points": torch.from_numpy(feats.n_points.astype(np.float32)),
+         "n_faces": torch.from_numpy(feats.n_faces.astype(np.float32))}
     if cues is not None:
         b["cues"] = torch.from_numpy(np.asarray(cues, np.float32))
     return b
@@ -191,7 +194,7 @@ def largest_defect_extent_m(ijk: np.ndarray, labels: np.ndarray, patch_size_m, c
 class PairTensors:
     """A :class:`PairSet`'s network inputs as torch tensors, converted once (float16 / int16 as stored):
     points (B, N, 3), centres / normals (B, F, 3), corners (B, F, 18), face_nbr (B, F, 3), centre_knn
-    (B, F, K), scale (B,) float32 metres per pair unit, cues (B, C) float32, labels (B,) int64."""
+    (B, F, K), scale (B,) float32 metres per pair unit, n_points / n_faces (B,) float32 counts, cues (B, C) float32, labels (B,) int64."""
 
     tensors: dict[str, torch.Tensor]
 
@@ -200,6 +203,8 @@ class PairTensors:
         t = {name: torch.from_numpy(np.ascontiguousarray(_compact(name, getattr(ps.feats, name))))
              for name in _F16 + _I16}
         t["scale"] = torch.from_numpy(np.asarray(ps.feats.scale, np.float32))
+        for name in ("n_points", "n_faces"):
+            t[name] = torch.from_numpy(np.asarray(getattr(ps.feats, name), np.float32))
         t["cues"] = torch.from_numpy(np.asarray(ps.cues, np.float32))
         t["labels"] = torch.from_numpy(np.asarray(ps.labels, np.int64))
         return PairTensors(t)
@@ -221,6 +226,8 @@ class PairTensors:
             b[name] = t[name].index_select(0, idx).float()
         for name in _I16:
             b[name] = t[name].index_select(0, idx).long()
+        for name in ("scale", "n_points", "n_faces"):
+            b[name] = t[name].index_select(0, idx)
         if with_cues:
             b["cues"] = t["cues"].index_select(0, idx)
         return b

@@ -36,11 +36,13 @@ OURS_TO_PAPER = {"pointnet": "PointNet", "meshnet": "MeshNet", "ms3dqe": "MS3DQE
 # rows of our own models (by kind) below the paper's: method, data
 EXTRA_ROWS = {"gbm": ("GBM on cues (ours; tree nodes)", "point clouds, mesh"),
               "ms3dqe_plus": ("MS3DQE-Net+ (ours)", "point clouds, mesh, cues"),
+              "ms3dqe_geo": ("MS3DQE-Net, geometry inputs (ours)", "point clouds, mesh"),
               "ms3dqe": ("MS3DQE-Net (ours, another)", "point clouds, mesh"),
               "pointnet": ("PointNet (ours, another)", "point clouds"), "meshnet": ("MeshNet (ours, another)", "mesh")}
 
 
-KIND_LABELS = {"ms3dqe": "MS3DQE-Net", "ms3dqe_plus": "MS3DQE-Net+", "pointnet": "PointNet", "meshnet": "MeshNet",
+KIND_LABELS = {"ms3dqe": "MS3DQE-Net", "ms3dqe_plus": "MS3DQE-Net+", "ms3dqe_geo": "MS3DQE-Net (geometry inputs)",
+               "pointnet": "PointNet", "meshnet": "MeshNet",
                "gbm": "GBM trees", "ablation": "MS3DQE-Net ablation"}
 _ALL_ON = ("points", "face", "centre_global", "centre_local", "kernel_correlation", "point_aggregation")
 
@@ -60,6 +62,8 @@ def model_kind(net: dict) -> str:
         return "meshnet"
     if net.get("n_cues", 0) > 0:
         return "ms3dqe_plus"
+    if net.get("geometry"):
+        return "ms3dqe_geo"
     return "ms3dqe" if all(net.get(s, True) for s in _ALL_ON) else "ablation"
 
 

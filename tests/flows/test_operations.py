@@ -37,8 +37,17 @@ def _checksums(work: Path) -> dict[str, str]:
             for p in sorted((work / "tiles").glob("*/*.parquet"))}
 
 
-def _clean_checksums(config: Path, work: Path) -> dict[str, str]:
-    reprocess(CampusConfig.from_yaml(config, {"work_dir": str(work), "runner": "inline"}), InlineExecutor())
+@pytest.fixture(scope="module")
+def campus(tmp_path_factory) -> Path:
+    """One hand-made campus (20 m tiles) for the module: its stores depend on the inputs' paths."""
+    return build_campus(tmp_path_factory.mktemp("in"), tile_size_m=20.0)
+
+
+@pytest.fixture(scope="module")
+def clean_checksums(campus, tmp_path_factory) -> dict[str, str]:
+    """The stores of a clean inline run of ``campus``, run once for the module."""
+    work = tmp_path_factory.mktemp("clean")
+    reprocess(CampusConfig.from_yaml(campus, {"work_dir": str(work), "runner": "inline"}), InlineExecutor())
     return _checksums(work)
 
 
@@ -102,8 +111,8 @@ def _flow_runs(api: str, deployment_id: str, state: str = "COMPLETED") -> list[d
     return r.json()
 
 
-def test_serve_fires_a_one_minute_schedule_and_a_rerun_skips_everything(tmp_path, prefect_api):
-    config = build_campus(tmp_path / "in", tile_size_m=20.0)
+def test_serve_fires_a_one_minute_schedule_and_a_rerun_skips_everything(tmp_path, prefect_api, campus):
+    config = campus
     work = tmp_path / "work"
     log = open(tmp_path / "serve.log", "wb")
     proc = subprocess.Popen(
@@ -141,8 +150,8 @@ def test_serve_fires_a_one_minute_schedule_and_a_rerun_skips_everything(tmp_path
 # ------------------------------------------------------------------------------------------ cluster
 
 
-def test_cluster_from_the_command_line_survives_a_killed_worker(tmp_path, prefect_api):
-    config = build_campus(tmp_path / "in", tile_size_m=20.0)
+def test_cluster_from_the_command_line_survives_a_killed_worker(tmp_path, prefect_api, campus, clean_checksums):
+    config = campus
     port = _free_port()
     address = f"tcp://127.0.0.1:{port}"
     env = _env(PREFECT_API_URL=prefect_api, MS3D_FAULT_PARTITION_DELAY_S="1.5",
@@ -184,14 +193,14 @@ def test_cluster_from_the_command_line_survives_a_killed_worker(tmp_path, prefec
         for p in reversed(procs):
             _stop(p)
     assert not _temporary_files(work)
-    assert _checksums(work) == _clean_checksums(config, tmp_path / "clean")
+    assert _checksums(work) == clean_checksums
 
 
 # ------------------------------------------------------------------------------------------ kill -9
 
 
-def test_kill_9_of_a_whole_run_then_rerun_redoes_only_unfinished_units(tmp_path):
-    config = build_campus(tmp_path / "in", tile_size_m=20.0)
+def test_kill_9_of_a_whole_run_then_rerun_redoes_only_unfinished_units(tmp_path, campus, clean_checksums):
+    config = campus
     work = tmp_path / "work"
     cmd = [sys.executable, "-m", "flows.cli", "run", str(config), "--work-dir", str(work),
            "--set", "cluster.tiles_per_task=1"]
@@ -219,4 +228,4 @@ def test_kill_9_of_a_whole_run_then_rerun_redoes_only_unfinished_units(tmp_path)
     ingest_after = {r.unit: r.updated_at for r in all_records(WorkDir(work)) if r.stage == "ingest"}
     assert {k: ingest_after[k] for k in ingest_before} == ingest_before
     assert not _temporary_files(work)
-    assert _checksums(work) == _clean_checksums(config, tmp_path / "clean")
+    assert _checksums(work) == clean_checksums

@@ -26,7 +26,7 @@ from ms3d_model.train import load_checkpoint, make_model, predict, save_checkpoi
 
 TINY = PROFILES["tiny"]
 VARIANTS = {**{f"ablation {k}": v for k, v in ABLATIONS.items()}, "meshnet": MESHNET,
-            "ms3dqe+": {"n_cues": N_CUES}, "pointnet": {"arch": "pointnet"}}
+            "ms3dqe+": {"n_cues": N_CUES}, "pointnet": {"arch": "pointnet"}, "geometry": {"geometry": True}}
 
 
 def _pairs(n: int, seed: int = 0, bad_shift: float = 0.0):
@@ -75,7 +75,7 @@ def test_a_network_of_the_older_25_cue_set_reads_the_leading_columns():
     torch.testing.assert_close(full, changed)
 
 
-@pytest.mark.parametrize("name", ["ablation Full", "ms3dqe+", "meshnet", "ablation (4)"])
+@pytest.mark.parametrize("name", ["ablation Full", "ms3dqe+", "meshnet", "ablation (4)", "geometry"])
 def test_permuting_points_and_faces_leaves_the_output_unchanged(name):
     torch.manual_seed(0)
     net = build_net(replace(TINY.net, **VARIANTS[name])).eval()
@@ -209,3 +209,29 @@ def test_the_trees_follow_the_profiles_gbm_fields_and_ship_a_threshold(tmp_path)
     assert meta["threshold"] == res["threshold"] and 0 < res["threshold"] < 1
     old = {k: v for k, v in prof.to_json().items() if not k.startswith("gbm_")}  # written before the fields
     assert Profile.from_json(old).gbm_leaves == Profile().gbm_leaves
+
+
+def test_geometry_inputs_are_the_points_distances_to_the_mesh_in_metres():
+    """The geometry switch feeds each point's signed distance to its nearest face in metres: the same pair
+    lifted off its sheet by 10 cm moves that channel by tanh(0.1 / 0.15) whatever the pair's scale, and the
+    cached tensors give the network what to_batch gives it."""
+    from ms3d_model.dataset import PairTensors
+    from ms3d_model.layers import point_mesh_geometry
+
+    ps = _pairs(6, seed=3)
+    b = to_batch(ps.feats)
+    flat = torch.zeros_like(b["centres"])
+    up = torch.zeros_like(b["normals"])
+    up[..., 2] = 1.0
+    for scale in (0.5, 3.0):
+        s = torch.full((6,), scale)
+        lifted = torch.zeros_like(b["points"])
+        lifted[..., 2] = 0.1 / scale  # 10 cm in pair units
+        g = point_mesh_geometry(lifted, flat, up, s)
+        torch.testing.assert_close(g[..., 0], torch.full_like(g[..., 0], float(np.tanh(0.1 / 0.15))))
+    cached = PairTensors.from_pairs(ps).batch(np.arange(6))
+    for k in ("scale", "n_points", "n_faces"):
+        torch.testing.assert_close(cached[k], b[k])
+    net = build_net(replace(TINY.net, geometry=True)).eval()
+    with torch.no_grad():
+        torch.testing.assert_close(net(cached), net(b), rtol=1e-3, atol=1e-3)  # float16 storage
