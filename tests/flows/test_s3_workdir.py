@@ -282,3 +282,43 @@ def test_a_run_that_lost_its_lease_starts_no_more_tasks(tmp_path):
     with pytest.raises(LeaseLost):
         ex.map(SimpleNamespace(name="partition"), [[1]], "partition")
     assert calls == ["push", "scan", "pull", "push", "ingest"]  # no task of partition, no push after the loss
+
+
+def test_tasks_pull_what_they_read(s3, tmp_path, monkeypatch):
+    """classify pulls only its tiles' stores; repair pulls everything but the ingest runs and export's
+    outputs; the files it leaves in the bucket are not taken for deletions when it pushes."""
+    from flows.remote import mirror_for, synced
+    from storage.objstore import open_store
+    from storage.remote_workdir import Mirror
+
+    work = s3 + "/work"
+    a = Mirror(open_store(work), tmp_path / "writer")
+    for rel in ("staging/1_1/run-000.arrow", "tiles/1_1/points.parquet", "tiles/2_1/points.parquet",
+                "regions/plan.json", "output/tileset.json", "manifest.d/classify/1_1.json"):
+        (a.root / rel).parent.mkdir(parents=True, exist_ok=True)
+        (a.root / rel).write_text(rel)
+    a.push("writer")
+    cj = {"work_dir": work, "inputs": {}}
+    seen = {}
+
+    def classify_task(tile_keys, cfg_json):
+        root = mirror_for(work).root
+        seen["classify"] = sorted(p.relative_to(root).as_posix() for p in root.rglob("*") if p.is_file())
+
+    def repair_task(region_keys, cfg_json):
+        root = mirror_for(work).root
+        seen["repair"] = sorted(p.relative_to(root).as_posix() for p in root.rglob("*") if p.is_file())
+        (root / "regions" / "r1.npz").write_text("new")
+
+    fresh_process(monkeypatch, tmp_path / "cache-w1")
+    synced(classify_task)(["1_1"], cj)
+    assert seen["classify"] == ["manifest.d/classify/1_1.json", "tiles/1_1/points.parquet"]
+    fresh_process(monkeypatch, tmp_path / "cache-w2")
+    synced(repair_task)(["r1"], cj)
+    assert seen["repair"] == ["manifest.d/classify/1_1.json", "regions/plan.json", "tiles/1_1/points.parquet",
+                              "tiles/2_1/points.parquet"]
+    fresh_process(monkeypatch, tmp_path / "cache-reader")
+    b = mirror_for(work)
+    b.pull()
+    assert (b.root / "staging/1_1/run-000.arrow").read_text() == "staging/1_1/run-000.arrow"  # not deleted
+    assert (b.root / "regions/r1.npz").read_text() == "new"
