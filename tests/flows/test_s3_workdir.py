@@ -201,7 +201,7 @@ def test_tiny_campus_on_s3_equals_local_and_reruns_as_noop(tiny_campus, s3, tmp_
     from flows.remote import mirror_for
     from tasks.config import CampusConfig
 
-    over = {"runner": "inline", "classify.enabled": False, "report.enabled": False, "registration.mode": "off"}
+    over = {"runner": "inline", "report.enabled": False, "registration.mode": "off"}
     local = CampusConfig.from_yaml(tiny_campus / "campus.yaml", {**over, "work_dir": str(tmp_path / "local")})
     reprocess(local, InlineExecutor())
     upload(tiny_campus, s3 + "/campus")
