@@ -29,7 +29,7 @@ VARIANTS = {**{f"ablation {k}": v for k, v in ABLATIONS.items()}, "meshnet": MES
             "ms3dqe+": {"n_cues": N_CUES}, "pointnet": {"arch": "pointnet"}, "geometry": {"geometry": True}}
 
 
-def _pairs(n: int, seed: int = 0, bad_shift: float = 0.0):
+def _pairs(n: int, seed: int = 0, bad_shift: float = 0.0, prof=TINY):
     """n random pairs: a wavy sheet of faces and points on it; 'bad' pairs have their points moved off."""
     rng = np.random.default_rng(seed)
     pts, tris, labels = [], [], []
@@ -41,7 +41,7 @@ def _pairs(n: int, seed: int = 0, bad_shift: float = 0.0):
         p = rng.uniform(-1, 1, size=(int(rng.integers(5, 100)), 3)) * [1, 1, 0.05]
         p[:, 2] += bad * bad_shift
         pts.append(p), tris.append(t), labels.append(bad)
-    feats = featurise_pairs(pts, tris, None, np.arange(n), TINY.max_points, TINY.max_faces, TINY.k_centre)
+    feats = featurise_pairs(pts, tris, None, np.arange(n), prof.max_points, prof.max_faces, prof.k_centre)
     cues = rng.normal(size=(n, N_CUES)).astype(np.float32)
     return PairSet(feats, cues, np.array(labels, np.int8), np.zeros((n, 3), np.int64), np.zeros(n, np.int16), ("t",))
 
@@ -235,3 +235,19 @@ def test_geometry_inputs_are_the_points_distances_to_the_mesh_in_metres():
     net = build_net(replace(TINY.net, geometry=True)).eval()
     with torch.no_grad():
         torch.testing.assert_close(net(cached), net(b), rtol=1e-3, atol=1e-3)  # float16 storage
+
+
+def test_the_shipped_geometry_network_loads_weights_only_and_grades():
+    """``ms3dqe_geo.pt`` (MS3DQE-Net with geometry inputs, trained with the new recipe) loads with its switch
+    and threshold, and grades pairs to probabilities."""
+    from pathlib import Path
+
+    from ms3d_model.train import checkpoint_threshold, load_checkpoint
+
+    path = Path(__file__).resolve().parents[2] / "ms3d_model" / "weights" / "ms3dqe_geo.pt"
+    net, prof, meta = load_checkpoint(path)
+    assert prof.net.geometry and 0.0 < checkpoint_threshold(meta) < 1.0
+    ps = _pairs(4, seed=2, prof=prof)
+    with torch.no_grad():
+        p = torch.softmax(net.eval()(to_batch(ps.feats)), dim=1)
+    assert p.shape == (4, 2) and torch.allclose(p.sum(1), torch.ones(4))
