@@ -150,7 +150,7 @@ def remote_run(cfg: CampusConfig):
             yield mirror
         finally:
             mirror.lease = None
-            if lease.lost is None:  # a run that lost its lease writes nothing more
+            if lease is None or lease.lost is None:  # a run that lost its lease writes nothing more
                 mirror.push("driver")
             st = mirror.store.stats
             log.info("work dir %s: driver %d commits, %d files pushed, %d pulled; %d requests, %.1f MB read, "
@@ -205,15 +205,19 @@ class _Pulled:
     def __init__(self, inner, mirror):
         self.inner, self.mirror = inner, mirror
 
-    def results(self):
-        out = self.inner.results()
+    def _check_lease(self) -> None:
         if (lease := getattr(self.mirror, "lease", None)) is not None:
             lease.check()
+
+    def results(self):
+        out = self.inner.results()
+        self._check_lease()
         self.mirror.pull()
         return out
 
     def result(self):
         out = self.inner.result()
+        self._check_lease()
         self.mirror.pull()
         return out
 

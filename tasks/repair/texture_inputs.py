@@ -155,7 +155,7 @@ def reduced_texture(path: str, max_side: int = 2048):
             im = Image.open(readable(path))
             im.draft("RGB", (max_side, max_side))
             _CACHE[path] = np.asarray(im.convert("RGB"))
-        except OSError:
+        except (OSError, InputError):  # unreadable, or a texture URL that cannot be staged: no colour from it
             _CACHE[path] = None
         while len(_CACHE) > 4:
             _CACHE.pop(next(iter(_CACHE)))

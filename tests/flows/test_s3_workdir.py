@@ -269,6 +269,10 @@ def test_a_run_that_lost_its_lease_starts_no_more_tasks(tmp_path):
             calls.append(label)
             return SimpleNamespace(results=lambda: [1])
 
+        def submit(self, tsk, *args):
+            calls.append(tsk.name)
+            return SimpleNamespace(result=lambda: 1)
+
     lease = SimpleNamespace(lost=None)
     lease.check = lambda: (_ for _ in ()).throw(lease.lost) if lease.lost else None
     mirror = SimpleNamespace(lease=lease, push=lambda *a: calls.append("push"), pull=lambda: calls.append("pull"))
@@ -276,12 +280,15 @@ def test_a_run_that_lost_its_lease_starts_no_more_tasks(tmp_path):
     assert ex.map(SimpleNamespace(name="scan"), [[1]], "scan").results() == [1]
     assert calls == ["push", "scan", "pull"]
     pending = ex.map(SimpleNamespace(name="ingest"), [[1]], "ingest")
+    one = ex.submit(SimpleNamespace(name="regions"))
     lease.lost = LeaseLost("s3://b/w: the run lock was taken over by another run")
     with pytest.raises(LeaseLost):
         pending.results()  # collected after the loss: not pulled into the driver
     with pytest.raises(LeaseLost):
+        one.result()
+    with pytest.raises(LeaseLost):
         ex.map(SimpleNamespace(name="partition"), [[1]], "partition")
-    assert calls == ["push", "scan", "pull", "push", "ingest"]  # no task of partition, no push after the loss
+    assert calls == ["push", "scan", "pull", "push", "ingest", "push", "regions"]  # nothing after the loss
 
 
 def test_tasks_pull_what_they_read(s3, tmp_path, monkeypatch):
