@@ -158,6 +158,12 @@ def remote_run(cfg: CampusConfig):
                      mirror.stats["pulled_files"], st.n_requests, st.bytes_read / 1e6, st.bytes_written / 1e6)
 
 
+def _check_lease(mirror) -> None:
+    """Stop the run (LeaseLost, one line) when its lease was taken over: another run owns the work dir."""
+    if (lease := getattr(mirror, "lease", None)) is not None:
+        lease.check()
+
+
 class SyncExecutor:
     """An executor (``flows.executors``) of a run whose work dir is a URL: the driver pushes its writes
     before tasks start and pulls their results when they are collected. Tasks in ``LOCAL_TASKS`` (export
@@ -172,21 +178,15 @@ class SyncExecutor:
     def task_runs(self) -> int:
         return getattr(self.inner, "task_runs", 0)
 
-    def _check_lease(self) -> None:
-        """Stop the run (LeaseLost, one line) when its lease was taken over: another run owns the work dir."""
-        lease = getattr(self.mirror, "lease", None)
-        if lease is not None:
-            lease.check()
-
     def map(self, tsk, batches: list, label: str, **consts):
-        self._check_lease()
+        _check_lease(self.mirror)
         if getattr(tsk, "name", "") in self.LOCAL_TASKS:
             return _Pulled(_Value([r for b in batches for r in tsk.fn(b, **consts)]), self.mirror)
         self.mirror.push("driver")
         return _Pulled(self.inner.map(tsk, batches, label, **consts), self.mirror)
 
     def submit(self, tsk, *args):
-        self._check_lease()
+        _check_lease(self.mirror)
         self.mirror.push("driver")
         return _Pulled(self.inner.submit(tsk, *args), self.mirror)
 
@@ -205,19 +205,15 @@ class _Pulled:
     def __init__(self, inner, mirror):
         self.inner, self.mirror = inner, mirror
 
-    def _check_lease(self) -> None:
-        if (lease := getattr(self.mirror, "lease", None)) is not None:
-            lease.check()
-
     def results(self):
         out = self.inner.results()
-        self._check_lease()
+        _check_lease(self.mirror)
         self.mirror.pull()
         return out
 
     def result(self):
         out = self.inner.result()
-        self._check_lease()
+        _check_lease(self.mirror)
         self.mirror.pull()
         return out
 
