@@ -10,15 +10,22 @@ Stopping: the Prefect runner is driven here rather than by ``flow.serve``, whose
 from inside the event loop (tracebacks, and a flow run left running). SIGINT and SIGTERM set an event;
 the runner then cancels the flow run in progress (Prefect's control channel, then SIGTERM to its
 process, which unwinds: Dask client and cluster closed, work-dir lock released), stops polling, and the
-embedded server stops. ``serve_campus`` returns 128 + the signal number.
+embedded server stops. ``serve_campus`` returns 128 + the signal number. A Ctrl-C reaches the terminal's
+whole process group, the flow-run process too: that process starts with SIGINT ignored
+(:func:`children_ignore_sigint`), so one still importing does not die with a KeyboardInterrupt traceback;
+it is stopped by the runner instead.
 """
 
 from __future__ import annotations
 
 import asyncio
 import contextlib
+import multiprocessing
+import os
+import shlex
 import signal
 import sys
+import tempfile
 from pathlib import Path
 
 from storage.errors import InputError
@@ -56,12 +63,37 @@ def serve_campus(config_path: Path, cfg: CampusConfig, cron: str, name: str | No
         runner.add_flow(reprocess_from_config, name=name, cron=cron, parameters=params)
         print(f"serving deployment 'reprocess-campus-from-config/{name}' (cron '{cron}', UTC) on {url}; "
               "Ctrl-C stops", flush=True)
-        signum = asyncio.run(serve_until_signalled(runner))
+        with children_ignore_sigint():
+            signum = asyncio.run(serve_until_signalled(runner))
     if signum == 0:  # the runner ended by itself (no signal)
         print("ms3d: the Prefect runner stopped on its own; see the log above", file=sys.stderr, flush=True)
         return 1
     print(stopped_line(signum, wd.root), file=sys.stderr, flush=True)
     return 128 + signum
+
+
+@contextlib.contextmanager
+def children_ignore_sigint():
+    """Within the block, Python processes started by ``multiprocessing``'s spawn (Prefect's runner starts
+    each flow run so) begin with SIGINT ignored, from their first instruction: they run through a
+    ``/bin/sh`` wrapper that ignores SIGINT and execs this interpreter (an ignored signal stays ignored
+    across exec, and Python then installs no KeyboardInterrupt handler). Code may still install its own
+    SIGINT handler later. POSIX only; elsewhere a no-op."""
+    if os.name != "posix":
+        yield
+        return
+    from multiprocessing import spawn
+
+    with tempfile.TemporaryDirectory(prefix="ms3d-serve-") as tmp:
+        wrapper = Path(tmp) / "python"
+        wrapper.write_text(f"#!/bin/sh\ntrap '' INT\nexec {shlex.quote(sys.executable)} \"$@\"\n")
+        wrapper.chmod(0o755)
+        saved = spawn.get_executable()
+        multiprocessing.set_executable(str(wrapper))
+        try:
+            yield
+        finally:
+            multiprocessing.set_executable(saved)
 
 
 async def serve_until_signalled(runner, signals: tuple[int, ...] = (signal.SIGINT, signal.SIGTERM)) -> int:

@@ -50,6 +50,45 @@ def test_stop_on_signals_raises_stopped_and_restores():
     assert signal.getsignal(signal.SIGTERM) is before
 
 
+_SPAWN_THEN_CTRL_C = """
+import multiprocessing, os, signal, sys, time
+from flows.serve import children_ignore_sigint
+
+def child():
+    print("child SIGINT", signal.getsignal(signal.SIGINT) == signal.SIG_IGN, flush=True)
+    time.sleep(2)  # a Ctrl-C lands here, as it did in a flow run still importing its modules
+    print("child done", flush=True)
+
+if __name__ == "__main__":
+    signal.signal(signal.SIGINT, lambda *_: print("parent SIGINT", flush=True))
+    with children_ignore_sigint() if sys.argv[1] == "wrapped" else open(os.devnull):
+        p = multiprocessing.get_context("spawn").Process(target=child)
+        p.start()
+    time.sleep(1)
+    os.killpg(0, signal.SIGINT)  # what Ctrl-C does: the whole group
+    p.join()
+    print("exit", p.exitcode, flush=True)
+"""
+
+
+@pytest.mark.parametrize("mode", ["wrapped", "bare"])
+def test_a_ctrl_c_spares_the_flow_run_process_serve_spawns(tmp_path, mode):
+    """A Ctrl-C while a scheduled flow run's process was still importing printed its KeyboardInterrupt
+    traceback (multiprocessing's bootstrap). Processes spawned under ``children_ignore_sigint`` start with
+    SIGINT ignored; the bare control shows the test can see the traceback."""
+    script = tmp_path / "spawn_then_ctrl_c.py"
+    script.write_text(_SPAWN_THEN_CTRL_C)
+    env = {**os.environ, "PYTHONPATH": os.pathsep.join([str(Path(__file__).parents[2]), os.environ.get("PYTHONPATH", "")])}
+    r = subprocess.run([sys.executable, str(script), mode], capture_output=True, text=True, timeout=60, env=env,
+                       start_new_session=True, check=False)
+    assert "parent SIGINT" in r.stdout, (r.stdout, r.stderr)  # the serving process still gets its Ctrl-C
+    if mode == "wrapped":
+        assert "child SIGINT True" in r.stdout and "child done" in r.stdout and "exit 0" in r.stdout, r.stdout
+        assert "Traceback" not in r.stderr, r.stderr
+    else:
+        assert "KeyboardInterrupt" in r.stderr and "child done" not in r.stdout, (r.stdout, r.stderr)
+
+
 def _records(work: Path) -> list[Path]:
     return sorted((work / "manifest.d").glob("*/*.json"))
 
