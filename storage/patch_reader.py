@@ -131,6 +131,23 @@ class _RowGroupFile:
         local[filled] = start[filled] - self.bounds[g0] + at[g0]
         return data, local, len(need)
 
+    def read_stacked(self, columns, dtype) -> tuple[np.ndarray, int]:
+        """Every row of ``columns`` as one (n_rows, len(columns)) ``dtype`` array, filled one row group at
+        a time (the peak is the result plus one row group, not the whole table twice). Returns (array,
+        row groups read)."""
+        columns = list(columns)
+        out = np.empty((int(self.bounds[-1]), len(columns)), dtype)
+        for g in range(len(self.bounds) - 1):
+            try:
+                t = self.pf.read_row_group(g, columns=columns)
+            except (OSError, pa.ArrowException) as exc:
+                raise InputError(self.path, f"cannot read row group {g} ({exc})") from None
+            lo, hi = self.bounds[g], self.bounds[g + 1]
+            for j, c in enumerate(columns):
+                out[lo:hi, j] = t.column(c).to_numpy()
+            del t
+        return out, len(self.bounds) - 1
+
 
 class PatchStore:
     """Reader of one tile folder.
@@ -246,6 +263,15 @@ class PatchStore:
         self.stats.faces_row_groups_read += fg
         self.stats.row_groups_read += pg + fg
         return pdata, fdata
+
+    def read_all_stacked(self, table: str, columns, dtype=np.float32) -> np.ndarray:
+        """The whole ``table`` ("points" or "faces") as one (n, len(columns)) ``dtype`` array, rows sorted by
+        patch: ``read_all`` without its column copies, for whole-tile readers that stack columns anyway."""
+        rg = {"points": self._points, "faces": self._faces}[table]
+        out, groups = rg.read_stacked(columns, dtype)
+        setattr(self.stats, f"{table}_row_groups_read", getattr(self.stats, f"{table}_row_groups_read") + groups)
+        self.stats.row_groups_read += groups
+        return out
 
 
 def read_side_table(tile_dir: str | Path, name: str, patch_keys: np.ndarray | None = None) -> tuple[dict, dict] | None:

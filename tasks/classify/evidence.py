@@ -26,10 +26,10 @@ does not count; a patch where most points are such things gives no evidence. At 
 No I/O here: :mod:`tasks.classify.stage` reads the tile.
 
     >>> import numpy as np
-    >>> tri = np.array([[[0, 0, 0], [2, 0, 0], [0, 0, 2]]], float)          # a wall in the plane y = 0
+    >>> v, f = np.array([[0, 0, 0], [2, 0, 0], [0, 0, 2]], float), np.array([[0, 1, 2]])  # a wall, y = 0
     >>> ijk = np.array([[0, 0, 0], [0, -1, 0]])                               # its patch, and the one in front
     >>> pts = np.array([[0.3, -0.4, 0.3]] * 5 + [[0.3, -1.2, 0.3]] * 5)       # 0.4 m and 1.2 m in front
-    >>> ev = offset_evidence(pts, np.repeat([0, 1], 5), tri, np.array([0]), ijk, min_points=5)
+    >>> ev = offset_evidence(pts, np.repeat([0, 1], 5), v, f, np.array([0]), ijk, min_points=5)
     >>> np.round(ev.offset_m.astype(float), 2).tolist(), ev.bad.tolist()
     ([0.4, 1.2], [True, True])
 """
@@ -79,6 +79,23 @@ def _strided_rows(point_row: np.ndarray, max_per_row: int) -> np.ndarray:
     return np.flatnonzero(rank % stride == 0)
 
 
+def strided_ranges(start: np.ndarray, stop: np.ndarray, max_per_row: int) -> tuple[np.ndarray, np.ndarray]:
+    """The points :func:`offset_evidence` measures, from the row ranges alone: (indices into the points
+    table, row of each), the same evenly strided ones as it picks itself, without a per-point array.
+
+    >>> idx, row = strided_ranges(np.array([0, 5]), np.array([5, 6]), 2)
+    >>> idx.tolist(), row.tolist()
+    ([0, 3, 5], [0, 0, 1])
+    """
+    start, stop = np.asarray(start, np.int64), np.asarray(stop, np.int64)
+    count = np.maximum(stop - start, 0)
+    stride = np.maximum(1, -(-count // max_per_row))
+    take = -(-count // stride)
+    row = np.repeat(np.arange(len(count)), take)
+    rank = np.arange(int(take.sum())) - np.repeat(np.cumsum(take) - take, take)
+    return start[row] + rank * stride[row], row
+
+
 def _group_quantile(values: np.ndarray, group: np.ndarray, n_groups: int, q: float) -> tuple[np.ndarray, np.ndarray]:
     """(n_groups,) lower ``q`` quantile of ``values`` per group (NaN for empty groups) and the counts."""
     order = np.lexsort((values, group))
@@ -91,41 +108,44 @@ def _group_quantile(values: np.ndarray, group: np.ndarray, n_groups: int, q: flo
     return out, count
 
 
-def offset_evidence(points: np.ndarray, point_row: np.ndarray, tris: np.ndarray, face_row: np.ndarray,
-                    ijk: np.ndarray, n_faces: np.ndarray | None = None, *, off_surface_m: float = 0.22,
-                    near_m: float = 1.5, quantile: float = 0.95, min_points: int = 5,
-                    max_points_per_patch: int = 200, standing_normal_z: float = 0.7,
-                    min_off_points: int = 3, inside_share: float = 0.5) -> Evidence:
+def offset_evidence(points: np.ndarray, point_row: np.ndarray, vertices: np.ndarray, faces: np.ndarray,
+                    face_row: np.ndarray, ijk: np.ndarray, n_faces: np.ndarray | None = None, *,
+                    n_points: np.ndarray | None = None, off_surface_m: float = 0.22, near_m: float = 1.5,
+                    quantile: float = 0.95, min_points: int = 5, max_points_per_patch: int = 200,
+                    standing_normal_z: float = 0.7, min_off_points: int = 3, inside_share: float = 0.5) -> Evidence:
     """The two evidence rules (module doc) over the U patches of a tile.
 
     points: (n, 3) float64 metres; point_row: (n,) int64 patch row of each point, sorted ascending;
-    tris: (m, 3, 3) float64 metres, same frame; face_row: (m,) int64 patch row of each face; ijk: (U, 3)
-    int64 patch cells; n_faces: (U,) faces per patch (default: counted from ``face_row``).
+    vertices: (v, 3) float64 metres, same frame; faces: (m, 3) int64 into them; face_row: (m,) int64 patch
+    row of each face; ijk: (U, 3) int64 patch cells; n_faces: (U,) faces per patch (default: counted from
+    ``face_row``); n_points: (U,) points per patch when ``points`` is already the measured sample
+    (:func:`strided_ranges`; default: ``points`` are all of them, and the sample is picked here).
     """
     u = len(ijk)
     ijk = np.asarray(ijk, np.int64)
     n_faces = np.bincount(face_row, minlength=u) if n_faces is None else np.asarray(n_faces)
-    if len(points) == 0 or len(tris) == 0:
+    if len(points) == 0 or len(faces) == 0:
         z = np.zeros(u, bool)
         return Evidence(np.full(u, np.nan, np.float32), z, z.copy())
-    sel = _strided_rows(point_row, max_points_per_patch)
-    rows = point_row[sel]
-    verts = tris.reshape(-1, 3)
-    faces = np.arange(len(verts)).reshape(-1, 3)
-    d, fid = point_to_mesh_distance(points[sel], verts, faces, return_faces=True)
+    if n_points is None:
+        sel = _strided_rows(point_row, max_points_per_patch)
+        n_points = np.bincount(point_row, minlength=u)
+        points, point_row = points[sel], point_row[sel]
+    rows = point_row
+    d, fid = point_to_mesh_distance(points, vertices, faces, return_faces=True)
     f = np.maximum(fid, 0)
     near = (fid >= 0) & ((np.abs(ijk[face_row[f]] - ijk[rows]).max(axis=1) <= 1) | (d <= near_m))
     d = np.where(near, d, np.inf)
     # a point nearest an upward face (ground, flat roof) off the surface is a thing standing on it: a car,
     # a person, a bush, street furniture; no evidence about the building, so it does not count
     # (|n_z|: a mesh's orientation is not trusted)
-    nz = np.abs(unit_face_normals(verts, faces)[:, 2])
+    nz = np.abs(unit_face_normals(vertices, faces)[:, 2])
     standing = near & (nz[f] > standing_normal_z) & (d > off_surface_m)
     keep = ~standing
     offset, n_pts = _group_quantile(d[keep], rows[keep], u, quantile)
     # the share of the patch's measured points that count: at least half, and min_points of the patch
     n_meas = np.bincount(rows, minlength=u)
-    enough = (n_pts * (np.bincount(point_row, minlength=u) / np.maximum(n_meas, 1)) >= min_points) & (2 * n_pts >= n_meas)
+    enough = (n_pts * (n_points / np.maximum(n_meas, 1)) >= min_points) & (2 * n_pts >= n_meas)
     offset[~enough] = np.nan
     n_far = np.bincount(rows[keep & (d > off_surface_m)], minlength=u)
     off = enough & (offset > off_surface_m) & (n_far >= min_off_points)
@@ -133,32 +153,56 @@ def offset_evidence(points: np.ndarray, point_row: np.ndarray, tris: np.ndarray,
     only = (n_faces == 0)[rows]
     n_in = np.zeros(u, np.int64)
     if inside_share <= 1 and only.any():
-        n_in = np.bincount(rows[only][inside_solid(points[sel][only], tris)], minlength=u)
+        n_in = np.bincount(rows[only][inside_solid(points[only], vertices, faces)], minlength=u)
     missing |= (n_faces == 0) & (n_in >= min_points) & (n_in >= inside_share * n_meas)
     bad = (off & (n_faces > 0)) | missing
     return Evidence(offset.astype(np.float32), bad, missing)
 
 
-def inside_solid(points: np.ndarray, tris: np.ndarray, min_votes: int = 4) -> np.ndarray:
-    """(n,) bool: points the surface encloses. points: (n, 3) float64; tris: (m, 3, 3) float64 metres.
+def weld_by_ids(tris: np.ndarray, vids: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """A triangle soup as an indexed mesh: corners that share a campus vertex id (and its position) become
+    one vertex. tris: (m, 3, 3) float metres; vids: (m, 3) int64 (:mod:`storage.vertex_ids`; -1 and local
+    ids never weld). Returns (vertices (v, 3) float64, faces (m, 3) int64): about a sixth of the soup's
+    vertices on a welded mesh. Ids that disagree with positions leave the soup as it is.
+
+    >>> t = np.array([[[0, 0, 0], [1, 0, 0], [0, 1, 0]], [[1, 0, 0], [1, 1, 0], [0, 1, 0]]], np.float32)
+    >>> v, f = weld_by_ids(t, np.array([[0, 1, 2], [1, 3, 2]]))
+    >>> len(v), f.tolist()
+    (4, [[0, 1, 2], [1, 3, 2]])
+    """
+    from storage.vertex_ids import is_campus_id
+
+    corners = tris.reshape(-1, 3)
+    ids = vids.reshape(-1)
+    key = np.where(is_campus_id(ids), ids, np.iinfo(np.int64).min + np.arange(len(ids)))  # unwelded: unique keys
+    _, first, inv = np.unique(key, return_index=True, return_inverse=True)
+    vertices = corners[first]
+    if not np.array_equal(vertices[inv], corners):  # an id at two positions: trust positions only
+        return corners.astype(np.float64), np.arange(len(corners), dtype=np.int64).reshape(-1, 3)
+    return vertices.astype(np.float64), inv.reshape(-1, 3).astype(np.int64)
+
+
+def inside_solid(points: np.ndarray, vertices: np.ndarray, faces: np.ndarray, min_votes: int = 4) -> np.ndarray:
+    """(n,) bool: points the surface encloses. points: (n, 3) float64; vertices: (v, 3) float64 metres;
+    faces: (m, 3) int64.
 
     Parity of the surface crossings along five rays (+-x, +-y, +z; open3d, float32 around the points'
     centre): odd = inside. A point needs ``min_votes`` odd rays, so one gap in the surface, or a thin
     overhang above a point outside (one crossing straight up), does not make it inside. Orientation-free.
 
     >>> import trimesh
-    >>> box = trimesh.creation.box(extents=(2, 2, 2)).triangles              # a 2 m cube about the origin
-    >>> inside_solid(np.array([[0.5, 0.4, 0.3], [1.5, 0.4, 0.3]]), box).tolist()
+    >>> box = trimesh.creation.box(extents=(2, 2, 2))                         # a 2 m cube about the origin
+    >>> inside_solid(np.array([[0.5, 0.4, 0.3], [1.5, 0.4, 0.3]]), box.vertices, box.faces).tolist()
     [True, False]
     """
     import open3d as o3d
 
-    if not (len(points) and len(tris)):
+    if not (len(points) and len(faces)):
         return np.zeros(len(points), bool)
     c = points.mean(axis=0)
     scene = o3d.t.geometry.RaycastingScene()
-    v = (tris.reshape(-1, 3) - c).astype(np.float32)
-    scene.add_triangles(o3d.core.Tensor(v), o3d.core.Tensor(np.arange(len(v), dtype=np.uint32).reshape(-1, 3)))
+    scene.add_triangles(o3d.core.Tensor((np.asarray(vertices) - c).astype(np.float32)),
+                        o3d.core.Tensor(np.asarray(faces).astype(np.uint32)))
     p = (points - c).astype(np.float32)
     votes = np.zeros(len(points), np.int64)
     for d in ((1, 0, 0), (-1, 0, 0), (0, 1, 0), (0, -1, 0), (0, 0, 1)):
@@ -167,4 +211,4 @@ def inside_solid(points: np.ndarray, tris: np.ndarray, min_votes: int = 4) -> np
     return votes >= min_votes
 
 
-__all__ = ["Evidence", "inside_solid", "offset_evidence", "range_rows"]
+__all__ = ["Evidence", "inside_solid", "offset_evidence", "range_rows", "strided_ranges", "weld_by_ids"]

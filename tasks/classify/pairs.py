@@ -66,6 +66,11 @@ class TilePairs:
         """(m, 3, 3) float32 every face of the tile, in patch order."""
         return self._tris
 
+    @property
+    def all_vids(self) -> np.ndarray:
+        """(m, 3) int64 campus vertex ids of every face's corners (:mod:`storage.vertex_ids`)."""
+        return self._vids
+
     def cues(self, seed: int) -> np.ndarray:
         """(P, N_CUES) float32 cues of every pair of the tile: each pair's own, then its neighbourhood in the
         tile (:mod:`ms3d_model.context`). Computed once per seed."""
@@ -101,10 +106,9 @@ def read_tile_pairs(tile_dir: str | Path, min_faces: int = 1, min_points: int = 
     rows = np.flatnonzero(gradable)
     lab = store.side("labels")
     labels = (lab["label"][rows].astype(np.int8) if lab is not None else np.full(len(rows), -1, np.int8))
-    pts_cols, face_cols = store.read_all(point_columns=["x", "y", "z"], face_columns=FACE_COLUMNS)
-    pts = np.stack([pts_cols[c] for c in "xyz"], axis=1)
-    tris = np.stack([np.stack([face_cols[f"{a}{v}"] for a in "xyz"], axis=1) for v in range(3)], axis=1)
-    vids = np.stack([face_cols[f"vid{v}"] for v in range(3)], axis=1)
+    pts = store.read_all_stacked("points", ["x", "y", "z"], np.float32)
+    tris = store.read_all_stacked("faces", FACE_COLUMNS[:9], np.float32).reshape(-1, 3, 3)
+    vids = store.read_all_stacked("faces", FACE_COLUMNS[9:], np.int64)
     open_edges = open_edge_flags(vids) if len(vids) else np.zeros((0, 3), bool)
     pr = np.stack([p["point_start"][rows], p["point_stop"][rows]], axis=1)
     fr = np.stack([p["face_start"][rows], p["face_stop"][rows]], axis=1)

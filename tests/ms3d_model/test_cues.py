@@ -122,6 +122,20 @@ def test_a_hole_shows_as_open_edges_of_its_perimeter():
     assert cue(pair_cues(pts, full), "patch_boundary_m") == pytest.approx(outer, abs=1e-6)
 
 
+def test_open_edge_flags_equal_the_edge_neighbours_definition_on_random_and_degenerate_faces():
+    """The lean whole-tile version (one sort, no face tiebreak key) against its definition, on random
+    small vertex sets: shared, boundary, repeated and degenerate (a vertex twice in a face) edges."""
+    rng = np.random.default_rng(1)
+    seen_open = seen_shared = 0
+    for _ in range(300):
+        m = int(rng.integers(1, 60))
+        vids = rng.integers(0, int(rng.integers(2, 30)), (m, 3))
+        got = open_edge_flags(vids)
+        assert np.array_equal(got, edge_neighbours(vids) == np.arange(m)[:, None]), vids
+        seen_open, seen_shared = seen_open + got.sum(), seen_shared + (~got).sum()
+    assert seen_open > 100 and seen_shared > 100  # both kinds were exercised
+
+
 def edge_boundary(full: np.ndarray, tris: np.ndarray) -> np.ndarray:
     """(m, 3) bool: edges of ``tris`` on the outer boundary of the complete wall ``full``."""
     on_x = lambda v: np.isclose(v[..., 0], 0) | np.isclose(v[..., 0], full[..., 0].max())

@@ -33,7 +33,8 @@ def _evidence(points: np.ndarray, tris: np.ndarray, **kw):
     inv = inv.ravel()
     prow, frow = inv[:len(points)], inv[len(points):]
     o = np.argsort(prow, kind="stable")
-    return offset_evidence(points[o], prow[o], tris, frow, cells, **kw), cells
+    verts, faces = tris.reshape(-1, 3), np.arange(3 * len(tris)).reshape(-1, 3)
+    return offset_evidence(points[o], prow[o], verts, faces, frow, cells, **kw), cells
 
 
 def _verdict(ev, cells, point):
