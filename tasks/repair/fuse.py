@@ -98,7 +98,8 @@ def pca_normals(xyz: np.ndarray, k: int = 12, tree: cKDTree | None = None) -> tu
     k = min(k, n)
     tree = tree or cKDTree(xyz)
     _, idx = tree.query(xyz, k=k)
-    nb = xyz[idx] - xyz[idx].mean(axis=1, keepdims=True)
+    nb = xyz[idx]
+    nb -= nb.mean(axis=1, keepdims=True)
     cov = np.einsum("nki,nkj->nij", nb, nb) / k
     w, v = np.linalg.eigh(cov)
     normals = v[:, :, 0]

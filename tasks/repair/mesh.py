@@ -330,11 +330,8 @@ def border_gap(border_xyz: np.ndarray, border_ids: np.ndarray, rebuilt: RebuiltM
     if rebuilt.n_faces == 0:
         out["max_gap_m"] = float("inf") if len(border_ids) else 0.0
         return out
-    e = edges_of(rebuilt.faces)
-    ids = rebuilt.vertex_id[e]
-    rk = {(min(a, b), max(a, b)) for a, b in ids.tolist()}
-    bk = [(min(a, b), max(a, b)) for a, b in np.asarray(border_ids).tolist()]
-    welded = np.array([k in rk for k in bk], bool)
+    border_ids = np.asarray(border_ids, np.int64).reshape(-1, 2)
+    welded = _id_edges_in(border_ids, rebuilt.vertex_id[edges_of(rebuilt.faces)])
     out["welded"] = int(welded.sum())
     if (~welded).any():
         bx = np.asarray(border_xyz, np.float64)[~welded]
@@ -342,8 +339,19 @@ def border_gap(border_xyz: np.ndarray, border_ids: np.ndarray, rebuilt: RebuiltM
         pts = _segment_samples(flat, np.arange(len(flat)).reshape(-1, 2), step_m)
         _, _, d = ClosestPoint(rebuilt.xyz, rebuilt.faces).query(pts)
         out["max_gap_m"] = float(d.max()) if len(d) else 0.0
-    bset = set(bk)
-    be = boundary_edges(rebuilt.faces, len(rebuilt.xyz))
-    bid = rebuilt.vertex_id[be]
-    out["open_edges"] = int(sum((min(a, b), max(a, b)) not in bset for a, b in bid.tolist()))
+    bid = rebuilt.vertex_id[boundary_edges(rebuilt.faces, len(rebuilt.xyz))]
+    out["open_edges"] = int((~_id_edges_in(bid, border_ids)).sum())
     return out
+
+
+def _id_edges_in(query: np.ndarray, ref: np.ndarray) -> np.ndarray:
+    """(q,) bool: each undirected edge of ``query`` (q, 2) int64 vertex ids is among those of ``ref`` (r, 2).
+
+    >>> _id_edges_in(np.array([[5, -9], [5, 7]]), np.array([[-9, 5], [1 << 60, 3]])).tolist()
+    [True, False]
+    """
+    q, r = np.asarray(query, np.int64).reshape(-1, 2), np.asarray(ref, np.int64).reshape(-1, 2)
+    u, inv = np.unique(np.concatenate([q.ravel(), r.ravel()]), return_inverse=True)
+    inv = inv.reshape(-1, 2)
+    key = np.minimum(inv[:, 0], inv[:, 1]) * max(len(u), 1) + np.maximum(inv[:, 0], inv[:, 1])
+    return np.isin(key[:len(q)], key[len(q):])

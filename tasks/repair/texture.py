@@ -149,6 +149,47 @@ def _add_unary(g, nodes, cost0: np.ndarray, cost1: np.ndarray) -> None:
     g.add_grid_tedges(nodes, cost1 - m, cost0 - m)
 
 
+def _expansion_move(c: np.ndarray, lab: np.ndarray, alpha: int, a: np.ndarray, b: np.ndarray, w: np.ndarray,
+                    allowed: np.ndarray) -> np.ndarray:
+    """One alpha-expansion move: the labels after the faces that lower the energy most switch to ``alpha``.
+
+    c: (m, L) data costs; lab: (m,) current labels; (a, b): (e,) adjacent face pairs with Potts weights w;
+    allowed: (m,) faces that may take ``alpha``. Only faces that may switch (allowed, not already alpha)
+    are graph nodes; an edge to a face that keeps its label becomes a unary term of the other end (its
+    cost if it keeps vs if it switches), which is exact: the fixed end's variable is 0 in every cut. A
+    camera sees a fraction of a region, so most graphs are small."""
+    m = len(lab)
+    cand = allowed & (lab != alpha)
+    nc = int(cand.sum())
+    if nc == 0:
+        return lab
+    node = np.full(m, -1, np.int64)
+    node[cand] = np.arange(nc)
+    fa, fb = cand[a], cand[b]
+    la, lb = lab[a], lab[b]
+    e00 = w * (la != lb)
+    e01 = w * (la != alpha)  # a keeps, b switches
+    e10 = w * (lb != alpha)  # a switches, b keeps
+    keep = c[cand, lab[cand]].astype(np.float64)
+    switch = c[cand, alpha].astype(np.float64)
+    one_a, one_b = fa & ~fb, fb & ~fa  # an edge to a face that keeps: a unary term of its candidate end
+    keep += np.bincount(node[a[one_a]], e00[one_a], nc) + np.bincount(node[b[one_b]], e00[one_b], nc)
+    switch += np.bincount(node[a[one_a]], e10[one_a], nc) + np.bincount(node[b[one_b]], e01[one_b], nc)
+    both = fa & fb
+    na, nb = node[a[both]], node[b[both]]
+    e00, e01, e10 = e00[both], e01[both], e10[both]
+    # E = e00 + (e10 - e00) x_a + (0 - e10) x_b + (e01 + e10 - e00) (1 - x_a) x_b
+    switch += np.bincount(na, e10 - e00, nc) + np.bincount(nb, -e10, nc)
+    g = maxflow.Graph[float](nc, len(na))
+    nodes = g.add_nodes(nc)
+    _add_unary(g, nodes, keep, switch)  # x = 1 (sink): switch to alpha; x = 0 (source): keep
+    g.add_edges(na.astype(np.int32), nb.astype(np.int32), np.maximum(e01 + e10 - e00, 0), np.zeros(len(na)))
+    g.maxflow()
+    new = lab.copy()
+    new[np.flatnonzero(cand)[g.get_grid_segments(nodes)]] = alpha
+    return new
+
+
 def select_views(cost: np.ndarray, adjacency: np.ndarray, seam_weight, cycles: int = 3) -> np.ndarray:
     """Seam-aware view labels: argmin sum_f cost[f, l_f] + sum_{(f, g) adjacent, l_f != l_g} seam_weight_fg.
 
@@ -171,38 +212,16 @@ def select_views(cost: np.ndarray, adjacency: np.ndarray, seam_weight, cycles: i
         return c[np.arange(m), lb].sum() + w[lb[a] != lb[b]].sum()
 
     best = energy(lab)
-    used = np.unique(lab)
     labels = [int(x) for x in range(nl) if np.isfinite(cost[:, x]).any()]
     for _ in range(cycles):
         improved = False
         for alpha in labels:
-            g = maxflow.Graph[float](m, len(a))
-            nodes = g.add_nodes(m)
-            # x = 1 (sink): switch to alpha; x = 0 (source): keep the current label
-            _add_unary(g, nodes, c[np.arange(m), lab], c[:, alpha])
-            la, lb_ = lab[a], lab[b]
-            e00 = w * (la != lb_)
-            e01 = w * (la != alpha)  # a keeps, b switches
-            e10 = w * (lb_ != alpha)  # a switches, b keeps
-            # E = e00 + (e10 - e00) x_a + (0 - e10) x_b + (e01 + e10 - e00) (1 - x_a) x_b
-            ua1 = e10 - e00
-            ub1 = -e10
-            un0 = np.zeros(m)
-            un1 = np.zeros(m)
-            np.add.at(un1, a, ua1)
-            np.add.at(un1, b, ub1)
-            _add_unary(g, nodes, un0, un1)
-            k = e01 + e10 - e00
-            g.add_edges(a.astype(np.int32), b.astype(np.int32), np.maximum(k, 0), np.zeros(len(a)))
-            g.maxflow()
-            switch = g.get_grid_segments(nodes)
-            new = np.where(switch, alpha, lab)
+            new = _expansion_move(c, lab, alpha, a, b, w, np.isfinite(cost[:, alpha]))
             en = energy(new)
             if en < best - 1e-9:
                 best, lab, improved = en, new, True
         if not improved:
             break
-    del used
     return lab
 
 
