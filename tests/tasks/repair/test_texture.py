@@ -139,7 +139,7 @@ def test_expansion_moves_on_the_faces_that_may_switch_reach_the_whole_graph_ener
         cost[:, -1] = 4.0  # the 'no view' label: always allowed
         w = rng.random(len(adj)) * float(rng.choice([0.3, 1.0, 3.0]))
         lab = select_views(cost, adj, w)
-        ref, e_ref = _reference_select_views(cost, adj, w)
+        _, e_ref = _reference_select_views(cost, adj, w)
         c = np.where(np.isfinite(cost), cost, 1e9)
         e = c[np.arange(n * n), lab].sum() + w[lab[adj[:, 0]] != lab[adj[:, 1]]].sum()
         assert np.isfinite(cost[np.arange(n * n), lab]).all()
