@@ -109,16 +109,24 @@ def view_quality(xyz: np.ndarray, faces: np.ndarray, cams: list[CameraView], *, 
 
 def visible(scene, origins: np.ndarray, targets: np.ndarray, centre: np.ndarray, slack_m: float = 0.05) -> np.ndarray:
     """(k,) bool: nothing in ``scene`` (an open3d RaycastingScene built around ``centre``) lies on the
-    segment from each origin to its target (up to slack_m before the target)."""
+    segment from each origin to its target (up to slack_m before the target).
+
+    An any-hit query (``test_occlusions``, which stops at the first hit) on rays whose direction spans the
+    tested segment, so t in [0, 1] covers it: no closest hit is searched for."""
     import open3d as o3d
 
     if len(origins) == 0:
         return np.zeros(0, bool)
     d = targets - origins
     ln = np.linalg.norm(d, axis=1)
-    rays = np.concatenate([origins - centre, d / np.maximum(ln, 1e-12)[:, None]], axis=1).astype(np.float32)
-    t = scene.cast_rays(o3d.core.Tensor(rays))["t_hit"].numpy()
-    return ~(t < ln - slack_m)
+    span = ln - slack_m
+    out = np.ones(len(origins), bool)  # a segment shorter than the slack has nothing to test
+    test = span > 0
+    if test.any():
+        seg = d[test] * (span[test] / np.maximum(ln[test], 1e-12))[:, None]
+        rays = np.concatenate([origins[test] - centre, seg], axis=1).astype(np.float32)
+        out[test] = ~scene.test_occlusions(o3d.core.Tensor(rays), tnear=0.0, tfar=1.0).numpy().astype(bool)
+    return out
 
 
 def face_adjacency(faces: np.ndarray, n_vertices: int) -> np.ndarray:
