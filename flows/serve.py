@@ -19,10 +19,12 @@ it is stopped by the runner instead.
 from __future__ import annotations
 
 import asyncio
+import atexit
 import contextlib
 import multiprocessing
 import os
 import shlex
+import shutil
 import signal
 import sys
 import tempfile
@@ -84,16 +86,19 @@ def children_ignore_sigint():
         return
     from multiprocessing import spawn
 
-    with tempfile.TemporaryDirectory(prefix="ms3d-serve-") as tmp:
-        wrapper = Path(tmp) / "python"
-        wrapper.write_text(f"#!/bin/sh\ntrap '' INT\nexec {shlex.quote(sys.executable)} \"$@\"\n")
-        wrapper.chmod(0o755)
-        saved = spawn.get_executable()
-        multiprocessing.set_executable(str(wrapper))
-        try:
-            yield
-        finally:
-            multiprocessing.set_executable(saved)
+    # the wrapper outlives the block: a child spawned just before it ends still has to open it (the kernel
+    # hands the script to /bin/sh by path), so it is removed when this process exits
+    tmp = tempfile.mkdtemp(prefix="ms3d-serve-")
+    atexit.register(shutil.rmtree, tmp, True)
+    wrapper = Path(tmp) / "python"
+    wrapper.write_text(f"#!/bin/sh\ntrap '' INT\nexec {shlex.quote(sys.executable)} \"$@\"\n")
+    wrapper.chmod(0o755)
+    saved = spawn.get_executable()
+    multiprocessing.set_executable(str(wrapper))
+    try:
+        yield
+    finally:
+        multiprocessing.set_executable(saved)
 
 
 async def serve_until_signalled(runner, signals: tuple[int, ...] = (signal.SIGINT, signal.SIGTERM)) -> int:
