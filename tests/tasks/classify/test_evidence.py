@@ -104,3 +104,44 @@ def test_points_inside_a_closed_block_are_bad_outside_unknown():
     assert ev.missing[r]
     ev, cells = _evidence(np.concatenate([passage, outside]), tris, inside_share=2.0)  # rule off
     assert not _verdict(ev, cells, passage[0])[0]
+
+
+def test_sampling_from_row_ranges_picks_the_points_the_rule_picks_itself():
+    """tile_evidence samples from the patches' row ranges (no per-point array): the same points, in the
+    same order, as offset_evidence's own striding over a per-point row array."""
+    from tasks.classify.evidence import _strided_rows, strided_ranges
+
+    rng = np.random.default_rng(3)
+    count = rng.integers(0, 900, 50)
+    count[::7] = 0  # patches without points
+    start = np.r_[0, np.cumsum(count)[:-1]]
+    idx, row = strided_ranges(start, start + count, 200)
+    point_row = np.repeat(np.arange(len(count)), count)
+    assert np.array_equal(idx, _strided_rows(point_row, 200)) and np.array_equal(row, point_row[idx])
+    assert np.bincount(row, minlength=len(count)).max() <= 200 and len(idx) < count.sum()
+
+
+def test_a_welded_mesh_gives_the_soups_evidence_and_ids_that_disagree_keep_the_soup():
+    from tasks.classify.evidence import weld_by_ids
+
+    wall = _wall().astype(np.float32).astype(np.float64)  # positions as a store holds them (float32)
+    corners = wall.reshape(-1, 3)
+    _, vids = np.unique(corners, axis=0, return_inverse=True)  # one id per position: a welded mesh
+    v, f = weld_by_ids(wall.astype(np.float32), vids.reshape(-1, 3))
+    assert len(v) < len(corners) / 4 and np.array_equal(v[f], wall)
+    rng = np.random.default_rng(0)
+    pts = np.concatenate([_grid_points(0.1, 2.2, 0.5, 0.05, 0.65) + rng.normal(0, 0.01, (144, 3)) * [0, 1, 0],
+                          _grid_points(2.4, 4.5, 0.9, 0.05, 0.65)])
+    grid = PatchGrid(SIZE)
+    pc, fc = grid.cells_world(pts), grid.cells_world(wall.mean(axis=1))
+    cells, inv = np.unique(np.concatenate([pc, fc]), axis=0, return_inverse=True)
+    prow, frow = inv.ravel()[:len(pts)], inv.ravel()[len(pts):]
+    o = np.argsort(prow, kind="stable")
+    soup = offset_evidence(pts[o], prow[o], corners, np.arange(len(corners)).reshape(-1, 3), frow, cells)
+    welded = offset_evidence(pts[o], prow[o], v, f, frow, cells)
+    assert np.array_equal(soup.offset_m, welded.offset_m, equal_nan=True) and np.array_equal(soup.bad, welded.bad)
+    assert soup.bad.any()
+    bad_ids = vids.reshape(-1, 3).copy()
+    bad_ids[0, 0] = bad_ids[5, 2] if (corners[bad_ids[5, 2]] != corners[0]).any() else bad_ids[7, 1]
+    v2, f2 = weld_by_ids(wall.astype(np.float32), bad_ids)  # one id now names two positions
+    assert len(v2) == len(corners) and np.array_equal(v2[f2], wall)
