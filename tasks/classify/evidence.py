@@ -42,6 +42,8 @@ import numpy as np
 
 from tasks.geometry.distance import point_to_mesh_distance, unit_face_normals
 
+MAX_POINTS_PER_PATCH = 200  # points of a patch the rules measure (an even stride through its rows)
+
 
 @dataclass(frozen=True)
 class Evidence:
@@ -111,7 +113,7 @@ def _group_quantile(values: np.ndarray, group: np.ndarray, n_groups: int, q: flo
 def offset_evidence(points: np.ndarray, point_row: np.ndarray, vertices: np.ndarray, faces: np.ndarray,
                     face_row: np.ndarray, ijk: np.ndarray, n_faces: np.ndarray | None = None, *,
                     n_points: np.ndarray | None = None, off_surface_m: float = 0.22, near_m: float = 1.5,
-                    quantile: float = 0.95, min_points: int = 5, max_points_per_patch: int = 200,
+                    quantile: float = 0.95, min_points: int = 5, max_points_per_patch: int = MAX_POINTS_PER_PATCH,
                     standing_normal_z: float = 0.7, min_off_points: int = 3, inside_share: float = 0.5) -> Evidence:
     """The two evidence rules (module doc) over the U patches of a tile.
 
@@ -211,4 +213,4 @@ def inside_solid(points: np.ndarray, vertices: np.ndarray, faces: np.ndarray, mi
     return votes >= min_votes
 
 
-__all__ = ["Evidence", "inside_solid", "offset_evidence", "range_rows", "strided_ranges", "weld_by_ids"]
+__all__ = ["MAX_POINTS_PER_PATCH", "Evidence", "inside_solid", "offset_evidence", "range_rows", "strided_ranges", "weld_by_ids"]

@@ -37,7 +37,14 @@ from storage.ids import TileId
 from storage.patch_store import PATCHES_FILE, PatchStore, side_table_path, write_side_table
 from storage.store_state import store_fingerprint
 from storage.workdir import STALE_FILE, WorkDir
-from tasks.classify.evidence import Evidence, offset_evidence, range_rows, strided_ranges, weld_by_ids
+from tasks.classify.evidence import (
+    MAX_POINTS_PER_PATCH,
+    Evidence,
+    offset_evidence,
+    range_rows,
+    strided_ranges,
+    weld_by_ids,
+)
 from tasks.classify.pairs import (
     empty_pair_set,
     gradable_mask,
@@ -118,8 +125,7 @@ def tile_evidence(tp, patches: dict, ccfg) -> Evidence:
     read as ``tp`` (:class:`tasks.classify.pairs.TilePairs`, which holds the whole tile's points and faces).
     Only the measured sample of the points is copied, and the faces are welded by vertex id first: the
     tile's points are never copied whole, nor its face corners in float64."""
-    max_per = 200
-    idx, prow = strided_ranges(patches["point_start"], patches["point_stop"], max_per)
+    idx, prow = strided_ranges(patches["point_start"], patches["point_stop"], MAX_POINTS_PER_PATCH)
     n_points = np.asarray(patches["point_stop"], np.int64) - np.asarray(patches["point_start"], np.int64)
     frow = range_rows(patches["face_start"], patches["face_stop"], len(tp.all_triangles))
     fin = frow >= 0
@@ -127,7 +133,7 @@ def tile_evidence(tp, patches: dict, ccfg) -> Evidence:
     vertices, faces = weld_by_ids(tris, vids)
     ijk = np.stack([patches["i"], patches["j"], patches["k"]], axis=1)
     return offset_evidence(tp.all_points[idx].astype(np.float64), prow, vertices, faces, frow[fin], ijk,
-                           patches["n_faces"], n_points=n_points, max_points_per_patch=max_per,
+                           patches["n_faces"], n_points=n_points,
                            off_surface_m=ccfg.evidence_off_surface_m, near_m=ccfg.evidence_near_m,
                            quantile=ccfg.evidence_quantile, min_points=ccfg.evidence_min_points,
                            min_off_points=ccfg.evidence_min_off_points,
