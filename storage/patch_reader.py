@@ -274,6 +274,24 @@ class PatchStore:
         return out
 
 
+    def read_rows_stacked(self, table: str, columns, lo: int, hi: int, dtype=np.float32) -> np.ndarray:
+        """Rows ``lo:hi`` of ``table`` ("points" or "faces") as one (hi - lo, len(columns)) ``dtype`` array,
+        reading only the row groups that hold them: a whole-tile reader's bounded window."""
+        rg = {"points": self._points, "faces": self._faces}[table]
+        columns = list(columns)
+        out = np.empty((max(int(hi) - int(lo), 0), len(columns)), dtype)
+        if len(out) == 0:
+            return out
+        data, local, groups = rg.read(np.array([[lo, hi]], np.int64), columns)
+        at = int(local[0])
+        for j, c in enumerate(columns):
+            out[:, j] = data[c][at:at + len(out)]
+        del data
+        setattr(self.stats, f"{table}_row_groups_read", getattr(self.stats, f"{table}_row_groups_read") + groups)
+        self.stats.row_groups_read += groups
+        return out
+
+
 def read_side_table(tile_dir: str | Path, name: str, patch_keys: np.ndarray | None = None) -> tuple[dict, dict] | None:
     """A tile's side table as (columns, metadata), or None when it was never written.
 

@@ -28,6 +28,42 @@ from storage.store_state import store_fingerprint
 FACE_COLUMNS = [f"{a}{v}" for v in range(3) for a in "xyz"] + ["vid0", "vid1", "vid2"]
 CACHE_VERSION = 1
 CUE_CHUNK = 512  # pairs per batch_cues call (one k-d tree per kind per call)
+CUE_POINTS = 3_000_000  # and at most this many points per call (real MLS density: bounded memory)
+SPAN_ROWS = 4_000_000  # rows of the points table a streamed reader holds at once
+
+
+class StorePoints:
+    """A tile's points table read by row ranges, never whole (real MLS density: tens of millions of points).
+
+    ``rows(lo, hi)`` -> (hi - lo, 3) float32 metres, campus-local, in patch order."""
+
+    def __init__(self, store: PatchStore):
+        self.store = store
+
+    def __len__(self) -> int:
+        return self.store.n_points
+
+    def rows(self, lo: int, hi: int) -> np.ndarray:
+        return self.store.read_rows_stacked("points", ["x", "y", "z"], lo, hi, np.float32)
+
+
+def cue_chunks(rows: np.ndarray, max_pairs: int | None = None, max_points: int | None = None) -> list[tuple[int, int]]:
+    """Consecutive [s, e) chunks of pairs whose point rows are ``rows`` (P, 2) [start, stop), ascending: at
+    most ``max_pairs`` pairs, and the rows they span (gaps included) at most ``max_points`` unless one pair
+    alone spans more (defaults: ``CUE_CHUNK`` and ``CUE_POINTS``).
+
+    >>> cue_chunks(np.array([[0, 5], [5, 10], [10, 15], [20, 40], [40, 41]]), max_pairs=3, max_points=12)
+    [(0, 2), (2, 3), (3, 4), (4, 5)]
+    """
+    max_pairs, max_points = max_pairs or CUE_CHUNK, max_points or CUE_POINTS
+    out, s = [], 0
+    for i, (_, stop) in enumerate(np.asarray(rows, np.int64).tolist()):
+        if i > s and (i - s >= max_pairs or stop - int(rows[s][0]) > max_points):
+            out.append((s, i))
+            s = i
+    if s < len(rows):
+        out.append((s, len(rows)))
+    return out
 
 
 @dataclass
@@ -58,8 +94,23 @@ class TilePairs:
 
     @property
     def all_points(self) -> np.ndarray:
-        """(n, 3) float32 every point of the tile, in patch order (metres, campus-local)."""
-        return self._pts
+        """(n, 3) float32 every point of the tile, in patch order (metres, campus-local); read whole when
+        the tile was opened with ``stream_points`` (prefer :meth:`points_at`)."""
+        return self._pts if isinstance(self._pts, np.ndarray) else self._pts.rows(0, len(self._pts))
+
+    def points_at(self, rows: np.ndarray) -> np.ndarray:
+        """(q, 3) float32 the points at ascending ``rows`` (q,) of the points table, read ``SPAN_ROWS`` rows
+        at a time when streamed."""
+        rows = np.asarray(rows, np.int64)
+        if isinstance(self._pts, np.ndarray):
+            return self._pts[rows]
+        out = np.empty((len(rows), 3), np.float32)
+        for lo in range(0, len(self._pts), SPAN_ROWS):
+            a, b = np.searchsorted(rows, [lo, lo + SPAN_ROWS])
+            if b > a:
+                span = self._pts.rows(int(rows[a]), int(rows[b - 1]) + 1)
+                out[a:b] = span[rows[a:b] - rows[a]]
+        return out
 
     @property
     def all_triangles(self) -> np.ndarray:
@@ -75,8 +126,8 @@ class TilePairs:
         """(P, N_CUES) float32 cues of every pair of the tile: each pair's own, then its neighbourhood in the
         tile (:mod:`ms3d_model.context`). Computed once per seed."""
         if seed not in self._cues:
-            own = [batch_cues(*self.raw_cue_inputs(np.arange(s, min(s + CUE_CHUNK, len(self)))), seed=seed)
-                   for s in range(0, len(self), CUE_CHUNK)]
+            own = [batch_cues(*self.raw_cue_inputs(np.arange(s, e)), seed=seed)
+                   for s, e in cue_chunks(self._pr)]
             own = np.concatenate(own) if own else np.zeros((0, len(CUE_NAMES)), np.float32)
             self._cues[seed] = with_context(own, self.ijk)
         return self._cues[seed]
@@ -87,8 +138,13 @@ class TilePairs:
         return pts, tris, open_edges, self.keys[idx]
 
     def raw(self, idx) -> tuple[list, list, list, list]:
-        """(points, tris, vids, open_edges) lists of the pairs ``idx``."""
-        pts = [self._pts[self._pr[i, 0]:self._pr[i, 1]] for i in idx]
+        """(points, tris, vids, open_edges) lists of the pairs ``idx`` (streamed: one read of their span)."""
+        idx = np.asarray(idx, np.int64)
+        span, lo = self._pts, 0
+        if not isinstance(span, np.ndarray) and len(idx):
+            lo = int(self._pr[idx, 0].min())
+            span = span.rows(lo, int(self._pr[idx, 1].max()))
+        pts = [span[self._pr[i, 0] - lo:self._pr[i, 1] - lo] for i in idx]
         sl = [slice(self._fr[i, 0], self._fr[i, 1]) for i in idx]
         return pts, [self._tris[s] for s in sl], [self._vids[s] for s in sl], [self._open[s] for s in sl]
 
@@ -98,15 +154,18 @@ def gradable_mask(patches: dict, min_faces: int = 1, min_points: int = 1) -> np.
     return (patches["n_faces"] >= max(min_faces, 1)) & (patches["n_points"] >= max(min_points, 1))
 
 
-def read_tile_pairs(tile_dir: str | Path, min_faces: int = 1, min_points: int = 1) -> TilePairs:
-    """Read a tile's points and faces once and index its gradable pairs."""
+def read_tile_pairs(tile_dir: str | Path, min_faces: int = 1, min_points: int = 1,
+                    stream_points: bool = False) -> TilePairs:
+    """Read a tile's points and faces once and index its gradable pairs. ``stream_points``: leave the points
+    in the store and read them by row ranges when needed (memory bounded whatever the MLS density; the faces
+    are read whole: they do not grow with the scan)."""
     store = PatchStore(tile_dir)
     p = store.patches()
     gradable = gradable_mask(p, min_faces, min_points)
     rows = np.flatnonzero(gradable)
     lab = store.side("labels")
     labels = (lab["label"][rows].astype(np.int8) if lab is not None else np.full(len(rows), -1, np.int8))
-    pts = store.read_all_stacked("points", ["x", "y", "z"], np.float32)
+    pts = StorePoints(store) if stream_points else store.read_all_stacked("points", ["x", "y", "z"], np.float32)
     tris = store.read_all_stacked("faces", FACE_COLUMNS[:9], np.float32).reshape(-1, 3, 3)
     vids = store.read_all_stacked("faces", FACE_COLUMNS[9:], np.int64)
     open_edges = open_edge_flags(vids) if len(vids) else np.zeros((0, 3), bool)

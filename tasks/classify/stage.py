@@ -122,9 +122,9 @@ def grade_pairs(model: LoadedModel, tp, batch_size: int, threshold: float) -> tu
 
 def tile_evidence(tp, patches: dict, ccfg) -> Evidence:
     """The geometric evidence (:func:`tasks.classify.evidence.offset_evidence`) over every patch of a tile
-    read as ``tp`` (:class:`tasks.classify.pairs.TilePairs`, which holds the whole tile's points and faces).
-    Only the measured sample of the points is copied, and the faces are welded by vertex id first: the
-    tile's points are never copied whole, nor its face corners in float64."""
+    read as ``tp`` (:class:`tasks.classify.pairs.TilePairs`: the tile's faces, its points in memory or
+    streamed from the store). Only the measured sample of the points is read, and the faces are welded by
+    vertex id first: the tile's points are never copied whole, nor its face corners in float64."""
     idx, prow = strided_ranges(patches["point_start"], patches["point_stop"], MAX_POINTS_PER_PATCH)
     n_points = np.asarray(patches["point_stop"], np.int64) - np.asarray(patches["point_start"], np.int64)
     frow = range_rows(patches["face_start"], patches["face_stop"], len(tp.all_triangles))
@@ -132,7 +132,7 @@ def tile_evidence(tp, patches: dict, ccfg) -> Evidence:
     tris, vids = (tp.all_triangles, tp.all_vids) if fin.all() else (tp.all_triangles[fin], tp.all_vids[fin])
     vertices, faces = weld_by_ids(tris, vids)
     ijk = np.stack([patches["i"], patches["j"], patches["k"]], axis=1)
-    return offset_evidence(tp.all_points[idx].astype(np.float64), prow, vertices, faces, frow[fin], ijk,
+    return offset_evidence(tp.points_at(idx).astype(np.float64), prow, vertices, faces, frow[fin], ijk,
                            patches["n_faces"], n_points=n_points,
                            off_surface_m=ccfg.evidence_off_surface_m, near_m=ccfg.evidence_near_m,
                            quantile=ccfg.evidence_quantile, min_points=ccfg.evidence_min_points,
@@ -171,7 +171,7 @@ def run_classify_tile(tile: TileId, cfg, wd: WorkDir) -> dict | None:
         t0 = time.perf_counter()
         torch.set_num_threads(ccfg.threads)
         # every pair with a face and a point, as in training: the neighbourhood cues see the same neighbours
-        tp = read_tile_pairs(tile_dir)
+        tp = read_tile_pairs(tile_dir, stream_points=True)  # bounded memory at any MLS density
         t_read = time.perf_counter() - t0
         store = PatchStore(tile_dir)
         keys = store.patches()["patch"]
