@@ -82,6 +82,19 @@ def n_points(inputs: Path) -> int:
     return sum(read_header(p).point_count for p in (inputs / "mls").glob("*.la[sz]"))
 
 
+def tile_faces(work: Path) -> int:
+    """Faces in the work dir's patch stores (the mesh side of every stage's rate)."""
+    from storage.patch_store import PatchStore
+
+    total = 0
+    for d in sorted((work / "tiles").glob("*/")):
+        try:
+            total += int(PatchStore(d).patches()["n_faces"].sum())
+        except Exception:  # noqa: BLE001 - an empty or failed tile has no store
+            continue
+    return total
+
+
 def main(argv=None) -> dict:
     ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     ap.add_argument("--scale", type=float, default=0.5)
@@ -94,6 +107,8 @@ def main(argv=None) -> dict:
     ap.add_argument("--keep", action="store_true", help="keep the work dir of the dense run")
     ap.add_argument("--early-only", action="store_true", help="dense run without classify, repair and the report "
                     "(scan -> partition -> merge -> export: what scales with points)")
+    ap.add_argument("--with-early", action="store_true", help="run the early stages alone first, then every stage, "
+                    "one after the other, and print the ratio of their wall times (target <= 2)")
     a = ap.parse_args(argv)
     out = {}
     print(f"machine: {os.cpu_count()} cores; load average {os.getloadavg()[0]:.2f} at start")
@@ -102,7 +117,18 @@ def main(argv=None) -> dict:
         gen = generate(inputs, a.scale, a.mls_density, a.seed)
         n = n_points(inputs)
         laz = _du(inputs / "mls")
+        early = None
+        if a.with_early:
+            early = run_flow(inputs / "campus.yaml", work, a.workers, EARLY_ONLY)
+            est = {k: v for k, v in early["stages"].items() if v["units"]}
+            print(f"early stages alone (scan -> partition -> merge -> export): exit {early['exit']}, wall "
+                  f"{early['flow_wall']:.0f} s, task time {sum(v['task_s'] for v in est.values()):.0f} s")
+            for k, v in est.items():
+                print(f"  {k:<11}{v['units']:>6} units {v['task_s']:>8.0f} s {v['peak_rss_mb']:>8.0f} MB")
         r = run_flow(inputs / "campus.yaml", work, a.workers, EARLY_ONLY if a.early_only else FULL)
+        if early is not None:
+            print(f"every stage: wall {r['flow_wall']:.0f} s = {r['flow_wall'] / early['flow_wall']:.2f}x the early "
+                  "stages alone (target <= 2x)")
         if a.early_only:
             print("(dense run without classify, repair and the report: --early-only)")
         st = {k: v for k, v in r["stages"].items() if v["units"]}
@@ -114,9 +140,15 @@ def main(argv=None) -> dict:
               f"{task:.0f} s on {a.workers} workers -> parallel efficiency {task / r['flow_wall'] / a.workers:.0%}")
         print(f"end to end: {n / task / 1e6:.2f} M points/s per busy core, {n / r['flow_wall'] / 1e6:.2f} M points/s "
               "per wall second of the machine")
-        print(f"\n{'stage':<11}{'units':>7}{'task s':>9}{'peak RSS of a unit':>20}")
+        n_faces = tile_faces(work)
+        print(f"\n{n_faces:,} faces in the patch stores; per busy core = per task second")
+        print(f"{'stage':<11}{'units':>7}{'task s':>9}{'M points/s':>12}{'k faces/s':>11}{'peak RSS of a unit':>20}")
         for s, v in st.items():
-            print(f"{s:<11}{v['units']:>7}{v['task_s']:>9.0f}{v['peak_rss_mb']:>17.0f} MB")
+            ts = max(v["task_s"], 1e-9)
+            print(f"{s:<11}{v['units']:>7}{v['task_s']:>9.0f}{n / ts / 1e6:>12.2f}{n_faces / ts / 1e3:>11.1f}"
+                  f"{v['peak_rss_mb']:>17.0f} MB")
+        over = {k: v["peak_rss_mb"] for k, v in st.items() if v["peak_rss_mb"] > 2048}
+        print("every unit within the 2,048 MB budget" if not over else f"OVER the 2,048 MB budget: {over}")
         print(f"\ndisk per input point: LAZ {laz / n:.1f} B, staging runs {staging / n:.1f} B, patch stores "
               f"{stores / n:.1f} B (work dir total {(staging + stores) / n:.1f} B)")
         serial = st.get("register", {}).get("task_s", 0.0)
