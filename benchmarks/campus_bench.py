@@ -95,6 +95,17 @@ def tile_faces(work: Path) -> int:
     return total
 
 
+def run_early(config: Path, work: Path, workers: int) -> dict:
+    """The early stages alone (the reference the whole run's wall time is compared with), printed."""
+    early = run_flow(config, work, workers, EARLY_ONLY)
+    est = {k: v for k, v in early["stages"].items() if v["units"]}
+    print(f"early stages alone (scan -> partition -> merge -> export): exit {early['exit']}, wall "
+          f"{early['flow_wall']:.0f} s, task time {sum(v['task_s'] for v in est.values()):.0f} s")
+    for k, v in est.items():
+        print(f"  {k:<11}{v['units']:>6} units {v['task_s']:>8.0f} s {v['peak_rss_mb']:>8.0f} MB")
+    return early
+
+
 def main(argv=None) -> dict:
     ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     ap.add_argument("--scale", type=float, default=0.5)
@@ -117,14 +128,7 @@ def main(argv=None) -> dict:
         gen = generate(inputs, a.scale, a.mls_density, a.seed)
         n = n_points(inputs)
         laz = _du(inputs / "mls")
-        early = None
-        if a.with_early:
-            early = run_flow(inputs / "campus.yaml", work, a.workers, EARLY_ONLY)
-            est = {k: v for k, v in early["stages"].items() if v["units"]}
-            print(f"early stages alone (scan -> partition -> merge -> export): exit {early['exit']}, wall "
-                  f"{early['flow_wall']:.0f} s, task time {sum(v['task_s'] for v in est.values()):.0f} s")
-            for k, v in est.items():
-                print(f"  {k:<11}{v['units']:>6} units {v['task_s']:>8.0f} s {v['peak_rss_mb']:>8.0f} MB")
+        early = run_early(inputs / "campus.yaml", work, a.workers) if a.with_early else None
         r = run_flow(inputs / "campus.yaml", work, a.workers, EARLY_ONLY if a.early_only else FULL)
         if early is not None:
             print(f"every stage: wall {r['flow_wall']:.0f} s = {r['flow_wall'] / early['flow_wall']:.2f}x the early "
