@@ -138,7 +138,12 @@ def thin_points(xyz: np.ndarray, voxel_m: float) -> np.ndarray:
     if len(xyz) == 0:
         return np.zeros(0, np.int64)
     cell = np.floor(np.asarray(xyz, np.float64) / voxel_m).astype(np.int64)
-    _, inv, cnt = np.unique(cell, axis=0, return_inverse=True, return_counts=True)
+    cell -= cell.min(axis=0)
+    if (cell.max(axis=0) < (1 << 21)).all():  # one int64 key per voxel, ordered like the rows (x, y, z)
+        _, inv, cnt = np.unique((cell[:, 0] << 42) | (cell[:, 1] << 21) | cell[:, 2], return_inverse=True,
+                                return_counts=True)
+    else:
+        _, inv, cnt = np.unique(cell, axis=0, return_inverse=True, return_counts=True)
     inv = inv.reshape(-1)
     mean = np.zeros((len(cnt), 3))
     np.add.at(mean, inv, xyz)

@@ -124,18 +124,32 @@ def _inside_convex_ccw(poly: np.ndarray, pts: np.ndarray, eps: float) -> np.ndar
 
 
 def _inside_polygon(poly: np.ndarray, pts: np.ndarray, eps: float) -> np.ndarray:
-    """Points inside a simple polygon (even-odd rule) and farther than eps from each of its edges."""
+    """Points inside a simple polygon (even-odd rule) and farther than eps from each of its edges.
+
+    Each edge is tested only against the points in its band of v (the points sorted by v once): a point
+    outside ``[v_min, v_max)`` cannot cross the edge's ray, nor lie within eps of it outside the band
+    grown by 2 eps, so the result equals testing every point against every edge, in O(P log P + band)."""
+    order = np.argsort(pts[:, 1], kind="stable")
+    sp = pts[order]
+    ys = sp[:, 1]
     inside = np.zeros(len(pts), bool)
     clear = np.ones(len(pts), bool)
     for a, b in zip(poly, np.roll(poly, -1, axis=0)):
-        yi = (a[1] > pts[:, 1]) != (b[1] > pts[:, 1])
+        lo, hi = (a[1], b[1]) if a[1] <= b[1] else (b[1], a[1])
+        i0, i1 = np.searchsorted(ys, [lo, hi])  # (a_v > v) != (b_v > v)  <=>  lo <= v < hi
+        q = sp[i0:i1]
         with np.errstate(divide="ignore", invalid="ignore"):
-            xc = a[0] + (pts[:, 1] - a[1]) * (b[0] - a[0]) / (b[1] - a[1])
-        inside ^= yi & (pts[:, 0] < xc)
+            xc = a[0] + (q[:, 1] - a[1]) * (b[0] - a[0]) / (b[1] - a[1])
+        inside[i0:i1] ^= q[:, 0] < xc
+        j0 = int(np.searchsorted(ys, lo - 2 * eps, side="left"))
+        j1 = int(np.searchsorted(ys, hi + 2 * eps, side="right"))
+        q = sp[j0:j1]
         d = b - a
-        t = np.clip(((pts - a) @ d) / max(float(d @ d), 1e-30), 0.0, 1.0)
-        clear &= np.linalg.norm(pts - (a + t[:, None] * d), axis=1) > eps
-    return inside & clear
+        t = np.clip(((q - a) @ d) / max(float(d @ d), 1e-30), 0.0, 1.0)
+        clear[j0:j1] &= np.linalg.norm(q - (a + t[:, None] * d), axis=1) > eps
+    out = np.empty(len(pts), bool)
+    out[order] = inside & clear
+    return out
 
 
 def _disc_points(buv: np.ndarray, bxyz: np.ndarray, puv: np.ndarray, keep: np.ndarray, pts: np.ndarray,
