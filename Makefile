@@ -7,6 +7,8 @@ STAMP := $(VENV)/.ms3d-installed
 APT_STAMP := $(VENV)/.ms3d-apt
 DEMO_OUT ?= ms3d-work/demo-input
 DEMO_WORK ?= ms3d-work/demo
+# test files run in this many pytest-xdist processes (a file stays in one process: its module fixtures once)
+TEST_WORKERS ?= 2
 APT_PACKAGES := libusb-1.0-0 libgl1 libgomp1 chromium
 NPM_STAMP := viewer/node_modules/.ms3d-installed
 
@@ -46,7 +48,7 @@ demo: $(STAMP) $(NPM_STAMP)
 	$(VENV)/bin/ms3d demo --out $(DEMO_OUT) --work $(DEMO_WORK)
 
 test: $(STAMP) $(NPM_STAMP)
-	$(PY) -m pytest -q --durations=15 tests
+	$(PY) -m pytest -q --durations=15 -n $(TEST_WORKERS) --dist loadfile tests
 
 bench: $(STAMP)
 	$(PY) benchmarks/synth_bench.py

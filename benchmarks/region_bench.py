@@ -9,7 +9,7 @@ the largest region's seconds and the highest peak RSS, and the ratio of the wall
 rebuilt regions are identical (sha256 of each region's written files). Always exits 0: it reports.
 
     .venv/bin/python benchmarks/region_bench.py --campus /tmp/q9103/campus/campus.yaml --work /tmp/s5/w9103 \\
-        --code /tmp/old --scratch /tmp/rb
+        --code /tmp/old --scratch /tmp/rb [--every 5]
 """
 
 from __future__ import annotations
@@ -37,7 +37,7 @@ cfg = CampusConfig.from_yaml(sys.argv[2], {"work_dir": sys.argv[3]})
 wd = WorkDir(cfg.work_dir)
 plan = {r.key: r for r in read_plan(wd.root)}
 t0 = time.perf_counter()
-out = [run_region(k, cfg, wd, plan) for k in sorted(plan)]
+out = [run_region(k, cfg, wd, plan) for k in sorted(plan)[::int(sys.argv[4])]]
 print(json.dumps({"wall": time.perf_counter() - t0, "summaries": out}, default=str))
 """
 
@@ -73,10 +73,10 @@ def digest(regions: Path) -> dict[str, str]:
     return out
 
 
-def run(code: Path, campus: Path, work: Path, scratch: Path) -> dict:
+def run(code: Path, campus: Path, work: Path, scratch: Path, every: int = 1) -> dict:
     mirror(work, scratch)
-    r = subprocess.run([sys.executable, "-c", CHILD, str(code), str(campus), str(scratch)], capture_output=True,
-                       text=True, check=False)
+    r = subprocess.run([sys.executable, "-c", CHILD, str(code), str(campus), str(scratch), str(every)],
+                       capture_output=True, text=True, check=False)
     if r.returncode != 0:
         return {"error": r.stderr.strip().splitlines()[-1] if r.stderr.strip() else f"exit {r.returncode}"}
     res = json.loads(r.stdout.strip().splitlines()[-1])
@@ -96,12 +96,13 @@ def main(argv=None) -> int:
     ap.add_argument("--work", type=Path, required=True, help="a processed work dir (read only)")
     ap.add_argument("--code", type=Path, help="another checkout to run side by side")
     ap.add_argument("--scratch", type=Path, default=Path("/tmp/ms3d-region-bench"))
+    ap.add_argument("--every", type=int, default=1, help="every k-th region of the plan (sorted by key)")
     a = ap.parse_args(argv)
     roots = [("this", REPO)] + ([("other", a.code.resolve())] if a.code else [])
     results = {}
     for name, root in roots:
         t = time.perf_counter()
-        results[name] = run(root, a.campus.resolve(), a.work.resolve(), a.scratch / name)
+        results[name] = run(root, a.campus.resolve(), a.work.resolve(), a.scratch / name, a.every)
         res = results[name]
         if "error" in res:
             print(f"{name} ({root}): failed: {res['error']}")
