@@ -11,16 +11,16 @@ from tasks.repair.mesh import _inside_polygon
 
 
 def _thin_reference(xyz, voxel_m):
-    cell = np.floor(np.asarray(xyz, np.float64) / voxel_m).astype(np.int64)
-    _, inv, cnt = np.unique(cell, axis=0, return_inverse=True, return_counts=True)
-    inv = inv.reshape(-1)
-    mean = np.zeros((len(cnt), 3))
-    np.add.at(mean, inv, xyz)
-    mean /= cnt[:, None]
-    d = np.linalg.norm(xyz - mean[inv], axis=1)
-    order = np.lexsort((d, inv))
-    first = np.r_[True, inv[order][1:] != inv[order][:-1]]
-    return np.sort(order[first])
+    """One point per voxel, the nearest to its voxel's centroid (the lowest index on a tie), in plain Python."""
+    voxels: dict[tuple, list[int]] = {}
+    for i, c in enumerate(np.floor(np.asarray(xyz, np.float64) / voxel_m).astype(np.int64).tolist()):
+        voxels.setdefault(tuple(c), []).append(i)
+    keep = []
+    for members in voxels.values():
+        centre = xyz[members].sum(axis=0) / len(members)
+        d = np.linalg.norm(xyz[members] - centre, axis=1)
+        keep.append(members[int(np.argmin(d))])
+    return np.sort(np.array(keep, np.int64))
 
 
 def _inside_reference(poly, pts, eps):
