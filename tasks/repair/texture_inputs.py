@@ -111,18 +111,42 @@ def load_cameras(cfg: CampusConfig, doc: dict, frame) -> list[Camera]:
     return _resolve_images(cameras_to_frame(cs.cameras, m), path, _image_folders(cs, path, images))
 
 
+OCCUPANCY_WINDOW = 4_000_000  # points read at once when a tile's occupancy is built
+_PACK_BITS, _PACK_OFFSET = 21, 1 << 20
+
+
+def voxel_cells(cells: np.ndarray) -> np.ndarray:
+    """The distinct rows of (n, 3) int64 voxel indices, sorted as ``np.unique(cells, axis=0)`` sorts them:
+    on one packed int64 key per row when every index lies within +-2^20 (a campus-local frame), else rows.
+
+    >>> voxel_cells(np.array([[1, 2, 3], [-1, 0, 5], [1, 2, 3]])).tolist()
+    [[-1, 0, 5], [1, 2, 3]]
+    """
+    cells = np.asarray(cells, np.int64).reshape(-1, 3)
+    if not len(cells) or not (np.abs(cells) < _PACK_OFFSET).all():
+        return np.unique(cells, axis=0)
+    c = cells + _PACK_OFFSET
+    key = np.unique((c[:, 0] << 2 * _PACK_BITS) | (c[:, 1] << _PACK_BITS) | c[:, 2])
+    mask = (1 << _PACK_BITS) - 1
+    return np.stack([key >> 2 * _PACK_BITS, (key >> _PACK_BITS) & mask, key & mask], axis=1) - _PACK_OFFSET
+
+
 def occupancy(tile_dir: Path, cache: Path, voxel_m: float) -> np.ndarray:
     """(k, 3) float32 centres of a tile's MLS-occupied voxels (``voxel_m`` metres, campus-local), cached in
-    ``cache`` (``regions/_occupancy/{tile}.npz``) and rebuilt when the tile's store changes."""
+    ``cache`` (``regions/_occupancy/{tile}.npz``) and rebuilt when the tile's store changes; built from
+    windows of ``OCCUPANCY_WINDOW`` points (at real MLS density a whole tile is tens of millions)."""
     fp = store_fingerprint(tile_dir)
     if cache.exists():
         with np.load(cache) as z:
             if str(z["fingerprint"]) == fp and float(z["voxel_m"]) == voxel_m:
                 return z["centres"]
     store = PatchStore(tile_dir)
-    pts, _ = store.read_all(point_columns=["x", "y", "z"], face_columns=["patch"])
-    xyz = np.stack([pts["x"], pts["y"], pts["z"]], 1)
-    cells = np.unique(np.floor(xyz / voxel_m).astype(np.int64), axis=0)
+    parts = []
+    for lo in range(0, store.n_points, OCCUPANCY_WINDOW):  # bounded memory at any MLS density
+        xyz = store.read_rows_stacked("points", ["x", "y", "z"], lo, min(lo + OCCUPANCY_WINDOW, store.n_points))
+        parts.append(voxel_cells(np.floor(xyz / voxel_m).astype(np.int64)))
+        del xyz
+    cells = voxel_cells(np.concatenate(parts)) if parts else np.zeros((0, 3), np.int64)
     centres = ((cells + 0.5) * voxel_m).astype(np.float32)
     with atomic_path(cache) as tmp:
         np.savez(tmp, centres=centres, fingerprint=np.array(fp), voxel_m=np.array(voxel_m))
