@@ -177,7 +177,7 @@ def _cue_seconds_per_pair(work_dir: str, n: int = 256) -> float:
     from tasks.classify import read_tile_pairs
 
     for t in WorkDir(work_dir).live_tiles():
-        tp = read_tile_pairs(WorkDir(work_dir).tile_dir(t))
+        tp = read_tile_pairs(WorkDir(work_dir).tile_dir(t), stream_points=True)  # reads only the pairs timed
         if len(tp) >= 16:
             idx = np.arange(min(n, len(tp)))
             pts, tris, _, oe = tp.raw(idx)
