@@ -126,9 +126,10 @@ def rasterise(xy: np.ndarray, depth: np.ndarray, rgb: np.ndarray, lo: np.ndarray
     """
     span = np.maximum(np.asarray(hi, np.float64) - lo, 1e-9)
     step = float(span.max()) / px
-    w, h = (np.ceil(span / step).astype(int) if len(span) else (1, 1))
-    w, h = max(int(w), 1), max(int(h), 1)
+    w, h = (max(int(v), 1) for v in np.ceil(span / step))
     p = (np.asarray(xy, np.float64) - lo) / step - 0.5  # pixel (c, r) has its centre at (c, r) here
+    bad = ~(np.isfinite(p).all(axis=(1, 2)) & np.isfinite(depth))
+    p[bad] = -1.0  # a face with a NaN corner or depth covers no pixel (its box is empty)
     x0 = np.clip(np.ceil(p[..., 0].min(1)), 0, w).astype(np.int64)
     x1 = np.clip(np.floor(p[..., 0].max(1)), -1, w - 1).astype(np.int64)
     y0 = np.clip(np.ceil(p[..., 1].min(1)), 0, h).astype(np.int64)

@@ -38,6 +38,9 @@ def test_the_nearest_covering_face_wins_at_every_pixel():
     assert got.shape == want.shape == (17, 24, 4)
     assert 0.2 < want[..., 3].mean() < 1.0  # some pixels covered, some not
     np.testing.assert_array_equal(got, want)
+    xy[5, 1, 0], depth[6] = np.nan, np.nan  # a broken face paints nothing and costs nothing
+    want = _reference(np.delete(xy, [5, 6], 0), np.delete(depth, [5, 6]), np.delete(rgb, [5, 6], 0), lo, hi, 24)
+    np.testing.assert_array_equal(rasterise(xy, depth, rgb, lo, hi, px=24), want)
 
 
 def test_a_render_of_many_faces_is_a_png():
