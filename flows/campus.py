@@ -38,6 +38,7 @@ from flows.tasks import (
     outliers_task,
     partition_task,
     quality_task,
+    region_renders_task,
     regions_task,
     register_task,
     repair_task,
@@ -212,7 +213,8 @@ def _outputs(run: _Run) -> tuple[dict, dict]:
     """3D Tiles (nodes mapped over the workers) beside the model's quality shares, then the run report.
     Returns (export summary, report summary)."""
     from tasks.export import node_batches, node_records, run_export_stage
-    from tasks.quality import quality_parts, quality_plan, write_quality
+    from tasks.quality import quality_parts, quality_plan, share_name, write_quality
+    from tasks.report import region_renders_fresh
 
     cfg, wd, ex, cj = run.cfg, run.wd, run.ex, run.cfg_json
 
@@ -221,14 +223,24 @@ def _outputs(run: _Run) -> tuple[dict, dict]:
         return node_records(results, len(jobs))
 
     qplan = quality_plan(local_view(cfg, "truth"), wd) if cfg.report.enabled and cfg.report.quality else None
-    shares = [ex.submit(quality_task, cj, qplan, part) for part in quality_parts(qplan, run.n_workers)] \
-        if qplan else []
+    parts = quality_parts(qplan, run.n_workers)
+    shares = [ex.submit(quality_task, cj, qplan, part) for part in parts]
+    renders = ex.submit(region_renders_task, cj) \
+        if cfg.report.enabled and not region_renders_fresh(cfg, wd) else None  # the report's figures, drawn here
     exported = run_export_stage(cfg, wd, map_jobs=map_jobs)
     if shares:  # the model against the truth, measured beside the export
         got = run.note("quality", [s.result() for s in shares], per_unit=False)
         if not any(g.get("status") == "failed" for g in got):
             write_quality(wd, qplan["key"], [g["sums"] for g in got])
+            drop_unplanned_records(wd, "quality", {share_name(p) for p in parts})
     run.note("export", [exported], per_unit=False)
+    if renders is not None:
+        try:
+            got = renders.result()
+        except Exception as e:  # noqa: BLE001 - the report draws them itself and says why not
+            got = {"status": "failed", "error": f"{type(e).__name__}: {e}"}
+        if got.get("status") == "failed":
+            log.warning("region renders: %s (the report draws them)", got["error"])
     report = submit_pending(wd, ex, report_task, cj).result() if cfg.report.enabled else {"status": "skipped"}
     run.note("report", [report], per_unit=False)
     return exported, report

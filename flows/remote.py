@@ -88,7 +88,7 @@ TASK_READS = {
 # What a task that pulls everything else never reads: the ingest runs (``staging/``, the largest part of a
 # work dir: only partition and the driver's planning read them) and what export writes in the driver.
 TASK_SKIPS = {name: ("staging/", "export/", "output/") for name in
-              ("outliers_task", "regions_task", "repair_task", "quality_task")}
+              ("outliers_task", "regions_task", "repair_task", "quality_task", "region_renders_task")}
 
 
 def task_reads(name: str, batch) -> tuple[str, ...] | None:

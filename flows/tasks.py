@@ -185,14 +185,32 @@ def export_nodes_task(jobs: list) -> list[dict]:
 
 @task(name="quality", cache_policy=NO_CACHE)
 @synced
-def quality_task(cfg_json: dict, plan: dict, part: tuple[int, int]) -> dict:
+def quality_task(cfg_json: dict, plan: dict, part: tuple) -> dict:
     """One share of the model's quality against the truth: {"status", "sums": {model: partial sums}}."""
-    from tasks.quality import run_quality_share
+    from tasks.quality import run_quality_share, share_name
 
     cfg, wd = config_of(cfg_json)
     plan = local_truth_plan(cfg, plan)  # a truth by URL: this worker's staged copy
-    return record_step(wd, "quality", f"share-{part[0]}-of-{part[1]}",
+    return record_step(wd, "quality", share_name(part),
                        lambda: {"sums": run_quality_share(cfg, wd, plan, tuple(part))})
+
+
+@task(name="region renders", cache_policy=NO_CACHE)
+@synced
+def region_renders_task(cfg_json: dict) -> dict:
+    """Draw the rebuilt regions' before/after renders for the report (``report/regions/``, kept under a key of
+    their inputs), beside the export: {"status", "figures" | "error"}. A failure costs nothing but time: the
+    report draws them itself and says why not."""
+    from tasks.report import region_renders
+
+    if is_planning():
+        return {"status": "skipped"}
+    cfg, wd = config_of(cfg_json)
+    try:
+        sec, _ = region_renders(cfg, wd)
+    except (InputError, OSError, ValueError, KeyError) as e:
+        return {"status": "failed", "error": str(e).splitlines()[0] if str(e) else type(e).__name__}
+    return {"status": "done", "figures": len(sec.figures)}
 
 
 @task(name="report", cache_policy=NO_CACHE)

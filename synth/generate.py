@@ -35,9 +35,10 @@ from storage.atomic import file_sha256, write_bytes_atomic, write_json_atomic
 from storage.mesh_io import write_obj, write_ply
 from storage.pointcloud_io import LasChunkWriter, PointChunk
 
+from .frames import apply, asprs_classes, random_registration, similarity, streams  # noqa: F401 (re-exported)
 from .presets import SynthPreset, get_preset
 from .production import write_colmap_model
-from .scene import FaceClass, Mesh, OccluderClass, Scene
+from .scene import Mesh, Scene
 
 log = logging.getLogger("ms3d.synth")
 
@@ -46,54 +47,6 @@ CRS = "EPSG:32650"
 VERTICAL_DATUM = "ellipsoidal (WGS 84), synthetic"
 LAS_DATE = _dt.date(2026, 1, 1)  # fixed: identical seeds give identical bytes
 COLMAP_MODEL = "sparse/0"  # the cameras' COLMAP text model, as a COLMAP project lays it out
-
-# ASPRS classes for the simulated returns (truth classes -> LAS classification)
-_ASPRS_TRUTH = {FaceClass.GROUND: 2, FaceClass.ROAD: 11, FaceClass.WALL: 6, FaceClass.ROOF: 6,
-                FaceClass.GLASS: 6, FaceClass.FRAME: 6, FaceClass.BALCONY: 6, FaceClass.EAVE: 6}
-_ASPRS_OCC = {OccluderClass.TREE: 5, OccluderClass.CAR: 1, OccluderClass.PEDESTRIAN: 1, OccluderClass.FENCE: 1}
-
-
-# ----------------------------------------------------------------------------------- pure helpers
-
-
-def similarity(scale: float, yaw_deg: float, pitch_deg: float, roll_deg: float, t) -> np.ndarray:
-    """(4, 4) float64 ``[s R | t]`` with R = Rz(yaw) Ry(pitch) Rx(roll)."""
-    y, p, r = np.radians([yaw_deg, pitch_deg, roll_deg])
-    rz = np.array([[np.cos(y), -np.sin(y), 0], [np.sin(y), np.cos(y), 0], [0, 0, 1]])
-    ry = np.array([[np.cos(p), 0, np.sin(p)], [0, 1, 0], [-np.sin(p), 0, np.cos(p)]])
-    rx = np.array([[1, 0, 0], [0, np.cos(r), -np.sin(r)], [0, np.sin(r), np.cos(r)]])
-    m = np.eye(4)
-    m[:3, :3] = scale * rz @ ry @ rx
-    m[:3, 3] = t
-    return m
-
-
-def random_registration(rng: np.random.Generator) -> np.ndarray:
-    """The true MLS -> mesh similarity (campus-local metres): yaw up to 3 deg, pitch/roll up to
-    0.3 deg, translation up to 2.5 m, scale within +-0.4 %."""
-    return similarity(1.0 + rng.uniform(-0.004, 0.004), rng.uniform(-3, 3), rng.uniform(-0.3, 0.3),
-                      rng.uniform(-0.3, 0.3), rng.uniform(-2.5, 2.5, 3) * np.array([1, 1, 0.3]))
-
-
-def apply(m: np.ndarray, xyz: np.ndarray) -> np.ndarray:
-    return np.asarray(xyz, np.float64) @ m[:3, :3].T + m[:3, 3]
-
-
-def asprs_classes(source: np.ndarray, face_class: np.ndarray) -> np.ndarray:
-    """(n,) uint8 ASPRS classification from the simulated hit's source (0 truth / 1 occluder) and class."""
-    lut_t = np.zeros(256, np.uint8)
-    lut_o = np.ones(256, np.uint8)
-    for k, v in _ASPRS_TRUTH.items():
-        lut_t[int(k)] = v
-    for k, v in _ASPRS_OCC.items():
-        lut_o[int(k)] = v
-    return np.where(source == 0, lut_t[face_class], lut_o[face_class]).astype(np.uint8)
-
-
-def streams(seed: int, n: int) -> list[np.random.Generator]:
-    """Independent generators per component, so changing one stage's draws leaves the others alone."""
-    return [np.random.default_rng(s) for s in np.random.SeedSequence(seed).spawn(n)]
-
 
 # ----------------------------------------------------------------------------------- writers
 
@@ -229,6 +182,25 @@ class _SynthRun:
     n_defects: int = 0
     cache: dict[tuple[int, int], Scene] = field(default_factory=dict)
     coarse_mesh: bool = False  # write a LoD2-like block model (synth.coarse) instead of the MVS mesh
+    pool: object = None  # one spawned process that renders the camera images beside the rest (or None)
+    image_jobs: list = field(default_factory=list)  # per tile, in order: a future or the cameras.json entries
+
+    def images(self, *args) -> None:
+        """Render and write one tile's camera images (:func:`_tile_images`) in the image process, or here when
+        no process can be started (a daemon process, e.g. a Dask worker, may not have children)."""
+        import multiprocessing as mp
+
+        if self.pool is None and not mp.current_process().daemon:
+            from concurrent.futures import ProcessPoolExecutor
+
+            self.pool = ProcessPoolExecutor(1, mp_context=mp.get_context("spawn"))
+        self.image_jobs.append(self.pool.submit(_tile_images, *args) if self.pool else _tile_images(*args))
+
+    def collect_images(self) -> None:
+        """Wait for the image process; the cameras.json entries go to ``cameras`` in tile order."""
+        for job in self.image_jobs:
+            self.cameras += job if isinstance(job, list) else job.result()
+        self.image_jobs.clear()
 
     @property
     def defects_part(self) -> Path:
@@ -262,12 +234,17 @@ def generate(preset: str = "tiny", seed: int = 0, out: str | Path = "synth-out",
     nx, ny = int(np.ceil(p.extent_m[0] / p.tile_m)), int(np.ceil(p.extent_m[1] / p.tile_m))
     run = _SynthRun(out, p, seed, perturb, nx, ny, coarse_mesh=coarse_mesh)
     run.defects_part.parent.mkdir(parents=True, exist_ok=True)
-    for ix in range(nx):
-        for iy in range(ny):
-            _write_tile(run, ix, iy)
-            # bounded memory: forget scenes no later tile needs
-            for key in [k for k in run.cache if k[0] < ix - 1]:
-                del run.cache[key]
+    try:
+        for ix in range(nx):
+            for iy in range(ny):
+                _write_tile(run, ix, iy)
+                # bounded memory: forget scenes no later tile needs
+                for key in [k for k in run.cache if k[0] < ix - 1]:
+                    del run.cache[key]
+        run.collect_images()
+    finally:
+        if run.pool is not None:
+            run.pool.shutdown(cancel_futures=True)
     _write_campus_files(run, truth_reg, scale)
     log.info("synth %s seed %d: %s in %.1f s", p.name, seed, run.stats, time.perf_counter() - t_start)
     return out
@@ -275,8 +252,9 @@ def generate(preset: str = "tiny", seed: int = 0, out: str | Path = "synth-out",
 
 def _write_tile(run: _SynthRun, ix: int, iy: int) -> None:
     """Tile (ix, iy): its MVS mesh and defects, its truth mesh, the MLS strips and camera images of its
-    roads (scanned against the tile and its neighbours: rays cross tile borders)."""
-    from .cameras import render_cameras, write_images
+    roads (scanned against the tile and its neighbours: rays cross tile borders). The images are rendered
+    in another process meanwhile (each part draws from its own random stream, so the files do not depend on
+    the order)."""
     from .mvs import MvsParams, make_mvs_mesh
     from .production import defect_faces_by_file, write_production
     from .trajectory import TrajectoryParams, build_trajectories
@@ -285,6 +263,13 @@ def _write_tile(run: _SynthRun, ix: int, iy: int) -> None:
     origin = np.asarray(WORLD_ORIGIN)
     r_mvs, r_tex, r_traj, r_mls, r_cam = streams(run.seed * 7919 + ix * 131 + iy + 1, 5)
     scene = run.scene_at(ix, iy)
+    neigh = [run.scene_at(jx, jy) for jx in range(max(ix - 1, 0), min(ix + 2, nx))
+             for jy in range(max(iy - 1, 0), min(iy + 2, ny))] if p.tiled_mesh else [scene]
+    seen = _merge_scenes(neigh) if len(neigh) > 1 else scene
+    tp = TrajectoryParams(n_passes=p.n_passes, gps_start_s=302_400.0 + (ix * ny + iy) * 3600.0)
+    trajs = build_trajectories(scene.roads, tp, r_traj, truth=seen.truth)
+    if p.image_every_m > 0:
+        run.images(out / "images", seen, trajs, p.image_every_m, p.image_size, r_cam, origin, f"{ix:02d}{iy:02d}_")
     name = f"Tile_{ix:+04d}_{iy:+04d}" if p.tiled_mesh else "mvs"
     if run.coarse_mesh:
         from .coarse import make_coarse_mesh
@@ -315,16 +300,16 @@ def _write_tile(run: _SynthRun, ix: int, iy: int) -> None:
     _save_npz(out / "truth" / f"{tname}_faces.npz", face_class=scene.truth.face_class,
               face_building=scene.truth.face_building)
     run.buildings += [_building_json(b, d) for b, d in zip(scene.buildings, scene.meta["buildings"])]
-    neigh = [run.scene_at(jx, jy) for jx in range(max(ix - 1, 0), min(ix + 2, nx))
-             for jy in range(max(iy - 1, 0), min(iy + 2, ny))] if p.tiled_mesh else [scene]
-    seen = _merge_scenes(neigh) if len(neigh) > 1 else scene
-    tp = TrajectoryParams(n_passes=p.n_passes, gps_start_s=302_400.0 + (ix * ny + iy) * 3600.0)
-    trajs = build_trajectories(scene.roads, tp, r_traj, truth=seen.truth)
     scan_to_laz(seen, trajs, lambda t: out / "mls" / f"strip_{ix:02d}{iy:02d}_{t.traj_id:03d}.laz",
                 run.perturb, p.mls_density_scale, r_mls, stats)
-    if p.image_every_m > 0:
-        imgs, cams = render_cameras(seen, trajs, every_m=p.image_every_m, size=p.image_size, rng=r_cam)
-        run.cameras += write_images(out / "images", imgs, cams, None, origin, prefix=f"{ix:02d}{iy:02d}_")
+
+
+def _tile_images(folder: Path, scene: Scene, trajs: list, every_m: float, size, rng, origin, prefix: str) -> list:
+    """Render and write a tile's camera images (``synth.cameras``); returns their cameras.json entries."""
+    from .cameras import render_cameras, write_images
+
+    imgs, cams = render_cameras(scene, trajs, every_m=every_m, size=size, rng=rng)
+    return write_images(folder, imgs, cams, None, origin, prefix=prefix)
 
 
 def _production_tile_m(run: _SynthRun) -> float:

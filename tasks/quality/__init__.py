@@ -8,7 +8,7 @@ campus's ``truth/truth_mesh*.ply`` (+ its ``mesh/`` input); it runs only where a
 was rebuilt, the sample spacing, tile and buffer sizes, and the stage's version.
 
 Modules: ``stats`` (mergeable sums, reports), ``metrics`` (one mesh against another), ``tiled`` (tile by
-tile, in shares), ``truth`` (a synth campus's truth, file-level figures), ``stage`` (plan, shares, cache).
+tile, in shares of one model each), ``truth`` (a synth campus's truth, file-level figures), ``stage`` (plan, shares, cache).
 """
 
 from tasks.quality.stage import (
@@ -17,9 +17,10 @@ from tasks.quality.stage import (
     quality_parts,
     quality_plan,
     run_quality_share,
+    share_name,
     truth_dir_of,
     write_quality,
 )
 
-__all__ = ["ensure_quality", "merged_tiles", "quality_parts", "quality_plan", "run_quality_share", "truth_dir_of",
-           "write_quality"]
+__all__ = ["ensure_quality", "merged_tiles", "quality_parts", "quality_plan", "run_quality_share", "share_name",
+           "truth_dir_of", "write_quality"]

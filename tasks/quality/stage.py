@@ -70,31 +70,41 @@ def merged_surface(wd: WorkDir, tiles: list[str], shift: np.ndarray) -> tuple[np
     return np.concatenate(vs), np.concatenate(fs)
 
 
-def quality_key(wd: WorkDir, truth: Path, tiles: list[str], any_rebuilt: bool, spacing_m: float = 0.05) -> dict:
+def quality_key(wd: WorkDir, truth: Path, tiles: list[str], any_rebuilt: bool, spacing_m: float = 0.10) -> dict:
     """What the cached quality figures depend on (merged tiles, truth, parameters)."""
     return {"version": QUALITY_VERSION, "merged": _merged_fingerprint(wd, tiles), "spacing_m": spacing_m,
             "tile_m": QUALITY_TILE_M, "buffer_m": QUALITY_BUFFER_M,
             "truth": file_sha256(min((truth / "truth").glob("truth_mesh*.ply"))), "rebuilt": any_rebuilt}
 
 
+MODELS = ("merged model", "input mesh")  # what quality measures: the merged model, the input mesh if rebuilt
+
+
 def quality_share(wd: WorkDir, truth: Path, origin: np.ndarray, tiles: list[str], any_rebuilt: bool,
-                  part: tuple[int, int], spacing_m: float = 0.05) -> dict:
+                  part: tuple, spacing_m: float = 0.10) -> dict:
     """The mergeable quality sums of one share of the quality tiles (``tasks.quality.tiled.evaluate_tiles``):
     {model name: QualityPartial or None}. Shares run as separate tasks; their sums add up exactly.
-    origin: (3,) float64 world metres of the campus frame."""
+    part: (k, n) the k-th of n shares of the tiles, of every model; (k, n, model) of one of :data:`MODELS`
+    (a share then reads only that model's mesh). origin: (3,) float64 world metres of the campus frame."""
     from tasks.quality.metrics import facade_mask  # late: open3d loads only where quality is measured
     from tasks.quality.tiled import evaluate_tiles
     from tasks.quality.truth import CLASS_NAMES, load_truth
 
     tv, tf, tc, t_origin = load_truth(truth)
+    models = MODELS if any_rebuilt else MODELS[:1]
+    if len(part) > 2:
+        models = [m for m in models if m == part[2]]
     kw = {"tile_size_m": QUALITY_TILE_M, "buffer_m": QUALITY_BUFFER_M, "spacing_m": spacing_m,
-          "true_face_mask": facade_mask(tc), "true_face_class": tc, "class_names": CLASS_NAMES, "part": part}
-    v, f = merged_surface(wd, tiles, origin - t_origin)
-    out = {"merged model": evaluate_tiles(v, f, tv - t_origin, tf, **kw)[0]}
-    del v, f
-    if any_rebuilt:
+          "true_face_mask": facade_mask(tc), "true_face_class": tc, "class_names": CLASS_NAMES,
+          "part": tuple(part[:2])}
+    out = {}
+    if MODELS[0] in models:
+        v, f = merged_surface(wd, tiles, origin - t_origin)
+        out[MODELS[0]] = evaluate_tiles(v, f, tv - t_origin, tf, **kw)[0]
+        del v, f
+    if MODELS[1] in models:
         mesh = read_mesh(truth / "mesh", offset=t_origin)
-        out["input mesh"] = evaluate_tiles(mesh.vertices - t_origin, mesh.faces, tv - t_origin, tf, **kw)[0]
+        out[MODELS[1]] = evaluate_tiles(mesh.vertices - t_origin, mesh.faces, tv - t_origin, tf, **kw)[0]
     return out
 
 
@@ -115,7 +125,7 @@ def write_quality(wd: WorkDir, key: dict, shares: list[dict]) -> dict:
 
 
 def ensure_quality(wd: WorkDir, truth: Path, origin: np.ndarray, tiles: list[str], any_rebuilt: bool,
-                   spacing_m: float = 0.05) -> dict:
+                   spacing_m: float = 0.10) -> dict:
     """The quality figures of the merged model (and of the input mesh when regions were rebuilt) against the
     truth (see :func:`write_quality`), computed (in this process) when ``report/quality.json`` does not hold
     them already."""
@@ -128,30 +138,49 @@ def ensure_quality(wd: WorkDir, truth: Path, origin: np.ndarray, tiles: list[str
 
 
 def quality_plan(cfg, wd: WorkDir) -> dict | None:
-    """What a parallel quality run needs ({"key", "truth", "tiles", "rebuilt"}), or None when there is no
-    truth, no merged tile, or the cache is already up to date."""
+    """What a parallel quality run needs ({"key", "truth", "tiles", "rebuilt", "spacing_m"}), or None when
+    there is no truth, no merged tile, or the cache is already up to date (cfg: CampusConfig; the sample
+    spacing is ``cfg.report.quality_spacing_m``)."""
     truth = truth_dir_of(cfg)
     tiles = merged_tiles(wd)
     if truth is None or not tiles:
         return None
     rebuilt = any_rebuilt_region(wd, tiles)
-    key = quality_key(wd, truth, tiles, rebuilt)
+    spacing = float(cfg.report.quality_spacing_m)
+    key = quality_key(wd, truth, tiles, rebuilt, spacing)
     path = wd.report_dir / "quality.json"
     if path.exists() and json.loads(path.read_text()).get("key") == key:
         return None
-    return {"key": key, "truth": str(truth), "tiles": tiles, "rebuilt": rebuilt}
+    return {"key": key, "truth": str(truth), "tiles": tiles, "rebuilt": rebuilt, "spacing_m": spacing}
 
 
-def quality_parts(plan: dict | None, n_workers: int) -> list[tuple[int, int]]:
-    """The shares (k, n) the flow runs for ``plan``: one per worker, none without a plan.
+def quality_parts(plan: dict | None, n_workers: int) -> list[tuple[int, int, str]]:
+    """The shares (k, n, model) the flow runs for ``plan``: about one per worker, each of one model (so a share
+    reads one mesh: the merged tiles or the input mesh), none without a plan.
 
-    >>> quality_parts({"tiles": ["0_0"]}, 3), quality_parts(None, 3)
-    ([(0, 3), (1, 3), (2, 3)], [])
+    >>> quality_parts({"tiles": ["0_0"], "rebuilt": True}, 2)
+    [(0, 1, 'merged model'), (0, 1, 'input mesh')]
+    >>> quality_parts({"tiles": ["0_0"], "rebuilt": False}, 2), quality_parts(None, 3)
+    ([(0, 2, 'merged model'), (1, 2, 'merged model')], [])
     """
-    return [(k, n_workers) for k in range(n_workers)] if plan else []
+    if not plan:
+        return []
+    models = MODELS if plan.get("rebuilt") else MODELS[:1]
+    n = max(1, n_workers // len(models))
+    return [(k, n, m) for m in models for k in range(n)]
 
 
-def run_quality_share(cfg, wd: WorkDir, plan: dict, part: tuple[int, int]) -> dict:
+def share_name(part: tuple) -> str:
+    """The manifest unit of a quality share.
+
+    >>> share_name((0, 1, "input mesh")), share_name((1, 2))
+    ('share-0-of-1-input', 'share-1-of-2')
+    """
+    return f"share-{part[0]}-of-{part[1]}" + (f"-{part[2].split()[0]}" if len(part) > 2 else "")
+
+
+def run_quality_share(cfg, wd: WorkDir, plan: dict, part: tuple) -> dict:
     """:func:`quality_share` of ``part`` for a plan of :func:`quality_plan`."""
     origin = campus_frame(read_campus(wd)).origin_array
-    return quality_share(wd, Path(plan["truth"]), origin, plan["tiles"], plan["rebuilt"], part)
+    return quality_share(wd, Path(plan["truth"]), origin, plan["tiles"], plan["rebuilt"], part,
+                         float(plan.get("spacing_m", 0.10)))

@@ -24,14 +24,15 @@ region renders) and the patches of the regions it renders.
 from __future__ import annotations
 
 import datetime
+import json
 import logging
 import time
 from collections.abc import Callable
 from pathlib import Path
 
-from storage.atomic import write_bytes_atomic
+from storage.atomic import write_bytes_atomic, write_json_atomic
 from storage.errors import InputError
-from storage.manifest import all_records
+from storage.manifest import all_records, combine_fingerprints
 from storage.workdir import WorkDir, campus_frame, read_campus
 from tasks.classify import grading_threshold
 from tasks.quality import ensure_quality, merged_tiles, truth_dir_of
@@ -66,6 +67,49 @@ def _written(sec: Section, folder: Path) -> Section:
     return sec
 
 
+REGIONS_VERSION = 1  # bumped whenever the region renders change for the same inputs
+_REGION_INPUTS = ("partition", "classify", "merge")  # what the renders read: stores, grades, merged tiles
+
+
+def _regions_key(records: list, tiles: list[str], grid_json: dict) -> str:
+    """What the region renders depend on: the store, grade and merged-tile records of ``tiles``, the grid."""
+    parts = [json.dumps([r.stage, r.unit, r.fingerprint, r.params_hash]) for r in records
+             if r.stage in _REGION_INPUTS and r.unit in tiles]
+    return combine_fingerprints(sorted(parts) + [json.dumps([REGIONS_VERSION, tiles, grid_json], sort_keys=True)])
+
+
+def _regions_doc(cfg, wd: WorkDir, records: list | None) -> tuple[dict, str, list[str]]:
+    """(the kept ``section.json`` or {}, the key of the current inputs, the merged tiles)."""
+    tiles = merged_tiles(wd)
+    key = _regions_key(records if records is not None else all_records(wd), tiles, cfg.grid().to_json())
+    path = wd.report_dir / "regions" / "section.json"
+    doc = json.loads(path.read_text()) if path.exists() else {}
+    if doc.get("key") != key or not all((path.parent / f"{n}.png").exists() for n in doc.get("figures", [])):
+        doc = {}
+    return doc, key, tiles
+
+
+def region_renders_fresh(cfg, wd: WorkDir) -> bool:
+    """Whether the kept region renders match the work dir's current inputs (nothing to draw)."""
+    return bool(_regions_doc(cfg, wd, None)[0])
+
+
+def region_renders(cfg, wd: WorkDir, records: list | None = None) -> tuple[Section, bool]:
+    """The rebuilt regions' section and whether any region was rebuilt, drawn once per input state: the
+    renders go to ``report/regions/*.png`` with ``section.json`` (its key, body and figure names), and a later
+    call with the same inputs reads them back. The flow draws them beside the export; the report reuses them."""
+    doc, key, tiles = _regions_doc(cfg, wd, records)
+    folder = wd.report_dir / "regions"
+    if doc:
+        return Section(doc["title"], doc["body"], {n: (folder / f"{n}.png").read_bytes() for n in doc["figures"]}), \
+            bool(doc["any_rebuilt"])
+    sec, any_rebuilt = regions_section(wd.root / "tiles", tiles, cfg.grid(), campus_frame(read_campus(wd)).origin_array)
+    _written(sec, folder)
+    write_json_atomic(folder / "section.json", {"key": key, "title": sec.title, "body": sec.body, "figures": list(sec.figures),
+                                 "any_rebuilt": bool(any_rebuilt)})
+    return sec, any_rebuilt
+
+
 def run_report(cfg, wd: WorkDir, truth_dir: str | Path | None = None, quality: bool = True) -> dict:
     """Write ``output/report.html`` (see the module docstring) and return a summary: path, figure names,
     sections, seconds. truth_dir: a synth campus folder (default: found from the inputs); quality=False
@@ -80,9 +124,9 @@ def run_report(cfg, wd: WorkDir, truth_dir: str | Path | None = None, quality: b
     regions: list[bool] = []
 
     def regions_fn() -> Section:
-        sec, any_rebuilt = regions_section(wd.root / "tiles", tiles, grid, origin)
+        sec, any_rebuilt = region_renders(cfg, wd, records)
         regions.append(any_rebuilt)
-        return _written(sec, wd.report_dir / "regions")
+        return sec
 
     sections = [
         _guarded("Inputs and registration", lambda: inputs_section(campus, wd.root, truth)),
@@ -99,7 +143,7 @@ def run_report(cfg, wd: WorkDir, truth_dir: str | Path | None = None, quality: b
     if quality:
         rebuilt = bool(regions and regions[0])
         sections.append(_guarded("Quality against the truth", lambda: quality_section(
-            truth, tiles, lambda: ensure_quality(wd, truth, origin, tiles, rebuilt), rebuilt)))
+            truth, tiles, lambda: ensure_quality(wd, truth, origin, tiles, rebuilt, cfg.report.quality_spacing_m), rebuilt)))
     sections += [region_sec, _guarded("Output: 3D Tiles", lambda: output_section(wd.root))]
     now = datetime.datetime.now(datetime.UTC).strftime("%Y-%m-%d %H:%M UTC")
     page = render_page(f"ms3d run report: {campus.get('name', cfg.name)}",

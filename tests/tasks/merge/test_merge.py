@@ -437,6 +437,28 @@ def test_report_renders_rebuilt_regions_before_and_after(handmade):
     assert "ms3d view" in page and "merge" in page  # the stage table names the merge stage
 
 
+def test_region_renders_are_kept_and_drawn_again_when_a_merged_tile_changes(handmade, monkeypatch):
+    # the flow draws the renders beside the export; the report then reads them back unless their inputs changed
+    import tasks.report.stage as report_stage
+    from tasks.report import region_renders, region_renders_fresh
+
+    cfg, wd, tmp = handmade
+    for t in TILES:
+        run_merge_tile(t, cfg, wd, regions=[_region(cfg, tmp)])
+    assert not region_renders_fresh(cfg, wd)
+    sec, rebuilt = region_renders(cfg, wd)
+    assert rebuilt and list(sec.figures) == [f"region_{REGION:06d}"] and region_renders_fresh(cfg, wd)
+    drawn, real = [], report_stage.regions_section
+    monkeypatch.setattr(report_stage, "regions_section", lambda *a: drawn.append(1) or real(*a))
+    kept, _ = region_renders(cfg, wd)
+    assert not drawn and kept.figures == sec.figures and kept.body == sec.body
+    for t in TILES:  # merged again without the region: the kept renders are stale
+        run_merge_tile(t, cfg, wd, regions=[])
+    assert not region_renders_fresh(cfg, wd)
+    now, rebuilt_now = region_renders(cfg, wd)
+    assert drawn and not rebuilt_now and not now.figures
+
+
 def test_tiny_campus_report_names_its_figures_and_caches_quality(tiny_merged_run, tmp_path):
     from tasks.export import run_export
     from tasks.report import run_report
