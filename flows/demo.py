@@ -17,24 +17,33 @@ def _has_campus(out: Path, preset: str, seed: int) -> bool:
 
 def run_demo(out: Path, work: Path, seed: int = 7, preset: str = "demo") -> int:
     from flows.campus import CampusRunFailed, run_campus
+    from flows.runtime import PrefectServer, embedded_prefect
     from flows.status import campus_status, format_status
     from flows.summary import format_summary
+    from storage.workdir import WorkDir
     from synth.generate import generate
     from tasks.config import CampusConfig
 
     out, work = out.absolute(), work.absolute()
     t0 = time.perf_counter()
-    if _has_campus(out, preset, seed):
-        print(f"[1/3] demo campus already generated in {out}")
-    else:
-        print(f"[1/3] generating the '{preset}' campus (seed {seed}) in {out} ...", flush=True)
-        generate(preset, seed=seed, out=out, overwrite=True)
-        print(f"      done in {time.perf_counter() - t0:.0f} s")
+    prefect_dir = WorkDir(work).prefect_dir
+    server = PrefectServer(prefect_dir).launch()  # it starts (~10 s) while the campus is generated
+    try:
+        if _has_campus(out, preset, seed):
+            print(f"[1/3] demo campus already generated in {out}")
+        else:
+            print(f"[1/3] generating the '{preset}' campus (seed {seed}) in {out} ...", flush=True)
+            generate(preset, seed=seed, out=out, overwrite=True)
+            print(f"      done in {time.perf_counter() - t0:.0f} s")
+    except BaseException:
+        server.stop()
+        raise
     cfg = CampusConfig.from_yaml(out / "campus.yaml", {"work_dir": str(work)})
     print(f"[2/3] running the pipeline (embedded Prefect server + local Dask cluster) into {work} ...", flush=True)
     t1 = time.perf_counter()
     try:
-        summary = run_campus(cfg, progress=True)
+        with embedded_prefect(prefect_dir, launched=server):
+            summary = run_campus(cfg, progress=True)
         rc = 0
     except CampusRunFailed as e:
         print(str(e))

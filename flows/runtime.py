@@ -90,6 +90,11 @@ class PrefectServer:
         return [sys.executable, "-m", "flows._server", str(self.port), self.host]
 
     def start(self, timeout_s: float = 120) -> PrefectServer:
+        """Launch the server and wait until it answers (:meth:`launch`, then :meth:`wait_healthy`)."""
+        return self.launch().wait_healthy(timeout_s)
+
+    def launch(self) -> PrefectServer:
+        """Start the child process and return at once (it takes ~10 s to answer: do other work meanwhile)."""
         env = {**os.environ, **prefect_env(self.prefect_dir), "PREFECT_UI_ENABLED": "0",
                "PREFECT_LOGGING_LEVEL": "WARNING"}
         env.pop("PREFECT_API_URL", None)
@@ -101,8 +106,12 @@ class PrefectServer:
             self.command(),
             env=env, stdout=self._log, stderr=subprocess.STDOUT, start_new_session=True,
         )
+        return self
+
+    def wait_healthy(self, timeout_s: float = 120) -> PrefectServer:
+        """Wait until the launched server answers; stops it (and raises) when it does not."""
         try:
-            _wait_healthy(self.api_url, self.proc, timeout_s, log_path)
+            _wait_healthy(self.api_url, self.proc, timeout_s, self.prefect_dir / "server.log")
         except BaseException:  # not healthy, or stopped (a signal) while starting: leave no server behind
             self.stop()
             raise
@@ -149,13 +158,19 @@ def drain_prefect_services(timeout_s: float = 10) -> None:
 
 
 @contextlib.contextmanager
-def embedded_prefect(prefect_dir: Path, api_url: str | None = None) -> Iterator[str]:
+def embedded_prefect(prefect_dir: Path, api_url: str | None = None,
+                     launched: PrefectServer | None = None) -> Iterator[str]:
     """Yield a reachable Prefect API URL: ``api_url`` / an inherited PREFECT_API_URL, or a new
-    local server with its database in ``prefect_dir`` (stopped on exit)."""
-    api_url = api_url or os.environ.get("PREFECT_API_URL")
+    local server with its database in ``prefect_dir`` (stopped on exit). launched: that server, already
+    launched (:meth:`PrefectServer.launch`) by a caller that had other work to do while it starts."""
+    api_url = None if launched is not None else api_url or os.environ.get("PREFECT_API_URL")
     server = None
     saved = {k: os.environ.get(k) for k in ("PREFECT_API_URL", "PREFECT_HOME", "PREFECT_API_DATABASE_CONNECTION_URL")}
-    if not api_url:
+    if launched is not None:
+        server = launched.wait_healthy()
+        api_url = server.api_url
+        os.environ.update(prefect_env(Path(prefect_dir)))
+    elif not api_url:
         server = PrefectServer(prefect_dir).start()
         api_url = server.api_url
         os.environ.update(prefect_env(Path(prefect_dir)))
