@@ -343,14 +343,19 @@ class TreeNet(nn.Module):
     def forward(self, batch: dict[str, torch.Tensor], log_kc: bool = False) -> torch.Tensor:
         x = batch["cues"].double()
         b = x.shape[0]
-        t = self.feature.shape[0]
-        node = torch.zeros(b, t, dtype=torch.int64)
-        tree = torch.arange(t).expand(b, t)
+        t, m = self.feature.shape
+        # nodes as flat indices into the (t, m) arrays: one 1-D gather per array and level, and the walk
+        # stops once every pair has reached a leaf of every tree (most trees are shallower than the deepest)
+        base = torch.arange(t, dtype=torch.int64) * m
+        feature, leaf, miss = self.feature.reshape(-1), self.is_leaf.reshape(-1), self.missing_left.reshape(-1)
+        threshold, left, right = self.threshold.reshape(-1).double(), self.left.reshape(-1), self.right.reshape(-1)
+        node = base.expand(b, t)
         for _ in range(self.depth):
-            f = self.feature[tree, node]
-            v = torch.gather(x, 1, f)
-            go_left = torch.where(torch.isnan(v), self.missing_left[tree, node], v <= self.threshold[tree, node].double())
-            nxt = torch.where(go_left, self.left[tree, node], self.right[tree, node])
-            node = torch.where(self.is_leaf[tree, node], node, nxt)
-        raw = self.value[tree, node].double().sum(1) + self.baseline.double()
+            at_leaf = leaf[node]
+            if bool(at_leaf.all()):
+                break
+            v = torch.gather(x, 1, feature[node])
+            go_left = torch.where(torch.isnan(v), miss[node], v <= threshold[node])
+            node = torch.where(at_leaf, node, torch.where(go_left, left[node], right[node]) + base)
+        raw = self.value.reshape(-1)[node].double().sum(1) + self.baseline.double()
         return torch.stack([torch.zeros_like(raw), raw], dim=1).float()

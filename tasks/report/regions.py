@@ -61,17 +61,29 @@ def regions_section(tiles_dir: Path, tiles: list[str], grid: PatchGrid, origin: 
         return sec, False
     shown = sorted(boxes, key=lambda r: -boxes[r]["faces"])[:MAX_REGION_RENDERS]
     rows = []
+    kept: dict[str, tuple] = {}
+
+    def merged(key: str) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """A merged tile's (triangles (m, 3, 3) float32, rebuilt (m,) bool, centroids (m, 3) float32), read
+        once while it is among the last two tiles read."""
+        if key not in kept:
+            while len(kept) >= 2:
+                kept.pop(next(iter(kept)))
+            tm = read_tile_mesh(tiles_dir / key)
+            tri = tm.vertices[tm.faces]
+            kept[key] = (tri, tm.source == SOURCE_REBUILT, tri.mean(axis=1))
+        return kept[key]
+
     for r in shown:
         b = boxes[r]
         lo, hi = b["lo"] - REGION_MARGIN_M, b["hi"] + REGION_MARGIN_M
         before_tri, before_col, after_tri, after_col = [], [], [], []
         near = {TileId.from_key(k) for k in tiles} & set(_tiles_for_box(grid, origin, lo, hi))
         for t in sorted(near):
-            tm = read_tile_mesh(tiles_dir / t.key)
-            tri = tm.vertices[tm.faces]
-            sel = _in_box(tri, lo, hi)
+            tri, rebuilt, centre = merged(t.key)
+            sel = ((centre >= lo) & (centre <= hi)).all(axis=1)
             after_tri.append(tri[sel])
-            after_col.append(np.where((tm.source[sel] == SOURCE_REBUILT)[:, None], REBUILT_COLOUR, MESH_COLOUR))
+            after_col.append(np.where(rebuilt[sel][:, None], REBUILT_COLOUR, MESH_COLOUR))
             tri_b, bad = _store_faces_in_box(tiles_dir / t.key, lo, hi)
             before_tri.append(tri_b)
             before_col.append(np.where(bad[:, None], BAD_COLOUR, MESH_COLOUR))

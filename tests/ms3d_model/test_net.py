@@ -196,6 +196,25 @@ def test_gbm_ships_as_a_tree_net_with_the_same_probabilities(tmp_path):
     np.testing.assert_allclose(p, gbm_p_bad(clf, x), atol=1e-6)
 
 
+def test_the_tree_walk_equals_sklearn_with_missing_cues_and_trees_of_unequal_depth():
+    # the walk stops early once every pair is at a leaf of every tree; NaN cues follow each node's
+    # missing-value branch: both must give sklearn's probabilities exactly where trees differ in depth
+    from ms3d_model.gbm import fit_gbm, gbm_p_bad, tree_arrays, tree_depth
+
+    rng = np.random.default_rng(3)
+    x = rng.normal(size=(800, N_CUES)).astype(np.float32)
+    y = ((x[:, 0] > 0.3) ^ (x[:, 2] * x[:, 4] > 0.1)).astype(np.int64)
+    x[rng.random(x.shape) < 0.15] = np.nan
+    clf = fit_gbm(x, y, max_iter=40, max_leaf_nodes=31)
+    arrays = tree_arrays(clf)
+    leaves = arrays["is_leaf"].sum(axis=1)
+    assert leaves.min() < leaves.max() and np.isnan(x).any()  # unequal trees, missing cues: the cases tested
+    net = build_net(replace(TINY.net, arch="gbm", n_cues=N_CUES, tree_depth=tree_depth(arrays)),
+                    {k: torch.from_numpy(v) for k, v in arrays.items()})
+    p = torch.softmax(net({"cues": torch.from_numpy(x)}), 1)[:, 1].numpy()
+    np.testing.assert_allclose(p, gbm_p_bad(clf, x), atol=1e-6)
+
+
 def test_the_trees_follow_the_profiles_gbm_fields_and_ship_a_threshold(tmp_path):
     from flows.train import fit_tree_model
     from ms3d_model.profiles import Profile
