@@ -54,6 +54,7 @@ from tasks.batches import balanced_batches, fixed_batches
 from tasks.config import CampusConfig
 
 log = logging.getLogger("ms3d.flow")
+RECYCLE_OVER = 0.25  # restart the local workers before merge when one holds more than this share of the budget
 
 __all__ = ["CampusRunFailed", "InlineExecutor", "make_task_runner", "reprocess_campus", "reprocess_from_config",
            "run_campus", "scan_inputs"]
@@ -203,6 +204,10 @@ def _tiles(run: _Run, inputs: dict) -> dict:
     weight = dict(zip(plan["regions"], plan["weights"]))
     region_batches = balanced_batches(todo, [weight.get(k, 1.0) for k in todo], 4 * run.n_workers)
     repairs = run.note("region", unchanged + ex.map(repair_task, region_batches, "repair", cfg_json=cj).results())
+    if not cfg.cluster.address:  # our own workers: what classify and repair left must not count against merge
+        rec = ex.recycle_workers(RECYCLE_OVER * cfg.partition.memory_budget_mb)
+        if rec["restarted"]:
+            log.info("restarted %d workers before merge (one held %.0f MB)", rec["restarted"], rec["largest_mb"])
     merges = run.note("merge", map_pending(wd, ex, merge_task, tiles, "merge", batches, cfg_json=cj))
     drop_unplanned_records(wd, "merge", set(tiles))
     run.stages |= {"partition": parts, "classify": grades, "repair": repairs, "merge": merges}

@@ -26,6 +26,30 @@ class PrefectExecutor:
         self.task_runs += 1
         return tsk.submit(*args)
 
+    def recycle_workers(self, over_mb: float) -> dict:
+        """Restart the flow's Dask workers (between stages, nothing running) when one of them holds more than
+        ``over_mb`` of RSS: what earlier stages left (torch, Arrow and glibc pools) then no longer counts
+        against a later stage's peak. Returns {"restarted": number of workers, "largest_mb": RSS before}."""
+        from prefect.context import FlowRunContext
+
+        runner = getattr(FlowRunContext.get(), "task_runner", None)
+        try:
+            client = runner.client
+            rss = client.run(_rss_mb)
+        except Exception:  # noqa: BLE001 - not a Dask runner, or no cluster to ask: nothing to recycle
+            return {"restarted": 0, "largest_mb": 0.0}
+        largest = max(rss.values(), default=0.0)
+        if largest <= over_mb:
+            return {"restarted": 0, "largest_mb": largest}
+        client.restart(wait_for_workers=True)
+        return {"restarted": len(rss), "largest_mb": largest}
+
+
+def _rss_mb() -> float:
+    import psutil
+
+    return psutil.Process().memory_info().rss / 2**20
+
 
 class _Mapped:
     def __init__(self, batches, futs, label, progress):
@@ -43,6 +67,9 @@ class InlineExecutor:
 
     def submit(self, tsk, *args) -> _Done:
         return _Done(tsk.fn(*args))
+
+    def recycle_workers(self, over_mb: float) -> dict:
+        return {"restarted": 0, "largest_mb": 0.0}  # no worker processes
 
 
 class _Done:
