@@ -33,8 +33,10 @@ class PrefectExecutor:
         from prefect.context import FlowRunContext
 
         runner = getattr(FlowRunContext.get(), "task_runner", None)
+        client = getattr(runner, "_client", None)  # None until a task ran (a no-op rerun starts no cluster)
+        if client is None:
+            return {"restarted": 0, "largest_mb": 0.0}
         try:
-            client = runner.client
             rss = client.run(_rss_mb)
         except Exception:  # noqa: BLE001 - not a Dask runner, or no cluster to ask: nothing to recycle
             return {"restarted": 0, "largest_mb": 0.0}
