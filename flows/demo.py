@@ -35,10 +35,10 @@ def run_demo(out: Path, work: Path, seed: int = 7, preset: str = "demo") -> int:
             print(f"[1/3] generating the '{preset}' campus (seed {seed}) in {out} ...", flush=True)
             generate(preset, seed=seed, out=out, overwrite=True)
             print(f"      done in {time.perf_counter() - t0:.0f} s")
-    except BaseException:
+        cfg = CampusConfig.from_yaml(out / "campus.yaml", {"work_dir": str(work)})
+    except BaseException:  # the server must not outlive a failed generation
         server.stop()
         raise
-    cfg = CampusConfig.from_yaml(out / "campus.yaml", {"work_dir": str(work)})
     print(f"[2/3] running the pipeline (embedded Prefect server + local Dask cluster) into {work} ...", flush=True)
     t1 = time.perf_counter()
     try:
