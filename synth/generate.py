@@ -197,6 +197,7 @@ class _SynthRun:
             from concurrent.futures import ThreadPoolExecutor
 
             self.pool = ThreadPoolExecutor(1, thread_name_prefix="synth-images")
+        self.collect_images()  # at most one tile pending: its scene is the only one the thread keeps alive
         self.image_jobs.append(self.pool.submit(_tile_images, *args))
 
     def collect_images(self) -> None:
