@@ -129,9 +129,31 @@ class PrefectServer:
             self._log.close()
 
 
+# glibc's heap settings for the Dask worker processes. Dask's nanny sets MALLOC_TRIM_THRESHOLD_=65536 before it
+# spawns a worker, which also freezes glibc's mmap threshold at 128 kB: every numpy array above it is mapped and
+# unmapped again, each page faulted in anew. Measured on the demo's densest tile, grading took 22.8 s with it
+# against 16.8 s without (sys 7.0 s, 2.3 M page faults, against 2.1 s, 0.36 M), with the same peak RSS. These
+# are glibc's own dynamic defaults at their ceiling; every unit hands its freed heap back at its start
+# (``tasks.units``), so a worker does not hold on to memory between units. A variable set in the
+# environment wins (Dask reads it from there first).
+WORKER_MALLOC_ENV = {"MALLOC_TRIM_THRESHOLD_": str(64 << 20), "MALLOC_MMAP_THRESHOLD_": str(32 << 20)}
+
+
+def worker_spawn_environ() -> dict:
+    """Set :data:`WORKER_MALLOC_ENV` in Dask's ``distributed.nanny.pre-spawn-environ`` (process-wide: nannies
+    read it when they start their worker) and return the resulting mapping."""
+    import dask
+
+    env = {**dask.config.get("distributed.nanny.pre-spawn-environ", {}), **WORKER_MALLOC_ENV}
+    dask.config.set({"distributed.nanny.pre-spawn-environ": env})
+    return env
+
+
 def local_cluster_kwargs(n_workers: int, threads_per_worker: int, memory_limit) -> dict:
     """Keyword arguments of the local ``distributed.LocalCluster``: worker processes, scheduler and
-    workers on 127.0.0.1, no dashboard, and this module as the workers' preload (:func:`dask_setup`)."""
+    workers on 127.0.0.1, no dashboard, and this module as the workers' preload (:func:`dask_setup`).
+    Also sets the workers' heap settings (:func:`worker_spawn_environ`)."""
+    worker_spawn_environ()
     return {"n_workers": n_workers, "threads_per_worker": threads_per_worker, "processes": True,
             "memory_limit": memory_limit, "host": LOOPBACK, "dashboard_address": None,
             "preload": [__name__]}

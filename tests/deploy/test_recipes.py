@@ -259,3 +259,16 @@ def test_slurm_cluster_script_prints_the_job_script_and_rejects_bad_configs(tmp_
         assert mod.main(["--config", str(p)]) == 2, name
         err = capsys.readouterr().err.strip().splitlines()
         assert len(err) == 1 and str(p) in err[0] and "Traceback" not in err[0], (name, err)
+
+
+def test_every_recipes_workers_start_with_the_heap_settings_of_local_workers():
+    """A cluster's workers get the glibc settings local workers get (flows/runtime.py WORKER_MALLOC_ENV), not
+    Dask's MALLOC_TRIM_THRESHOLD_=65536 (a third more time in numpy-heavy units)."""
+    from flows.runtime import WORKER_MALLOC_ENV
+
+    c = _pod_spec(_by_name("Deployment", "dask-worker"))["containers"][0]
+    k8s = {e["name"]: e.get("value") for e in c["env"]}
+    compose = _docs(DEPLOY / "compose.yaml")[0]["services"]["worker"]["environment"]
+    prologue = " ".join(_docs(DEPLOY / "slurm_cluster.yaml")[0]["cluster"]["job_script_prologue"])
+    for k, v in WORKER_MALLOC_ENV.items():
+        assert k8s[k] == v and compose[k] == v and f"{k}={v}" in prologue, k
