@@ -23,13 +23,13 @@ row at pixel centres; radial-tangential lens distortion applied, ``storage.camer
 
 from __future__ import annotations
 
-import maxflow
 import numpy as np
 
 from storage.cameras import Camera
 
 from tasks.repair.atlas import NO_VIEW, Atlas, build_atlas
 from tasks.repair.chart import edges_of, undirected_key
+from tasks.repair.views import select_views, select_views_sparse  # noqa: F401  (select_views: re-exported)
 
 
 # A view is a storage.cameras.Camera: K, distortion (k1, k2, p1, p2, k3), R world(campus-local)-to-camera,
@@ -80,31 +80,40 @@ def smooth_face_normals(xyz: np.ndarray, faces: np.ndarray, adjacency: np.ndarra
 
 
 def view_quality(xyz: np.ndarray, faces: np.ndarray, cams: list[CameraView], *, max_angle_deg: float,
-                 max_distance_m: float, margin_px: float = 2.0, normals: np.ndarray | None = None) -> np.ndarray:
-    """(m, c) float64 quality cos(angle) (f / d)² of each camera for each face; 0 where not a candidate
-    (behind, too oblique, too far, or a corner outside the image). normals: (m, 3) to use for the angle
-    (default the faces' own)."""
+                 max_distance_m: float, margin_px: float = 2.0, normals: np.ndarray | None = None
+                 ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """The candidate views of each face and their quality cos(angle) (f / d)²: (face, camera, q), (k,) each
+    (int64, int64, float64), by face then camera. A candidate is in front, not too oblique, near enough, and
+    has the face's three corners inside the image. normals: (m, 3) to use for the angle (default the faces'
+    own)."""
     cen, nrm, _ = face_geometry(xyz, faces)
     if normals is not None:
         nrm = normals
-    q = np.zeros((len(faces), len(cams)))
     cmin = np.cos(np.radians(max_angle_deg))
-    tri = np.asarray(xyz, np.float64)[faces].reshape(-1, 3)
+    tri = np.asarray(xyz, np.float64)[faces]
+    fi, ci, qv = [], [], []
     for j, cam in enumerate(cams):
         v = cam.centre - cen
         d = np.linalg.norm(v, axis=1)
         cos = np.einsum("ij,ij->i", v, nrm) / np.maximum(d, 1e-12)
-        ok = (cos >= cmin) & (d <= max_distance_m)
-        if not ok.any():
+        ok = np.flatnonzero((cos >= cmin) & (d <= max_distance_m))
+        if not len(ok):
             continue
-        uv, z = cam.project(tri)
+        uv, z = cam.project(tri[ok].reshape(-1, 3))  # only the faces that face the camera, near enough
         uv, z = uv.reshape(-1, 3, 2), z.reshape(-1, 3)
         inside = ((z > 0.1) & (uv[..., 0] >= margin_px) & (uv[..., 0] <= cam.width - 1 - margin_px)
                   & (uv[..., 1] >= margin_px) & (uv[..., 1] <= cam.height - 1 - margin_px)).all(axis=1)
-        ok &= inside
-        f = cam.K[0, 0]
-        q[ok, j] = cos[ok] * (f / d[ok]) ** 2
-    return q
+        ok = ok[inside]
+        q = cos[ok] * (cam.K[0, 0] / d[ok]) ** 2
+        ok = ok[q > 0]
+        fi.append(ok)
+        ci.append(np.full(len(ok), j, np.int64))
+        qv.append(q[q > 0])
+    if not fi:
+        return np.zeros(0, np.int64), np.zeros(0, np.int64), np.zeros(0)
+    fi, ci, qv = np.concatenate(fi), np.concatenate(ci), np.concatenate(qv)
+    order = np.lexsort((ci, fi))
+    return fi[order], ci[order], qv[order]
 
 
 def visible(scene, origins: np.ndarray, targets: np.ndarray, centre: np.ndarray, slack_m: float = 0.05) -> np.ndarray:
@@ -149,88 +158,6 @@ def _shared_edge_length(xyz: np.ndarray, faces: np.ndarray, adjacency: np.ndarra
     idx = np.argsort(~common, axis=1, kind="stable")[:, :2]
     v = np.take_along_axis(fa, idx, axis=1)
     return np.linalg.norm(np.asarray(xyz, np.float64)[v[:, 0]] - np.asarray(xyz, np.float64)[v[:, 1]], axis=1)
-
-
-def _add_unary(g, nodes, cost0: np.ndarray, cost1: np.ndarray) -> None:
-    """Unary cost of x=0 (source side) and x=1 (sink side)."""
-    m = np.minimum(cost0, cost1)
-    g.add_grid_tedges(nodes, cost1 - m, cost0 - m)
-
-
-def _expansion_move(c: np.ndarray, lab: np.ndarray, alpha: int, a: np.ndarray, b: np.ndarray, w: np.ndarray,
-                    allowed: np.ndarray) -> np.ndarray:
-    """One alpha-expansion move: the labels after the faces that lower the energy most switch to ``alpha``.
-
-    c: (m, L) data costs; lab: (m,) current labels; (a, b): (e,) adjacent face pairs with Potts weights w;
-    allowed: (m,) faces that may take ``alpha``. Only faces that may switch (allowed, not already alpha)
-    are graph nodes; an edge to a face that keeps its label becomes a unary term of the other end (its
-    cost if it keeps vs if it switches), which is exact: the fixed end's variable is 0 in every cut. A
-    camera sees a fraction of a region, so most graphs are small."""
-    m = len(lab)
-    cand = allowed & (lab != alpha)
-    nc = int(cand.sum())
-    if nc == 0:
-        return lab
-    node = np.full(m, -1, np.int64)
-    node[cand] = np.arange(nc)
-    fa, fb = cand[a], cand[b]
-    la, lb = lab[a], lab[b]
-    e00 = w * (la != lb)
-    e01 = w * (la != alpha)  # a keeps, b switches
-    e10 = w * (lb != alpha)  # a switches, b keeps
-    keep = c[cand, lab[cand]].astype(np.float64)
-    switch = c[cand, alpha].astype(np.float64)
-    one_a, one_b = fa & ~fb, fb & ~fa  # an edge to a face that keeps: a unary term of its candidate end
-    keep += np.bincount(node[a[one_a]], e00[one_a], nc) + np.bincount(node[b[one_b]], e00[one_b], nc)
-    switch += np.bincount(node[a[one_a]], e10[one_a], nc) + np.bincount(node[b[one_b]], e01[one_b], nc)
-    both = fa & fb
-    na, nb = node[a[both]], node[b[both]]
-    e00, e01, e10 = e00[both], e01[both], e10[both]
-    # E = e00 + (e10 - e00) x_a + (0 - e10) x_b + (e01 + e10 - e00) (1 - x_a) x_b
-    switch += np.bincount(na, e10 - e00, nc) + np.bincount(nb, -e10, nc)
-    g = maxflow.Graph[float](nc, len(na))
-    nodes = g.add_nodes(nc)
-    _add_unary(g, nodes, keep, switch)  # x = 1 (sink): switch to alpha; x = 0 (source): keep
-    g.add_edges(na.astype(np.int32), nb.astype(np.int32), np.maximum(e01 + e10 - e00, 0), np.zeros(len(na)))
-    g.maxflow()
-    new = lab.copy()
-    new[np.flatnonzero(cand)[g.get_grid_segments(nodes)]] = alpha
-    return new
-
-
-def select_views(cost: np.ndarray, adjacency: np.ndarray, seam_weight, cycles: int = 3) -> np.ndarray:
-    """Seam-aware view labels: argmin sum_f cost[f, l_f] + sum_{(f, g) adjacent, l_f != l_g} seam_weight_fg.
-
-    cost: (m, L) float64 data costs, np.inf where a label is not allowed (every face must allow at
-    least one: the caller's last column is the 'no view' label). adjacency: (e, 2) face pairs;
-    seam_weight: a scalar or (e,) per adjacent pair.
-    Alpha-expansion (Boykov, Veksler & Zabih 2001): for each label alpha, one s-t min-cut decides which
-    faces switch to alpha; Potts is a metric, so each move is exact. Returns (m,) int64 labels.
-    """
-    m, nl = cost.shape
-    big = 1e9
-    c = np.where(np.isfinite(cost), cost, big)
-    lab = np.argmin(c, axis=1)
-    w = np.broadcast_to(np.asarray(seam_weight, np.float64), (len(adjacency),))
-    if len(adjacency) == 0 or not (w > 0).any() or nl == 1:
-        return lab
-    a, b = adjacency[:, 0], adjacency[:, 1]
-
-    def energy(lb):
-        return c[np.arange(m), lb].sum() + w[lb[a] != lb[b]].sum()
-
-    best = energy(lab)
-    labels = [int(x) for x in range(nl) if np.isfinite(cost[:, x]).any()]
-    for _ in range(cycles):
-        improved = False
-        for alpha in labels:
-            new = _expansion_move(c, lab, alpha, a, b, w, np.isfinite(cost[:, alpha]))
-            en = energy(new)
-            if en < best - 1e-9:
-                best, lab, improved = en, new, True
-        if not improved:
-            break
-    return lab
 
 
 # ------------------------------------------------------------------------------------- fallback colours
@@ -281,9 +208,8 @@ def texture_mesh(xyz: np.ndarray, faces: np.ndarray, cams: list[CameraView], loa
         return Atlas(None, np.full((m, 3, 2), np.nan, np.float32), np.full(m, NO_VIEW), 0), stats
     adj = face_adjacency(faces, len(xyz))
     nrm = smooth_face_normals(xyz, faces, adj)
-    q = view_quality(xyz, faces, cams, max_angle_deg=cfg.max_view_angle_deg, max_distance_m=cfg.max_distance_m,
-                     normals=nrm)
-    fi, ci = np.nonzero(q > 0)
+    fi, ci, q = view_quality(xyz, faces, cams, max_angle_deg=cfg.max_view_angle_deg,
+                             max_distance_m=cfg.max_distance_m, normals=nrm)
     stats["candidates"] = len(fi)
     cen, _, _ = face_geometry(xyz, faces)
     centre = cen.mean(axis=0)
@@ -299,19 +225,20 @@ def texture_mesh(xyz: np.ndarray, faces: np.ndarray, cams: list[CameraView], loa
     origins = cen[fi] + 0.03 * nrm[fi] + 0.25 * ray / np.maximum(np.linalg.norm(ray, axis=1), 1e-9)[:, None]
     vis = visible(scene, origins, targets, centre)
     stats["occluded"] = int((~vis).sum())
-    q_vis = np.zeros_like(q)
-    q_vis[fi[vis], ci[vis]] = q[fi[vis], ci[vis]]
-    best = q_vis.max(axis=1)
-    cost = np.full((m, len(cams) + 1), np.inf)
+    fi, ci, q = fi[vis], ci[vis], q[vis]
+    best = np.zeros(m)
+    np.maximum.at(best, fi, q)
     seen = best > 0
-    cost[seen, :-1] = np.where(q_vis[seen] > 0, 1.0 - q_vis[seen] / best[seen, None], np.inf)
-    cost[:, -1] = np.where(seen, np.inf, 0.0)  # 'no view' only for faces no camera sees
+    unseen = np.flatnonzero(~seen)  # 'no view' only for faces no camera sees
     # resolution independent: data cost per unit area, seam cost per unit length (both relative to the mean)
     _, _, area = face_geometry(xyz, faces)
-    wa = np.maximum(area / max(area.mean(), 1e-12), 1e-6)[:, None]
-    cost = np.where(np.isfinite(cost), cost * wa, np.inf)
+    wa = np.maximum(area / max(area.mean(), 1e-12), 1e-6)
+    face = np.concatenate([fi, unseen])
+    label = np.concatenate([ci, np.full(len(unseen), len(cams), np.int64)])
+    cost = np.concatenate([(1.0 - q / best[fi]) * wa[fi], 0.0 * wa[unseen]])
     shared = _shared_edge_length(xyz, faces, adj)
-    lab = select_views(cost, adj, cfg.seam_weight * shared / max(shared.mean(), 1e-12) if len(adj) else 0.0)
+    lab = select_views_sparse(m, face, label, cost, adj,
+                              cfg.seam_weight * shared / max(shared.mean(), 1e-12) if len(adj) else 0.0)
     lab = np.where(lab == len(cams), NO_VIEW, lab)
     stats["seen_faces"] = int(seen.sum())
     stats["views_used"] = len(np.unique(lab[lab != NO_VIEW]))

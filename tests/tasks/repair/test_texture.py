@@ -10,8 +10,10 @@ from tasks.repair.texture import (
     cameras_to_frame,
     select_views,
     texture_mesh,
+    view_quality,
     voxel_boxes,
 )
+from tasks.repair.views import select_views_sparse
 
 K = np.array([[500.0, 0, 499.5], [0, 500.0, 499.5], [0, 0, 1]])
 
@@ -146,3 +148,51 @@ def test_expansion_moves_on_the_faces_that_may_switch_reach_the_whole_graph_ener
         assert e == np.float64(e_ref) or abs(e - e_ref) < 1e-9 * max(1.0, e_ref)
         changed += int((lab != np.argmin(c, axis=1)).any())
     assert changed > 30  # the seams mattered: the moves did something in most cases
+
+
+def test_view_candidates_are_the_faces_each_camera_sees_whole_and_near():
+    """The sparse candidates equal a check of every (face, camera) pair: in front, within the angle and the
+    distance, all three corners inside the image (2 px margin)."""
+    rng = np.random.default_rng(3)
+    v, f = wall_quads(*[[0, y, z] for y in np.arange(-4, 5, 1.0) for z in (0.5, 1.5, 2.5)])
+    v = v + rng.normal(0, 0.05, v.shape)
+    cams = [camera_at(np.array([float(x), float(y), 1.6]), [0, float(y + dy), 1.5], f"c{i}")
+            for i, (x, y, dy) in enumerate([(6, 0, 0), (3, -3, 2), (12, 4, -1), (2, 6, -6), (-5, 0, 0), (25, 0, 0)])]
+    fi, ci, q = view_quality(v, f, cams, max_angle_deg=70.0, max_distance_m=20.0)
+    tri = v[f]
+    cen = tri.mean(axis=1)
+    n = np.cross(tri[:, 1] - tri[:, 0], tri[:, 2] - tri[:, 0])
+    n /= np.linalg.norm(n, axis=1)[:, None]
+    want = {}
+    for j, cam in enumerate(cams):
+        for i in range(len(f)):
+            d = cam.centre - cen[i]
+            cos = d @ n[i] / np.linalg.norm(d)
+            uv, z = cam.project(tri[i])
+            inside = (z > 0.1).all() and (uv >= 2).all() and (uv[:, 0] <= 997).all() and (uv[:, 1] <= 997).all()
+            if cos >= np.cos(np.radians(70.0)) and np.linalg.norm(d) <= 20.0 and inside:
+                want[(i, j)] = cos * (500.0 / np.linalg.norm(d)) ** 2
+    assert 20 < len(want) < len(f) * len(cams) - 20  # some pairs in, some out
+    assert list(zip(fi.tolist(), ci.tolist())) == sorted(want)  # by face, then camera
+    np.testing.assert_allclose(q, [want[k] for k in sorted(want)], rtol=1e-12)
+
+
+def test_sparse_view_selection_takes_entries_in_any_order_and_needs_a_label_per_face():
+    rng = np.random.default_rng(5)
+    n = 12
+    ii = np.arange(n * n).reshape(n, n)
+    adj = np.concatenate([np.c_[ii[:, :-1].ravel(), ii[:, 1:].ravel()], np.c_[ii[:-1].ravel(), ii[1:].ravel()]])
+    cost = rng.random((n * n, 5)) * 3
+    cost[rng.random(cost.shape) < 0.6] = np.inf
+    cost[:, -1] = 4.0
+    face, label = np.nonzero(np.isfinite(cost))
+    order = rng.permutation(len(face))
+    lab = select_views_sparse(n * n, face[order], label[order], cost[face, label][order], adj, 0.8)
+    assert (lab == select_views(cost, adj, 0.8)).all() and (lab != np.argmin(np.where(np.isfinite(cost), cost, 9), 1)).any()
+    keep = face != 7
+    try:
+        select_views_sparse(n * n, face[keep], label[keep], cost[face, label][keep], adj, 0.8)
+    except ValueError as e:
+        assert "at least one" in str(e)
+    else:
+        raise AssertionError("a face without a label was accepted")
