@@ -49,6 +49,35 @@ def occluder_box(lo: np.ndarray, hi: np.ndarray, cams: list[CameraView], radius_
     return box_lo, box_hi
 
 
+RAY_START_M = 0.28  # a visibility ray starts this far at most from its face's centroid (texture_mesh: 3 + 25 cm)
+
+
+def voxels_between(voxels: np.ndarray, lo: np.ndarray, hi: np.ndarray, cams: list[CameraView], voxel_m: float
+                   ) -> np.ndarray:
+    """(k,) bool: the occupied voxels that can meet a visibility ray of the region [lo, hi] to one of ``cams``.
+
+    Every ray runs from within ``RAY_START_M`` of a face centroid (inside [lo, hi]) to a camera centre C, so
+    it lies within R = half the box's diagonal + RAY_START_M of the segment from the box centre to C (the
+    point at t along a ray is (1 - t) p + t C, (1 - t) |p - b| <= R away from (1 - t) b + t C). A voxel
+    farther than R + its half-diagonal (+ 1 cm) from every such segment meets no ray: dropping it changes no
+    visibility test and spares building it into the scene (most of a small region's box of occluders).
+    voxels: (k, 3) float64 centres, campus-local metres."""
+    keep = np.zeros(len(voxels), bool)
+    if not len(voxels) or not cams:
+        return keep
+    b = 0.5 * (lo + hi)
+    reach = 0.5 * float(np.linalg.norm(hi - lo)) + RAY_START_M + 0.5 * np.sqrt(3.0) * voxel_m + 0.01
+    for c in np.stack([c.centre for c in cams]):
+        todo = np.flatnonzero(~keep)
+        if not len(todo):
+            break
+        d = c - b
+        t = np.clip(((voxels[todo] - b) @ d) / max(float(d @ d), 1e-12), 0.0, 1.0)
+        near = np.linalg.norm(voxels[todo] - (b + t[:, None] * d), axis=1) <= reach
+        keep[todo[near]] = True
+    return keep
+
+
 def occluder_surface(mesh: RebuiltMesh, data, voxels: np.ndarray, voxel_m: float
                      ) -> tuple[np.ndarray, np.ndarray, int]:
     """The occluders of a region: its context faces plus a box per MLS voxel that lies off the rebuilt and

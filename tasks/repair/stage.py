@@ -51,7 +51,7 @@ def _occupied_voxels(cfg: CampusConfig, wd: WorkDir, origin: np.ndarray, lo: np.
 def _texture_region(mesh, rr: RegionRead, cfg: CampusConfig, wd: WorkDir, frame, cams_all: list
                     ) -> tuple[object, np.ndarray, dict]:
     """Atlas + per-face colours of a rebuilt mesh. Returns (atlas or None, (m, 3) uint8 colours, stats)."""
-    from tasks.repair.region_texture import cameras_near, fallback_colors, occluder_box, texture_region
+    from tasks.repair.region_texture import cameras_near, fallback_colors, occluder_box, texture_region, voxels_between
 
     textures = rr.textures
     colors = fallback_colors(mesh, rr.input, rr.zone_attrs["uv"], rr.zone_attrs["texture"],
@@ -63,6 +63,7 @@ def _texture_region(mesh, rr: RegionRead, cfg: CampusConfig, wd: WorkDir, frame,
     cams = cameras_near(cams_all, lo, hi, tc.max_distance_m)
     box = occluder_box(lo, hi, cams, tc.occluder_radius_m)
     vox = _occupied_voxels(cfg, wd, frame.origin_array, lo, hi, box)
+    vox = vox[voxels_between(vox, lo, hi, cams, tc.occluder_voxel_m)]
     return texture_region(mesh, rr.input, cams, vox, tc, colors, image_loader(cams))
 
 

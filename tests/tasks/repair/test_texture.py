@@ -196,3 +196,42 @@ def test_sparse_view_selection_takes_entries_in_any_order_and_needs_a_label_per_
         assert "at least one" in str(e)
     else:
         raise AssertionError("a face without a label was accepted")
+
+
+def _segment_meets_box(p, q, lo, hi) -> bool:
+    """Slab test: does the segment p -> q meet the box [lo, hi]?"""
+    d = q - p
+    t0, t1 = 0.0, 1.0
+    for k in range(3):
+        if abs(d[k]) < 1e-15:
+            if p[k] < lo[k] or p[k] > hi[k]:
+                return False
+            continue
+        a, b = sorted(((lo[k] - p[k]) / d[k], (hi[k] - p[k]) / d[k]))
+        t0, t1 = max(t0, a), min(t1, b)
+        if t0 > t1:
+            return False
+    return True
+
+
+def test_occluders_dropped_before_the_scene_meet_no_visibility_ray():
+    """voxels_between keeps every voxel a ray from near a face of the region to a camera meets (the dropped
+    ones cannot change a visibility test) and drops most of a small region's box of occluders."""
+    from tasks.repair.region_texture import RAY_START_M, voxels_between
+
+    rng = np.random.default_rng(11)
+    lo, hi = np.array([0.0, 0.0, 1.0]), np.array([1.5, 0.2, 3.0])
+    cams = [camera_at(np.array([x, 8.0, 1.6]), [0.7, 0.1, 2.0], f"c{i}") for i, x in enumerate((-6.0, 0.0, 5.0))]
+    voxel = 0.2
+    vox = rng.uniform([-10, -5, 0], [10, 15, 6], (4000, 3))
+    keep = voxels_between(vox, lo, hi, cams, voxel)
+    starts = rng.uniform(lo, hi, (300, 3))
+    starts += rng.normal(size=starts.shape) * (RAY_START_M / np.sqrt(3) / 3)  # off the face, within the reach
+    met = np.zeros(len(vox), bool)
+    for i, v in enumerate(vox):
+        for c in cams:
+            if any(_segment_meets_box(s, c.centre, v - voxel / 2, v + voxel / 2) for s in starts[::7]):
+                met[i] = True
+                break
+    assert met.sum() > 20 and not (met & ~keep).any()
+    assert keep.mean() < 0.25  # a small region's rays sweep a thin fan, not the whole box
