@@ -67,14 +67,14 @@ def voxels_between(voxels: np.ndarray, lo: np.ndarray, hi: np.ndarray, cams: lis
         return keep
     b = 0.5 * (lo + hi)
     reach = 0.5 * float(np.linalg.norm(hi - lo)) + RAY_START_M + 0.5 * np.sqrt(3.0) * voxel_m + 0.01
-    for c in np.stack([c.centre for c in cams]):
-        todo = np.flatnonzero(~keep)
-        if not len(todo):
-            break
-        d = c - b
-        t = np.clip(((voxels[todo] - b) @ d) / max(float(d @ d), 1e-12), 0.0, 1.0)
-        near = np.linalg.norm(voxels[todo] - (b + t[:, None] * d), axis=1) <= reach
-        keep[todo[near]] = True
+    d = np.stack([c.centre for c in cams]) - b  # (c, 3) box centre -> camera
+    dd = np.maximum((d * d).sum(1), 1e-12)
+    for s in range(0, len(voxels), 16384):  # (chunk, c) at a time
+        rel = voxels[s:s + 16384] - b
+        proj = rel @ d.T
+        t = np.clip(proj / dd, 0.0, 1.0)
+        dist2 = (rel * rel).sum(1)[:, None] - 2.0 * t * proj + t * t * dd  # to the nearest point of each segment
+        keep[s:s + 16384] = (dist2 <= reach * reach).any(axis=1)
     return keep
 
 

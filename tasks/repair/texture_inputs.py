@@ -11,6 +11,7 @@ synth layout).
 
 from __future__ import annotations
 
+import json
 import warnings
 from collections.abc import Callable
 from dataclasses import replace
@@ -90,11 +91,40 @@ def load_cameras(cfg: CampusConfig, doc: dict, frame) -> list[Camera]:
     registration (campus.json), mesh-frame poses only through the origin shift. Raises InputError naming
     the file when it is broken, its CRS differs from the campus's, or none of its images exists.
     """
-    from tasks.repair.texture import cameras_to_frame
-
     images, path = camera_paths(cfg)
     if path is None or (not path.exists() and not _configured(cfg)):
         return []
+    key = (str(path), _stamp(path, images), str(images), json.dumps([doc.get("registration", {}).get("matrix"),
+                                                            getattr(frame, "origin", None), str(getattr(frame, "crs", None))],
+                                                           default=str))
+    if key not in _CAMERAS:  # a worker repairs many regions of one campus: the file is read once
+        _CAMERAS.clear()
+        _CAMERAS[key] = _load_cameras(path, images, doc, frame)
+    return list(_CAMERAS[key])
+
+
+_CAMERAS: dict = {}  # the last camera set loaded in this process, by file, stamp and frame
+
+
+def _stamp(path: Path, images) -> tuple:
+    """(size, mtime) of the camera file (a COLMAP model's images.txt and cameras.txt) and of the folders its
+    images are looked up in (a file added or removed there changes the folder's mtime)."""
+    folder = path if path.is_dir() else path.parent
+    colmap = path.is_dir() or path.name.lower() in ("cameras.txt", "images.txt")
+    files = [folder / "images.txt", folder / "cameras.txt"] if colmap else [path]
+    out = []
+    for f in [*files, folder, *([Path(images)] if images else [])]:
+        try:
+            st = f.stat()
+            out.append((st.st_size, st.st_mtime_ns))
+        except OSError:
+            out.append(None)
+    return tuple(out)
+
+
+def _load_cameras(path: Path, images, doc: dict, frame) -> list[Camera]:
+    from tasks.repair.texture import cameras_to_frame
+
     cs = read_cameras(path)
     crs = getattr(frame, "crs", None)
     if cs.crs and crs and cs.crs.upper().startswith("EPSG:") and cs.crs.upper() != str(crs).upper():
@@ -136,10 +166,13 @@ def occupancy(tile_dir: Path, cache: Path, voxel_m: float) -> np.ndarray:
     ``cache`` (``regions/_occupancy/{tile}.npz``) and rebuilt when the tile's store changes; built from
     windows of ``OCCUPANCY_WINDOW`` points (at real MLS density a whole tile is tens of millions)."""
     fp = store_fingerprint(tile_dir)
+    key = (str(cache), fp, voxel_m)
+    if key in _OCCUPANCY:  # the regions of a batch share tiles: each tile's voxels are read once per process
+        return _OCCUPANCY[key]
     if cache.exists():
         with np.load(cache) as z:
             if str(z["fingerprint"]) == fp and float(z["voxel_m"]) == voxel_m:
-                return z["centres"]
+                return _remember(key, z["centres"])
     store = PatchStore(tile_dir)
     parts = []
     for lo in range(0, store.n_points, OCCUPANCY_WINDOW):  # bounded memory at any MLS density
@@ -150,6 +183,19 @@ def occupancy(tile_dir: Path, cache: Path, voxel_m: float) -> np.ndarray:
     centres = ((cells + 0.5) * voxel_m).astype(np.float32)
     with atomic_path(cache) as tmp:
         np.savez(tmp, centres=centres, fingerprint=np.array(fp), voxel_m=np.array(voxel_m))
+    return _remember(key, centres)
+
+
+_OCCUPANCY: dict = {}  # the last few tiles' voxel centres in this process (read-only arrays)
+_OCCUPANCY_TILES = 4
+
+
+def _remember(key: tuple, centres: np.ndarray) -> np.ndarray:
+    centres.setflags(write=False)
+    _OCCUPANCY.pop(key, None)
+    _OCCUPANCY[key] = centres
+    while len(_OCCUPANCY) > _OCCUPANCY_TILES:
+        _OCCUPANCY.pop(next(iter(_OCCUPANCY)))
     return centres
 
 

@@ -133,3 +133,22 @@ def test_a_colmap_model_named_by_its_cameras_txt_fingerprints_the_poses_too(tmp_
     before = camera_fingerprint(cfg)
     (model / "images.txt").write_text("# re-solved poses\n")
     assert camera_fingerprint(cfg) != before
+
+
+def test_cameras_are_read_again_when_the_file_the_images_or_the_registration_change(tmp_path):
+    """A worker keeps the campus's cameras between regions; an edited file, a new image or another
+    registration gives the new cameras, not the kept ones."""
+    write_cameras_json(tmp_path / "cameras.json", CameraSet([world_camera("a.jpg", 0.0)], "MLS", ORIGIN))
+    images(tmp_path, "a.jpg")
+    cfg = config(tmp_path / "cameras.json")
+    reg = {"registration": {"matrix": np.eye(4).tolist()}}
+    (a,) = load_cameras(cfg, reg, FRAME)
+    assert load_cameras(cfg, reg, FRAME) == [a]
+    write_cameras_json(tmp_path / "cameras.json", CameraSet([world_camera("a.jpg", 0.0), world_camera("b.jpg", 2.0)],
+                                                            "MLS", ORIGIN))
+    images(tmp_path, "b.jpg")
+    assert [c.image.split("/")[-1] for c in load_cameras(cfg, reg, FRAME)] == ["a.jpg", "b.jpg"]
+    moved = np.eye(4)
+    moved[:3, 3] = [1.0, 0.0, 0.0]
+    a2 = load_cameras(cfg, {"registration": {"matrix": moved.tolist()}}, FRAME)[0]
+    np.testing.assert_allclose(a2.centre, a.centre + [1.0, 0.0, 0.0], atol=1e-9)
