@@ -26,11 +26,9 @@ from __future__ import annotations
 import numpy as np
 
 from storage.cameras import Camera
-
 from tasks.repair.atlas import NO_VIEW, Atlas, build_atlas
 from tasks.repair.chart import edges_of, undirected_key
 from tasks.repair.views import select_views, select_views_sparse  # noqa: F401  (select_views: re-exported)
-
 
 # A view is a storage.cameras.Camera: K, distortion (k1, k2, p1, p2, k3), R world(campus-local)-to-camera,
 # t, width, height, image path; its project() applies the OpenCV radial-tangential distortion.

@@ -11,7 +11,6 @@ synth layout).
 
 from __future__ import annotations
 
-import json
 import warnings
 from collections.abc import Callable
 from dataclasses import replace
@@ -91,41 +90,12 @@ def load_cameras(cfg: CampusConfig, doc: dict, frame) -> list[Camera]:
     registration (campus.json), mesh-frame poses only through the origin shift. Raises InputError naming
     the file when it is broken, its CRS differs from the campus's, or none of its images exists.
     """
+    from tasks.repair.texture import cameras_to_frame
+
     images, path = camera_paths(cfg)
     if path is None or (not path.exists() and not _configured(cfg)):
         return []
-    key = (str(path), _stamp(path, images), str(images), json.dumps([doc.get("registration", {}).get("matrix"),
-                                                            getattr(frame, "origin", None), str(getattr(frame, "crs", None))],
-                                                           default=str))
-    if key not in _CAMERAS:  # a worker repairs many regions of one campus: the file is read once
-        _CAMERAS.clear()
-        _CAMERAS[key] = _load_cameras(path, images, doc, frame)
-    return list(_CAMERAS[key])
-
-
-_CAMERAS: dict = {}  # the last camera set loaded in this process, by file, stamp and frame
-
-
-def _stamp(path: Path, images) -> tuple:
-    """(size, mtime) of the camera file (a COLMAP model's images.txt and cameras.txt) and of the folders its
-    images are looked up in (a file added or removed there changes the folder's mtime)."""
-    folder = path if path.is_dir() else path.parent
-    colmap = path.is_dir() or path.name.lower() in ("cameras.txt", "images.txt")
-    files = [folder / "images.txt", folder / "cameras.txt"] if colmap else [path]
-    out = []
-    for f in [*files, folder, *([Path(images)] if images else [])]:
-        try:
-            st = f.stat()
-            out.append((st.st_size, st.st_mtime_ns))
-        except OSError:
-            out.append(None)
-    return tuple(out)
-
-
-def _load_cameras(path: Path, images, doc: dict, frame) -> list[Camera]:
-    from tasks.repair.texture import cameras_to_frame
-
-    cs = read_cameras(path)
+    cs = _read_cameras_once(path)
     crs = getattr(frame, "crs", None)
     if cs.crs and crs and cs.crs.upper().startswith("EPSG:") and cs.crs.upper() != str(crs).upper():
         raise InputError(path, f"cameras are in {cs.crs}, the campus in {crs}: export them in the campus CRS")
@@ -139,6 +109,33 @@ def _load_cameras(path: Path, images, doc: dict, frame) -> list[Camera]:
     else:
         m[:3, 3] = fo - oc
     return _resolve_images(cameras_to_frame(cs.cameras, m), path, _image_folders(cs, path, images))
+
+
+_CAMERAS: dict = {}  # the last camera file parsed in this process: {(path, stamp): CameraSet}
+
+
+def _read_cameras_once(path: Path) -> CameraSet:
+    """``read_cameras(path)``, parsed once per process while the file stays the same (a worker repairs many
+    regions of one campus); the images are looked up again on every call."""
+    key = (str(path), _stamp(path))
+    if key not in _CAMERAS:
+        _CAMERAS.clear()
+        _CAMERAS[key] = read_cameras(path)
+    return _CAMERAS[key]
+
+
+def _stamp(path: Path) -> tuple:
+    """(size, mtime) of the camera file, or of a COLMAP model's images.txt and cameras.txt."""
+    folder = path if path.is_dir() else path.parent
+    colmap = path.is_dir() or path.name.lower() in ("cameras.txt", "images.txt")
+    out = []
+    for f in ([folder / "images.txt", folder / "cameras.txt"] if colmap else [path]):
+        try:
+            st = f.stat()
+            out.append((st.st_size, st.st_mtime_ns))
+        except OSError:
+            out.append(None)
+    return tuple(out)
 
 
 OCCUPANCY_WINDOW = 4_000_000  # points read at once when a tile's occupancy is built
