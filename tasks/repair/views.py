@@ -12,7 +12,6 @@ from __future__ import annotations
 import maxflow
 import numpy as np
 
-BIG = 1e9  # the cost of a label a face does not allow, in the energies the moves compare
 
 
 def _add_unary(g, nodes, cost0: np.ndarray, cost1: np.ndarray) -> None:
