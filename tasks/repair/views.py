@@ -13,7 +13,6 @@ import maxflow
 import numpy as np
 
 
-
 def _add_unary(g, nodes, cost0: np.ndarray, cost1: np.ndarray) -> None:
     """Unary cost of x=0 (source side) and x=1 (sink side)."""
     m = np.minimum(cost0, cost1)
