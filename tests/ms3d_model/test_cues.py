@@ -12,6 +12,7 @@ from ms3d_model.cues import (
     PAIR_CUE_NAMES,
     EXTRA_CUE_NAMES,
     MAX_CUE_POINTS,
+    MAX_SHAPE_POINTS,
     batch_cues,
     closest_point_on_triangles,
     open_edge_flags,
@@ -244,6 +245,30 @@ def test_batched_cues_equal_the_per_pair_loop():
     np.testing.assert_allclose(pair_cues(p, t, seed=9)[:n_ref], _reference_pair_cues(p, t, None, 9), rtol=1e-6, atol=1e-6)
     np.testing.assert_array_equal(batch_cues([p], [t], None, keys[4:5], seed=5)[0],
                                   batch_cues([pairs[0][0], p], [pairs[0][1], t], None, keys[[0, 4]], seed=5)[1])
+
+
+def test_a_pair_above_the_shape_cap_keeps_its_count_and_extent_and_its_shape_cues(monkeypatch):
+    """Real MLS density: the whole-point-set cues of a pair above MAX_SHAPE_POINTS use a seeded subsample of
+    that many points. The count and the z extent still see every point, the shape cues stay within noise of
+    the uncapped ones, and a pair at the cap is computed on all its points, as before."""
+    import ms3d_model.cues as cues_mod
+
+    tris, _ = grid_wall(8, 4)
+    rng = np.random.default_rng(4)
+    n = 3 * MAX_SHAPE_POINTS
+    pts = wall_points(n, seed=2) + rng.normal(0, 0.01, (n, 3))
+    pts[-1] = [1.0, -0.05, 1.6]  # one point 0.6 m above the wall top: the subsample would likely miss it
+    capped = pair_cues(pts, tris, seed=7)
+    monkeypatch.setattr(cues_mod, "MAX_SHAPE_POINTS", 10 * n)
+    full = pair_cues(pts, tris, seed=7)
+    assert cue(capped, "log_n_points") == cue(full, "log_n_points") == pytest.approx(np.log1p(n))
+    assert cue(capped, "points_above_mesh_m") == cue(full, "points_above_mesh_m") == pytest.approx(0.6, abs=1e-6)
+    for name, tol in (("coverage_10cm", 1e-6), ("point_planarity", 1e-4), ("normal_agreement", 1e-4),
+                      ("point_spread_along_normal", 2e-3), ("m2p_mean", 5e-3)):
+        assert cue(capped, name) == pytest.approx(cue(full, name), abs=tol), name
+    assert not np.array_equal(capped, full)  # the cap did apply
+    monkeypatch.setattr(cues_mod, "MAX_SHAPE_POINTS", n)  # at the cap: every point, the uncapped cues
+    np.testing.assert_array_equal(pair_cues(pts, tris, seed=7), full)
 
 
 def test_a_pair_without_points_or_faces_is_refused():
