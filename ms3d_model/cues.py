@@ -83,24 +83,33 @@ def closest_point_on_triangles(p: np.ndarray, tri: np.ndarray) -> np.ndarray:
     va = d3 * d6 - d5 * d4
     vb = d5 * d2 - d1 * d6
     vc = d1 * d4 - d3 * d2
+    # the answer is a + v ab + w ac in every one of Ericson's regions: choose (v, w) per row, build once
     with np.errstate(divide="ignore", invalid="ignore"):
         denom = va + vb + vc
-        v = np.where(denom != 0, vb / denom, 0.0)
+        v = np.where(denom != 0, vb / denom, 0.0)  # interior
         w = np.where(denom != 0, vc / denom, 0.0)
-        out = a + ab * v[:, None] + ac * w[:, None]  # interior
         # Ericson's tests in reverse order (a later np.where wins): edge bc, edge ac, vertex c, edge ab, b, a
         t_bc = (d4 - d3) / ((d4 - d3) + (d5 - d6))
-        m = (va <= 0) & (d4 - d3 >= 0) & (d5 - d6 >= 0)
-        out = np.where(m[:, None], b + (c - b) * t_bc[:, None], out)
+        on_bc = (va <= 0) & (d4 - d3 >= 0) & (d5 - d6 >= 0)
+        v, w = np.where(on_bc, 1.0 - t_bc, v), np.where(on_bc, t_bc, w)
         t_ac = d2 / (d2 - d6)
-        m = (vb <= 0) & (d2 >= 0) & (d6 <= 0)
-        out = np.where(m[:, None], a + ac * t_ac[:, None], out)
-        out = np.where(((d6 >= 0) & (d5 <= d6))[:, None], c, out)  # vertex c
+        on_ac = (vb <= 0) & (d2 >= 0) & (d6 <= 0)
+        v, w = np.where(on_ac, 0.0, v), np.where(on_ac, t_ac, w)
+        at_c = (d6 >= 0) & (d5 <= d6)  # vertex c
+        v, w = np.where(at_c, 0.0, v), np.where(at_c, 1.0, w)
         t_ab = d1 / (d1 - d3)
         m = (vc <= 0) & (d1 >= 0) & (d3 <= 0)
-        out = np.where(m[:, None], a + ab * t_ab[:, None], out)
-    out = np.where(((d3 >= 0) & (d4 <= d3))[:, None], b, out)  # vertex b
-    out = np.where(((d1 <= 0) & (d2 <= 0))[:, None], a, out)  # vertex a
+        v, w = np.where(m, t_ab, v), np.where(m, 0.0, w)
+    at_b = (d3 >= 0) & (d4 <= d3)
+    at_a = (d1 <= 0) & (d2 <= 0)
+    at_c &= ~(m | at_b | at_a)  # the region that wins last
+    at_b &= ~at_a
+    on_bc &= ~(on_ac | at_c | m | at_b | at_a)
+    out = a + ab * v[:, None] + ac * w[:, None]
+    # corners and side bc as Ericson writes them, so faces sharing a corner or a side tie exactly
+    out[on_bc] = b[on_bc] + (c[on_bc] - b[on_bc]) * t_bc[on_bc, None]
+    for at, corner in ((at_a, a), (at_b, b), (at_c, c)):
+        out[at] = corner[at]
     flat = (np.cross(ab, ac) == 0).all(axis=1)  # Ericson's divisions are 0 / 0 there
     if flat.any():
         out[flat] = _closest_point_on_longest_side(p[flat], tri[flat])
