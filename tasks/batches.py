@@ -6,10 +6,13 @@ from __future__ import annotations
 
 def balanced_batches(items: list, weights: list[float], n_batches: int) -> list[list]:
     """Split items into at most ``n_batches`` batches of about equal total weight (largest first,
-    greedy), each batch in input order.
+    greedy), each batch in input order; the batches heaviest first (a scheduler that starts them in
+    order then ends with the light ones: longest-processing-time order).
 
     >>> balanced_batches(["a", "b", "c", "d"], [4.0, 1.0, 1.0, 2.0], 2)
     [['a'], ['b', 'c', 'd']]
+    >>> balanced_batches(["a", "b", "c"], [1.0, 5.0, 3.0], 3)
+    [['b'], ['c'], ['a']]
     """
     n = max(1, min(n_batches, len(items)))
     order = sorted(range(len(items)), key=lambda i: -weights[i])
@@ -18,7 +21,8 @@ def balanced_batches(items: list, weights: list[float], n_batches: int) -> list[
         b = loads.index(min(loads))
         loads[b] += weights[i]
         members[b].append(i)
-    return [[items[i] for i in sorted(m)] for m in members if m]
+    by_load = sorted((b for b in range(n) if members[b]), key=lambda b: -loads[b])  # stable: ties keep order
+    return [[items[i] for i in sorted(members[b])] for b in by_load]
 
 
 def fixed_batches(items: list, size: int) -> list[list]:

@@ -97,14 +97,14 @@ def test_leaf_batches_balance_merged_bytes_not_counts(tmp_path):
     from tasks.export.tree import QuadNode
 
     jobs = []
-    for i, size in enumerate([900, 10, 10, 10, 10, 10, 10, 10, 10, 10]):
+    for i, size in enumerate([10] * 8 + [900] + [10] * 9):
         tile = tmp_path / f"{i}_0"
         tile.mkdir()
         (tile / "merged.npz").write_bytes(b"x" * size)
         jobs.append(NodeJob(QuadNode(0, i, 0), "fp", tmp_path, tmp_path, None, None, tile_dir=tile))
-    batches = node_batches(jobs, 1)  # at most 4 batches
-    assert [i for i, _ in batches[0]] == [0]  # the big tile alone; the nine small ones share 3
-    assert sorted(len(b) for b in batches) == [1, 3, 3, 3]
+    batches = node_batches(jobs, 1)  # at most 8 batches
+    assert [i for i, _ in batches[0]] == [8]  # the big tile alone, first; the 17 small ones share 7
+    assert sorted(len(b) for b in batches) == [1, 2, 2, 2, 2, 3, 3, 3]
 
 
 def test_glb_views_of_arrays_empty_or_strided_are_their_bytes():
