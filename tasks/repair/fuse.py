@@ -134,24 +134,39 @@ def vertex_normals(vertices: np.ndarray, faces: np.ndarray, face_normals: np.nda
 
 
 def thin_points(xyz: np.ndarray, voxel_m: float) -> np.ndarray:
-    """Indices of one point per voxel (the one nearest its voxel's centroid), sorted. xyz: (n, 3)."""
-    if len(xyz) == 0:
+    """Indices of one point per voxel (the one nearest its voxel's centroid, the first row on a tie),
+    sorted. xyz: (n, 3).
+
+    One stable sort of the voxel keys serves the grouping and the choice (real MLS density: millions of
+    points per region).
+
+    >>> thin_points(np.array([[0.0, 0, 0], [0.04, 0, 0], [0.02, 0, 0], [0.5, 0, 0]]), 0.1).tolist()
+    [2, 3]
+    """
+    n = len(xyz)
+    if n == 0:
         return np.zeros(0, np.int64)
-    cell = np.floor(np.asarray(xyz, np.float64) / voxel_m).astype(np.int64)
+    xyz = np.asarray(xyz, np.float64)
+    cell = np.floor(xyz / voxel_m).astype(np.int64)
     cell -= cell.min(axis=0)
     if (cell.max(axis=0) < (1 << 21)).all():  # one int64 key per voxel, ordered like the rows (x, y, z)
-        _, inv, cnt = np.unique((cell[:, 0] << 42) | (cell[:, 1] << 21) | cell[:, 2], return_inverse=True,
-                                return_counts=True)
+        order = np.argsort((cell[:, 0] << 42) | (cell[:, 1] << 21) | cell[:, 2], kind="stable")
+        cs = cell[order]
+        new = np.r_[True, (cs[1:] != cs[:-1]).any(axis=1)]
     else:
-        _, inv, cnt = np.unique(cell, axis=0, return_inverse=True, return_counts=True)
-    inv = inv.reshape(-1)
-    mean = np.zeros((len(cnt), 3))
-    np.add.at(mean, inv, xyz)
-    mean /= cnt[:, None]
-    d = np.linalg.norm(xyz - mean[inv], axis=1)
-    order = np.lexsort((d, inv))
-    first = np.r_[True, inv[order][1:] != inv[order][:-1]]
-    return np.sort(order[first])
+        order = np.lexsort((cell[:, 2], cell[:, 1], cell[:, 0]))
+        cs = cell[order]
+        new = np.r_[True, (cs[1:] != cs[:-1]).any(axis=1)]
+    g_sorted = np.cumsum(new) - 1  # voxel of each sorted row
+    inv = np.empty(n, np.int64)
+    inv[order] = g_sorted
+    cnt = np.bincount(inv)
+    mean = np.stack([np.bincount(inv, xyz[:, c], minlength=len(cnt)) for c in range(3)], axis=1) / cnt[:, None]
+    d = np.linalg.norm(xyz - mean[inv], axis=1)[order]
+    dmin = np.minimum.reduceat(d, np.flatnonzero(new))
+    pos = np.flatnonzero(d == dmin[g_sorted])  # rows at their voxel's minimum, ascending row within a voxel
+    first = np.r_[True, g_sorted[pos][1:] != g_sorted[pos][:-1]]
+    return np.sort(order[pos[first]])
 
 
 # ------------------------------------------------------------------------------------- similarity
