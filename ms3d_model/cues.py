@@ -24,6 +24,7 @@ import numpy as np
 from scipy.spatial import cKDTree
 
 from .features import edge_neighbours, pair_seed, vertex_ids_from_coords
+from .segments import median_of_sorted, percentile_of_sorted, segment_max, segment_mean, sorted_segments
 
 CUE_NAMES = (
     "log_n_points", "log_n_faces", "mesh_area_m2", "log_point_density",
@@ -165,58 +166,6 @@ def open_edge_flags(vids: np.ndarray) -> np.ndarray:
     return out.reshape(-1, 3)
 
 
-def sorted_segments(values: np.ndarray, group: np.ndarray, n_groups: int) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """Values sorted within their groups: (sorted (n,) float64, start (G,) int64, count (G,) int64).
-
-    values: (n,) float64; group: (n,) int64 in [0, G). One argsort of ``value + group * span`` (span above
-    the values' range keeps the groups apart); the key's rounding can only swap values closer than
-    ~1e-16 x G x span, and the sorted array holds the original values. With a NaN or inf among the values,
-    a (slower, exact) lexsort.
-    """
-    v = np.asarray(values, np.float64)
-    lo, hi = (float(v.min()), float(v.max())) if len(v) else (0.0, 0.0)
-    span = 2.0 * (hi - lo) + 1.0
-    finite = np.isfinite(span)
-    order = np.argsort((v - lo) + group * span, kind="stable") if finite else np.lexsort((v, group))
-    count = np.bincount(group, minlength=n_groups)
-    return v[order], np.concatenate([[0], np.cumsum(count)[:-1]]), count
-
-
-def percentile_of_sorted(seg: tuple, q: float) -> np.ndarray:
-    """(G,) float64 ``np.percentile(group, q)`` (linear) of every group of :func:`sorted_segments` (none empty)."""
-    sv, start, count = seg
-    t = (count - 1) * (q / 100.0)
-    lo = np.floor(t).astype(np.int64)
-    hi = np.minimum(lo + 1, count - 1)
-    frac = t - lo
-    a, b = sv[start + lo], sv[start + hi]
-    diff = b - a
-    return np.where(frac >= 0.5, b - diff * (1 - frac), a + diff * frac)  # numpy's two-sided lerp
-
-
-def median_of_sorted(seg: tuple) -> np.ndarray:
-    """(G,) float64 ``np.median`` of every group (mean of the two middle values for an even count)."""
-    sv, start, count = seg
-    return (sv[start + (count - 1) // 2] + sv[start + count // 2]) / 2
-
-
-def segment_percentile(values: np.ndarray, group: np.ndarray, n_groups: int, q: float) -> np.ndarray:
-    """(G,) float64 ``np.percentile(values[group == g], q)`` for every group g at once, no loop.
-
-    >>> segment_percentile(np.array([3., 1, 2, 10, 20]), np.array([0, 0, 0, 1, 1]), 2, 90).tolist()
-    [2.8, 19.0]
-    """
-    return percentile_of_sorted(sorted_segments(values, group, n_groups), q)
-
-
-def _segment_mean(values, group, count):
-    return np.bincount(group, values, minlength=len(count)) / count
-
-
-def _segment_max(values, start):
-    return np.maximum.reduceat(values, start)  # groups are contiguous and non-empty
-
-
 def _group_seeds(n_points, keys, seed):
     # a per-pair seed only where it is used (pairs above MAX_CUE_POINTS subsample their points)
     return [pair_seed(seed, int(k)) if n > MAX_CUE_POINTS else 0 for n, k in zip(n_points, keys)]
@@ -352,11 +301,11 @@ def _cues(points: list, tris: list, open_edges: list | None, seeds: list) -> np.
     sd, ss, sm = sorted_segments(d, gp, b), sorted_segments(signed, gp, b), sorted_segments(dm, gf, b)
     cues = [
         np.log1p(n), np.log1p(m), total_area, np.log1p(n / np.maximum(total_area, 1e-3)),
-        _segment_mean(d, gp, n_cue), median_of_sorted(sd), percentile_of_sorted(sd, 90),
-        _segment_max(d, np.concatenate([[0], np.cumsum(n_cue)[:-1]])),
-        _segment_mean((d > 0.05).astype(float), gp, n_cue), _segment_mean((d > 0.15).astype(float), gp, n_cue),
-        median_of_sorted(ss), _segment_mean(signed, gp, n_cue),
-        _segment_mean(dm, gf, m), percentile_of_sorted(sm, 90), _segment_max(dm, f_start),
+        segment_mean(d, gp, n_cue), median_of_sorted(sd), percentile_of_sorted(sd, 90),
+        segment_max(d, np.concatenate([[0], np.cumsum(n_cue)[:-1]])),
+        segment_mean((d > 0.05).astype(float), gp, n_cue), segment_mean((d > 0.15).astype(float), gp, n_cue),
+        median_of_sorted(ss), segment_mean(signed, gp, n_cue),
+        segment_mean(dm, gf, m), percentile_of_sorted(sm, 90), segment_max(dm, f_start),
         np.bincount(gf, w * (dm <= 0.10), minlength=b),
         np.bincount(gf, (edge_len * patch_open).sum(1), minlength=b),
         np.bincount(gf, (edge_len * tile_open).sum(1), minlength=b),
@@ -381,8 +330,8 @@ def _extra_cues(d, signed, gp, n_cue, sd, ss, sm, dm, gf, w, pz, ga, tz, b) -> l
     zmin_m = np.full(b, np.inf)
     np.maximum.at(zmax_m, gf, tz.max(1))
     np.minimum.at(zmin_m, gf, tz.min(1))
-    return [_segment_mean((signed < -0.10).astype(float), gp, n_cue), _segment_mean((signed > 0.10).astype(float), gp, n_cue),
-            _segment_mean((d > 0.30).astype(float), gp, n_cue), percentile_of_sorted(sd, 25), percentile_of_sorted(sd, 75),
+    return [segment_mean((signed < -0.10).astype(float), gp, n_cue), segment_mean((signed > 0.10).astype(float), gp, n_cue),
+            segment_mean((d > 0.30).astype(float), gp, n_cue), percentile_of_sorted(sd, 25), percentile_of_sorted(sd, 75),
             percentile_of_sorted(ss, 10), percentile_of_sorted(ss, 90), median_of_sorted(sm),
             np.bincount(gf, w * (dm > 0.25), minlength=b), zmax_p - zmax_m, zmin_m - zmin_p]
 
