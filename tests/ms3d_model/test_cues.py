@@ -9,10 +9,10 @@ from scipy.spatial import cKDTree
 
 from ms3d_model.cues import (
     CUE_NAMES,
-    PAIR_CUE_NAMES,
     EXTRA_CUE_NAMES,
     MAX_CUE_POINTS,
     MAX_SHAPE_POINTS,
+    PAIR_CUE_NAMES,
     batch_cues,
     closest_point_on_triangles,
     open_edge_flags,
