@@ -223,27 +223,16 @@ def _outputs(run: _Run) -> tuple[dict, dict]:
 
     cfg, wd, ex, cj = run.cfg, run.wd, run.ex, run.cfg_json
 
+    def map_jobs(jobs: list) -> list[dict]:  # one level of the quadtree at a time; records in job order
+        results = ex.map(export_nodes_task, node_batches(jobs, run.n_workers), "export").results()
+        return node_records(results, len(jobs))
+
     qplan = quality_plan(local_view(cfg, "truth"), wd) if cfg.report.enabled and cfg.report.quality else None
     parts = quality_parts(qplan, run.n_workers)
-    shares, side = [], {}
-
-    def start_side() -> None:
-        """Queue the quality shares and the report's figures (once): behind the export's first level, whose
-        leaves start the chain of levels up to the root, so that chain is not left waiting for them."""
-        if side:
-            return
-        shares.extend(ex.submit(quality_task, cj, qplan, part) for part in parts)
-        side["renders"] = ex.submit(region_renders_task, cj) \
-            if cfg.report.enabled and not region_renders_fresh(cfg, wd) else None  # the report's figures
-
-    def map_jobs(jobs: list) -> list[dict]:  # one level of the quadtree at a time; records in job order
-        mapped = ex.map(export_nodes_task, node_batches(jobs, run.n_workers), "export")
-        start_side()
-        return node_records(mapped.results(), len(jobs))
-
+    shares = [ex.submit(quality_task, cj, qplan, part) for part in parts]
+    renders = ex.submit(region_renders_task, cj) \
+        if cfg.report.enabled and not region_renders_fresh(cfg, wd) else None  # the report's figures, drawn here
     exported = run_export_stage(cfg, wd, map_jobs=map_jobs)
-    start_side()  # nothing to export: they run now
-    renders = side["renders"]
     if shares:  # the model against the truth, measured beside the export
         got = run.note("quality", [s.result() for s in shares], per_unit=False)
         if not any(g.get("status") == "failed" for g in got):

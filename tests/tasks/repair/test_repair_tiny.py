@@ -18,30 +18,9 @@ from tasks.repair import run_region
 pytestmark = pytest.mark.slow
 
 
-class _OrderedInline(InlineExecutor):
-    """The inline executor, noting the task functions in the order the flow hands them over."""
-
-    def __init__(self):
-        self.order = []
-
-    def map(self, tsk, batches, label, **consts):
-        self.order.append(tsk.fn.__name__)
-        return super().map(tsk, batches, label, **consts)
-
-    def submit(self, tsk, *args):
-        self.order.append(tsk.fn.__name__)
-        return super().submit(tsk, *args)
-
-
 def test_tiny_campus_regions_are_rebuilt_welded_textured_and_merged(tiny_campus, tmp_path):
     cfg = CampusConfig.from_yaml(tiny_campus / "campus.yaml", {"work_dir": str(tmp_path / "work"), "runner": "inline"})
-    ex = _OrderedInline()
-    summary = reprocess(cfg, ex)
-    # export's leaves are queued before the quality shares and the report's renders (their chain to the
-    # root must not wait behind them), and the other levels after
-    first_export = ex.order.index("export_nodes_task")
-    side = [i for i, n in enumerate(ex.order) if n in ("quality_task", "region_renders_task")]
-    assert side and first_export < min(side) and ex.order.count("export_nodes_task") > 1, ex.order
+    summary = reprocess(cfg, InlineExecutor())
     wd = WorkDir(cfg.work_dir)
     plan = json.loads((wd.root / "regions" / "regions.json").read_text())
     assert set(plan["grades"].values()) == {"grades"}  # the classify stage's grades, not the labels
