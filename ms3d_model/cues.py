@@ -57,7 +57,8 @@ MAX_CUE_POINTS = 1024
 # The cues over a pair's whole point set (mesh -> point distances, the points' normal and planarity, their
 # spread along the mesh normal) use at most this many of its points, a seeded subsample above it; counts and
 # z extents use every point. Real MLS density puts up to ~130 k points in a pair (10 % above the cap at
-# density 1.0), the demo's training density none (12,860 at most), so the shipped models' cues are unchanged.
+# density 1.0), the demo preset at its training density none (seed 7: 12,860 at most), so the shipped models'
+# cues are unchanged there.
 MAX_SHAPE_POINTS = 16384
 _PAIR_GAP_M = 1.0e6  # pairs sit this far apart on the k-d trees' fourth axis (a campus spans < 10 km)
 
@@ -172,8 +173,8 @@ def _group_seeds(n_points, keys, seed):
 
 
 def _cue_points(points: list, seeds: list, cap: int = MAX_CUE_POINTS) -> tuple[np.ndarray, np.ndarray]:
-    """The points the point -> mesh distances use (at most ``cap`` per pair, seeded subsample above):
-    (q, 3) float64 and their (q,) pair index."""
+    """At most ``cap`` points per pair (a seeded subsample above it; ``MAX_CUE_POINTS`` for the point -> mesh
+    distances, ``MAX_SHAPE_POINTS`` for the whole-point-set cues): (q, 3) float64 and their (q,) pair index."""
     sub = []
     for p, s in zip(points, seeds):
         if len(p) > cap:

@@ -151,12 +151,10 @@ def thin_points(xyz: np.ndarray, voxel_m: float) -> np.ndarray:
     cell -= cell.min(axis=0)
     if (cell.max(axis=0) < (1 << 21)).all():  # one int64 key per voxel, ordered like the rows (x, y, z)
         order = np.argsort((cell[:, 0] << 42) | (cell[:, 1] << 21) | cell[:, 2], kind="stable")
-        cs = cell[order]
-        new = np.r_[True, (cs[1:] != cs[:-1]).any(axis=1)]
     else:
         order = np.lexsort((cell[:, 2], cell[:, 1], cell[:, 0]))
-        cs = cell[order]
-        new = np.r_[True, (cs[1:] != cs[:-1]).any(axis=1)]
+    cs = cell[order]
+    new = np.r_[True, (cs[1:] != cs[:-1]).any(axis=1)]
     g_sorted = np.cumsum(new) - 1  # voxel of each sorted row
     inv = np.empty(n, np.int64)
     inv[order] = g_sorted
