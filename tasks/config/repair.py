@@ -98,6 +98,13 @@ class MeshConfig(_Section):
                                          "than this quantile are trimmed")
     max_map_distance_m: float = Field(1.2, gt=0, description="fused points farther than this from the region's "
                                       "chart surface are not triangulated")
+    flat_spacing_m: float = Field(0.15, ge=0, description="fused MLS points on a flat stretch (neighbours within "
+                                  "this radius fit a plane to flat_tolerance_m RMS, the point not at the scan's edge) "
+                                  "are thinned to one per voxel of this size before the triangulation "
+                                  "(tasks.repair.coarsen): a flat wall at real MLS density carried ~8 rebuilt faces per "
+                                  "input face; 0: every fused point is triangulated")
+    flat_tolerance_m: float = Field(0.01, gt=0, description="RMS distance to the neighbourhood's plane under which "
+                                    "a stretch counts as flat (flat_spacing_m)")
     max_edge_m: float = Field(0.6, gt=0, description="rebuilt triangles with a longer 3D edge (a fold of the "
                               "chart) are dropped")
     fill_step_m: float = Field(0.4, ge=0, description="where no fused point (kept vertex or accepted MLS point) "

@@ -18,6 +18,7 @@ from scipy.spatial import cKDTree
 from storage.vertex_ids import local_ids
 
 from tasks.repair.chart import zone_charts
+from tasks.repair.coarsen import coarsen_flat
 from tasks.repair.fill import SOURCE_FILL, unseen_samples
 from tasks.repair.free import behind_surface, far_points, free_surface
 from tasks.repair.keep import covered_along_normal, expand_replaced, keep_faces, unseen_faces
@@ -178,6 +179,21 @@ def _mesh_points(fused_xyz: np.ndarray, fused_n: np.ndarray, fused_src: np.ndarr
     return pv[near], np.full(int(near.sum()), 2, np.int8), np.full(int(near.sum()), -1)
 
 
+def _coarsened(pts: np.ndarray, src: np.ndarray, pvert: np.ndarray, mc, stats: dict
+               ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """The triangulation's points with the MLS points (source 1) of flat stretches thinned to
+    ``mc.flat_spacing_m`` (:mod:`tasks.repair.coarsen`); mesh vertices and Poisson points stay."""
+    mls = np.flatnonzero(src == 1)
+    if mc.flat_spacing_m <= 0 or len(mls) < 6:
+        return pts, src, pvert
+    drop = np.ones(len(mls), bool)
+    drop[coarsen_flat(pts[mls], mc.flat_spacing_m, mc.flat_tolerance_m)] = False
+    stats["flat_dropped"] = int(drop.sum())
+    keep = np.ones(len(pts), bool)
+    keep[mls[drop]] = False
+    return pts[keep], src[keep], pvert[keep]
+
+
 def _free_part(data: RegionInput, mls: np.ndarray, mc, fc, stats: dict) -> tuple[np.ndarray, np.ndarray]:
     """The free surface (:mod:`tasks.repair.free`) of the region's MLS points that no chart takes (farther
     than ``mc.max_map_distance_m`` from the zone's faces), no retained face explains (farther than
@@ -280,6 +296,7 @@ def _repair(data: RegionInput, cfg, vn: np.ndarray, thinned: tuple) -> RegionGeo
     t3 = time.perf_counter()
     pts, src, pvert = _mesh_points(fused_xyz, np.concatenate([vn[kept_v], acc_n]), fused_src,
                                    np.r_[kept_v, np.full(len(acc), -1)], fc, mc, stats)
+    pts, src, pvert = _coarsened(pts, src, pvert, mc, stats)
     cleared = zone_v[fr.replaced & ~locked] if mc.fill_clears_replaced else zone_v[:0]
     fill = unseen_samples(data.xyz, data.zone_faces, fused_xyz, data.xyz[cleared],
                           step_m=mc.fill_step_m, reach_m=mc.max_map_distance_m)

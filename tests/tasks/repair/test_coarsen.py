@@ -1,0 +1,108 @@
+"""Flat stretches of the fused points are coarsened before the triangulation, within an error bound;
+edges, steps and noisy surfaces keep every point (tasks.repair.coarsen)."""
+
+import numpy as np
+from scipy.spatial import Delaunay
+
+from tasks.repair.coarsen import coarsen_flat, flat_points
+
+
+def _wall(step_m=0.0, noise_m=0.005, seed=0):
+    """A 6 m x 3 m wall in the x-z plane at 5 cm spacing, y = depth; with a recess of ``step_m`` over
+    2 < x < 4, 1 < z < 2 (a window). Returns (n, 3)."""
+    x, z = np.meshgrid(np.arange(0, 6, 0.05), np.arange(0, 3, 0.05))
+    x, z = x.ravel(), z.ravel()
+    window = (x > 2) & (x < 4) & (z > 1) & (z < 2)
+    y = np.where(window, step_m, 0.0) + np.random.default_rng(seed).normal(0, noise_m, len(x))
+    return np.c_[x, y, z]
+
+
+def _interpolation_error(p, keep):
+    """Largest |y| difference between each dropped point and the Delaunay surface (in x-z) of the kept ones."""
+    tri = Delaunay(p[keep][:, [0, 2]])
+    drop = np.setdiff1d(np.arange(len(p)), keep)
+    s = tri.find_simplex(p[drop][:, [0, 2]])
+    assert (s >= 0).all()  # the kept points span every dropped one: the surface does not shrink
+    b = np.einsum("nij,nj->ni", tri.transform[s, :2], p[drop][:, [0, 2]] - tri.transform[s, 2])
+    bary = np.c_[b, 1 - b.sum(1)]
+    y = np.einsum("ni,ni->n", bary, p[keep][tri.simplices[s], 1])
+    return np.abs(y - p[drop, 1]).max()
+
+
+def test_a_flat_noisy_wall_keeps_a_third_of_its_points_or_fewer_and_its_extent():
+    p = _wall()
+    keep = coarsen_flat(p, 0.15, 0.01)
+    assert len(keep) < 0.35 * len(p)
+    for ax in (0, 2):  # the outline stays where it was
+        assert p[keep, ax].min() == p[:, ax].min() and p[keep, ax].max() == p[:, ax].max()
+    assert _interpolation_error(p, keep) < 0.03  # 5 mm noise: within the noise's spread
+
+
+def test_a_window_recess_keeps_its_edges_and_the_surface_stays_within_the_tolerance():
+    p = _wall(step_m=0.12)
+    keep = coarsen_flat(p, 0.15, 0.01)
+    x, z = p[:, 0], p[:, 2]
+    at_edge = ((np.abs(x - 2.025) < 0.03) | (np.abs(x - 3.975) < 0.03)) & (z > 1.1) & (z < 1.9)
+    assert np.isin(np.flatnonzero(at_edge), keep).all()  # the last point on either side of the step stays
+    assert _interpolation_error(p, keep) < 0.03
+    # without the rule (every other point dropped blindly) the step's error shows: the check can fail
+    blind = np.arange(0, len(p), 3)
+    assert _interpolation_error(p, np.union1d(blind, np.flatnonzero((x == 0) | (z == 0) | (x > 5.94) | (z > 2.94)))) > 0.05
+
+
+def test_a_rough_surface_keeps_every_point():
+    p = _wall(noise_m=0.03)
+    assert not flat_points(p, 0.15, 0.01).any()
+    assert len(coarsen_flat(p, 0.15, 0.01)) == len(p)
+
+
+def test_off_and_tiny_inputs_keep_everything():
+    p = _wall()
+    assert (coarsen_flat(p, 0.0, 0.01) == np.arange(len(p))).all()
+    assert (coarsen_flat(p[:5], 0.15, 0.01) == np.arange(5)).all()
+    assert len(coarsen_flat(np.zeros((0, 3)), 0.15, 0.01)) == 0
+
+
+def test_far_from_the_origin_the_decision_is_the_same():
+    p = _wall(step_m=0.12)
+    far = p + np.array([5.0e5, 5.4e6, 300.0])  # projected coordinates, not shifted
+    assert (flat_points(p, 0.15, 0.01) == flat_points(far, 0.15, 0.01)).all()
+
+
+def test_a_region_rebuilds_with_fewer_faces_and_the_same_surface():
+    from tasks.config.repair import RepairConfig
+    from tasks.repair.geometry import RegionInput, repair_region_geometry
+
+    xs, zs = np.linspace(0, 16, 33), np.linspace(0, 6, 13)  # a 16 m x 6 m wall at 0.5 m
+    v = np.array([[x, 0.0, z] for x in xs for z in zs])
+    f = []
+    for i in range(32):
+        for j in range(12):
+            a, b = i * 13 + j, (i + 1) * 13 + j
+            f += [[a, b, b + 1], [a, b + 1, a + 1]]
+    f = np.array(f, np.int64)
+    c = v[f].mean(axis=1)
+    zone = (c[:, 0] > 3) & (c[:, 0] < 13) & (c[:, 2] > 1.5) & (c[:, 2] < 4.5)  # a 10 m x 3 m zone, context around
+    rng = np.random.default_rng(1)
+    seen = np.array([[x, 0.1, z] for x in np.arange(0.01, 16, 0.02) for z in np.arange(0.01, 6, 0.02)])
+    seen[:, 1] += rng.normal(0, 0.004, len(seen))  # the wall is 10 cm behind the mesh, 4 mm noise
+    in_zone = (seen[:, 0] > 3) & (seen[:, 0] < 13) & (seen[:, 2] > 1.5) & (seen[:, 2] < 4.5)
+    near = (v[:, 0] > 2.4) & (v[:, 0] < 13.6) & (v[:, 2] > 0.9) & (v[:, 2] < 5.1)
+    data = RegionInput(xyz=v, vertex_id=np.arange(len(v)), zone_faces=f[zone], context_faces=f[~zone],
+                       near_zone=near, mls_xyz=seen[in_zone], mls_class=np.zeros(int(in_zone.sum()), np.uint8),
+                       ctx_xyz=seen[~in_zone][::4], face_normals=None)
+    full = repair_region_geometry(data, RepairConfig.model_validate({"mesh": {"flat_spacing_m": 0}}))
+    coarse = repair_region_geometry(data, RepairConfig.model_validate({}))
+    assert coarse.stats["flat_dropped"] > 0 and "flat_dropped" not in full.stats
+    assert coarse.mesh.n_faces < 0.5 * full.mesh.n_faces
+    assert (coarse.replaced == full.replaced).all()
+    from tasks.repair.mesh import ClosestPoint
+
+    inner_pts = seen[(seen[:, 0] > 3.6) & (seen[:, 0] < 12.4) & (seen[:, 2] > 2.1) & (seen[:, 2] < 3.9)]
+    for geo in (full, coarse):
+        c = geo.mesh.xyz[geo.mesh.faces].mean(axis=1)
+        inner = (c[:, 0] > 3.6) & (c[:, 0] < 12.4) & (c[:, 2] > 2.1) & (c[:, 2] < 3.9)
+        assert np.mean(np.abs(c[inner, 1] - 0.1) < 0.02) > 0.99  # on the scanned wall
+        fid, _, dist = ClosestPoint(geo.mesh.xyz, geo.mesh.faces).query(inner_pts)
+        assert (fid >= 0).all() and np.quantile(dist, 0.99) < 0.015  # and covering it: no hole, no shrink
+    assert coarse.stats["rebuilt_area_m2"] <= full.stats["rebuilt_area_m2"]  # no surface added
