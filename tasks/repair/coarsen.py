@@ -21,7 +21,7 @@ from tasks.repair.fuse import thin_points
 
 __all__ = ["flat_points", "coarsen_flat"]
 
-CHUNK = 32768  # points per k-NN query
+CHUNK = 16384  # points per k-NN query (~50 MB of neighbour arrays)
 CENTROID_SHIFT = 0.2  # in-plane shift of the neighbours' centroid, x coarse_m, above which a point is at an edge
 
 
