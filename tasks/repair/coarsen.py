@@ -3,11 +3,11 @@
 The fusion keeps one MLS point per ``fusion.mls_spacing_m`` voxel, which is what a window reveal or an
 eave needs, but a flat wall then carries ~8 rebuilt faces per input face at real MLS density. Here a
 point may go only where its neighbourhood of radius ``coarse_m`` is a plane within ``tolerance_m``
-(RMS distance of the neighbours to their own PCA plane) and the point lies inside that neighbourhood
-(not at the scan's edge, where dropping it would shrink the rebuilt surface). Those points are thinned
-to one per ``coarse_m`` voxel; every other point stays. A Delaunay triangulation of what is left departs
-from the dropped points by about the tolerance, as they lay within it of the plane their kept
-neighbours span.
+(RMS distance of the neighbours to their own PCA plane) and the neighbours surround the point (not at
+the scan's edge, where dropping it would shrink the rebuilt surface, nor on the near side of a step).
+Those points are thinned to one per ``coarse_m`` voxel; every other point stays. A Delaunay
+triangulation of what is left departs from the dropped points by about the tolerance, as they lay
+within it of the plane their kept neighbours span.
 
 Frames and units: campus-local metres (float64).
 """
@@ -44,11 +44,13 @@ def one_per_voxel(xyz: np.ndarray, voxel_m: float) -> np.ndarray:
 
 def flat_points(xyz: np.ndarray, coarse_m: float, tolerance_m: float, max_neighbours: int = 32) -> np.ndarray:
     """(n,) bool: points whose neighbours within ``coarse_m`` fit a plane to ``tolerance_m`` RMS and sit
-    all around them (no empty sector wider than ``MAX_GAP`` in their plane: not at an edge). xyz: (n, 3) float metres. The neighbours are taken from the points thinned to one per
-    ``coarse_m / 2`` voxel, so that the nearest ``max_neighbours`` span the whole radius at any density
-    (a 5 cm-thinned real-density scan holds 2-3 points per voxel across a wall's noise: its 32 nearest
-    points spanned only ~11 cm and missed steps a triangle of the coarse surface then crossed). Fewer than
-    6 neighbours: not flat.
+    all around them (no empty sector wider than ``MAX_GAP`` in their plane: not at an edge).
+
+    xyz: (n, 3) float metres. The neighbours are taken from the points thinned to one per ``coarse_m / 2``
+    voxel, so that the nearest ``max_neighbours`` span the whole radius at any density (a 5 cm-thinned
+    real-density scan holds 2-3 points per voxel across a wall's noise: its 32 nearest points spanned only
+    ~11 cm and missed steps that a triangle of the coarse surface then crossed). Fewer than 6 neighbours:
+    not flat.
 
     >>> g = np.stack(np.meshgrid(np.arange(20), np.arange(20), [0.0]), -1).reshape(-1, 3) * 0.05
     >>> f = flat_points(g, 0.15, 0.01)
