@@ -43,7 +43,7 @@ class FinetuneSpec:
     campus: str
     base: str
     out: str
-    seeds: list[int] = field(default_factory=lambda: [7, 11])
+    seeds: list = field(default_factory=lambda: [7, 11])
     work_dirs: list[str] = field(default_factory=list)
     data: str = "ms3d-work"
     holdout: float = 0.25
@@ -110,7 +110,7 @@ def _split(n: int, share: float, seed: int) -> tuple[np.ndarray, np.ndarray]:
 
 def finetune(spec: FinetuneSpec) -> dict:
     """Fine-tune ``spec.base`` on the campus's user labels; returns the summary written to finetune.json."""
-    from flows.train import load_pairs, prepare_campus
+    from flows.train import campus_variant, load_pairs, prepare_campus
     from ms3d_model.dataset import PairSet, area_split
     from ms3d_model.train import checkpoint_threshold, load_checkpoint, predict
     from tasks.config import CampusConfig
@@ -127,7 +127,7 @@ def finetune(spec: FinetuneSpec) -> dict:
         raise InputError(spec.base, f"fine-tuning a {prof.net.arch!r} network is not supported yet (trees only)")
     users, dropped = user_pairs(cfg.work_dir, "user", prof)
     u_tr, u_va = _split(len(users), spec.holdout, spec.seed)
-    campuses = {f"s{s}": prepare_campus(s, spec.data) for s in spec.seeds}
+    campuses = {campus_variant(s)[3]: prepare_campus(s, spec.data) for s in spec.seeds}
     campuses.update({Path(w).name: w for w in spec.work_dirs})
     if not campuses:
         raise InputError(spec.campus, "no synth pairs to mix with: give --seeds or --work-dir")

@@ -84,7 +84,8 @@ def add_commands(sub: argparse._SubParsersAction) -> None:
     """Add ``train`` and ``evaluate`` to the ``ms3d`` subcommands."""
     t = sub.add_parser("train", help="train MS3DQE-Net (and the baselines) on synth campuses")
     t.add_argument("--profile", default="default", help="default | paper | tiny (ms3d_model.profiles)")
-    t.add_argument("--seeds", type=int, nargs="*", default=[7, 11], help="synth demo campuses to train on")
+    t.add_argument("--seeds", nargs="*", default=[7, 11], help="synth demo campuses to train on: SEED, SEED@DENSITY "
+                   "(MLS density, 1.0 = a real scanner's) or SEED:coarse (a LoD2-like block model as the mesh)")
     t.add_argument("--work-dir", action="append", help="a processed, labelled campus to train on as well")
     t.add_argument("--data", default="ms3d-work", help="where synth campuses, their work dirs and caches live")
     t.add_argument("--out", default="ms3d-work/train")

@@ -37,7 +37,7 @@ class TrainSpec:
 
     out: str
     data: str = "ms3d-work"
-    seeds: list[int] = field(default_factory=lambda: [7, 11])
+    seeds: list = field(default_factory=lambda: [7, 11])  # ints, or "SEED@DENSITY" / "SEED:coarse" (campus_variant)
     work_dirs: list[str] = field(default_factory=list)
     preset: str = "demo"
     profile: str = "default"
@@ -60,18 +60,43 @@ def suite() -> dict[str, dict]:
     return s
 
 
-def prepare_campus(seed: int, data: str, preset: str = "demo") -> str:
-    """Generate and process the synth campus of ``seed`` unless done; returns its work dir."""
+def campus_variant(seed) -> tuple[int, float | None, bool, str]:
+    """Parse one training campus: ``7`` (the preset as it is), ``"23@0.3"`` (MLS density 0.3 of the real
+    scanner's) or ``"31:coarse"`` (a LoD2-like block model for the mesh, :mod:`synth.coarse`); both may be
+    combined (``"31@0.5:coarse"``). Returns (seed, density or None, coarse, the campus's folder name).
+
+    >>> campus_variant("23@0.3")
+    (23, 0.3, False, 's23d0.3')
+    >>> campus_variant(7)
+    (7, None, False, 's7')
+    """
+    text = str(seed).strip()
+    base, _, kind = text.partition(":")
+    num, _, dens = base.partition("@")
+    if kind not in ("", "coarse") or not num.isdigit():
+        raise ValueError(f"training campus {text!r}: expected SEED, SEED@DENSITY or SEED:coarse")
+    density = float(dens) if dens else None
+    if density is not None and not 0 < density <= 4:
+        raise ValueError(f"training campus {text!r}: the MLS density must be in (0, 4]")
+    name = f"s{int(num)}" + (f"d{density:g}" if density is not None else "") + ("c" if kind else "")
+    return int(num), density, bool(kind), name
+
+
+def prepare_campus(seed, data: str, preset: str = "demo") -> str:
+    """Generate and process the synth campus of ``seed`` (see :func:`campus_variant`) unless done; returns its
+    work dir ``<data>/w<name without the s>``."""
     from flows.campus import run_campus
     from synth.generate import generate
     from tasks.config import CampusConfig
 
-    inp, work = Path(data) / f"s{seed}", Path(data) / f"w{seed}"
+    num, density, coarse, name = campus_variant(seed)
+    inp, work = Path(data) / name, Path(data) / f"w{name[1:]}"
     if not (inp / "campus.yaml").exists():
-        log.info("generating synth campus %s seed %d in %s", preset, seed, inp)
-        generate(preset, seed=seed, out=inp, overwrite=True)
+        log.info("generating synth campus %s seed %d (density %s%s) in %s", preset, num, density or "preset",
+                 ", coarse mesh" if coarse else "", inp)
+        generate(preset, seed=num, out=inp, overwrite=True, mls_density=density, coarse_mesh=coarse)
     if not any(work.glob("tiles/*/labels.parquet")):
-        log.info("processing campus seed %d into %s", seed, work)
+        log.info("processing campus %s into %s", name, work)
         # the labelled patch stores are all training needs: no grades, so no region is rebuilt, and no report
         cfg = CampusConfig.from_yaml(inp / "campus.yaml", {"work_dir": str(work.absolute()), "runner": "inline",
                                                            "classify": {"enabled": False},
@@ -167,7 +192,7 @@ def run_training(spec: TrainSpec, step=None) -> dict:
     step = step or (lambda fn, *a: fn(*a))
     t0, c0 = time.perf_counter(), time.process_time()
     prof = replace(get_profile(spec.profile), **spec.overrides)
-    campuses = {f"s{s}": step(prepare_campus, s, spec.data, spec.preset) for s in spec.seeds}
+    campuses = {campus_variant(s)[3]: step(prepare_campus, s, spec.data, spec.preset) for s in spec.seeds}
     campuses.update({Path(w).name: w for w in spec.work_dirs})
     t_data = time.perf_counter()
     pairs = step(load_pairs, campuses, prof, str(Path(spec.data) / "cache"))

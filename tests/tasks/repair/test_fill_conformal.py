@@ -269,3 +269,28 @@ def test_a_wall_facing_away_does_not_contradict_a_roof_vertex_above_it():
     lower_roof = wall * [1, 1, 0] + [0, 0, 2.7]  # a parallel roof 0.3 m below: that does contradict it
     assert in_view(roof_edge, up, lower_roof, radius_m=0.5, cone_deg=45, pts_n=np.tile([0, 0, 1.0], (len(wall), 1)),
                    min_cos=0.7)[0]
+
+
+def test_the_roof_strip_beside_a_scanned_wall_top_stays_too():
+    """The strip of roof within keep_unseen_m of the scanned wall top has wall points near it, but none that
+    faces like it: it stays as it went in. Counting any near point as seeing (keep_facing_cos 0, the old
+    rule) rebuilds that strip, so the check can fail."""
+    from tasks.repair.geometry import RegionInput, repair_region_geometry
+
+    wv, wf = _band(length=8.0, height=3.0, nx=16, nz=6)
+    rv = np.array([[x, y, 3.0] for x in np.linspace(0, 8, 17) for y in np.linspace(0, 3, 7)])
+    idx = lambda i, j: len(wv) + i * 7 + j  # noqa: E731
+    rf = [[idx(i, j), idx(i + 1, j + 1), idx(i + 1, j)] for i in range(16) for j in range(6)]
+    rf += [[idx(i, j), idx(i, j + 1), idx(i + 1, j + 1)] for i in range(16) for j in range(6)]
+    v, f = np.concatenate([wv, rv]), np.concatenate([wf, np.array(rf, np.int64)])
+    rng = np.random.default_rng(1)
+    wall_pts = np.c_[rng.uniform(0, 8, 6000), rng.normal(0.15, 0.005, 6000), rng.uniform(0, 2.9, 6000)]
+    data = RegionInput(xyz=v, vertex_id=np.arange(len(v)), zone_faces=f, context_faces=np.zeros((0, 3), np.int64),
+                       near_zone=np.ones(len(v), bool), mls_xyz=wall_pts, mls_class=np.zeros(len(wall_pts), np.uint8),
+                       ctx_xyz=np.zeros((0, 3)), face_normals=None)
+    roof = np.arange(len(f)) >= len(wf)
+    geo = repair_region_geometry(data, EDGE_IS_MESH_EDGE)
+    assert not geo.replaced[roof].any()  # the whole roof, its edge strip included
+    assert geo.replaced[~roof & (v[f].mean(axis=1)[:, 2] < 2.0)].all()
+    old = EDGE_IS_MESH_EDGE.model_copy(update={"mesh": EDGE_IS_MESH_EDGE.mesh.model_copy(update={"keep_facing_cos": 0.0})})
+    assert repair_region_geometry(data, old).replaced[roof].any()  # the old rule rebuilds the strip
