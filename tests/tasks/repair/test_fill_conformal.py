@@ -196,25 +196,34 @@ def test_unseen_zone_faces_stay_verbatim_and_the_rebuild_stitches_to_them():
     assert len(shared) >= 5  # the seam between the halves is welded by id
 
 
-def test_a_roof_strip_in_a_facade_zone_is_never_rebuilt():
-    """A zone over a wall's top storey takes a strip of the roof with it. The street MLS sees the wall
-    only: the roof faces come out exactly as they went in, and no rebuilt triangle cuts across the eave."""
-    from tasks.config.repair import RepairConfig
-    from tasks.repair.geometry import RegionInput, repair_region_geometry
+def _wall_and_roof(seed: int):
+    """A zone over a wall's top storey (x-z plane at y = 0, z in [0, 3]) and a flat roof behind it at z = 3,
+    with street MLS points 15 cm in front of the wall only: (RegionInput, (m,) bool roof faces)."""
+    from tasks.repair.geometry import RegionInput
 
-    wv, wf = _band(length=8.0, height=3.0, nx=16, nz=6)  # wall in the x-z plane at y = 0, z in [0, 3]
-    rv = np.array([[x, y, 3.0] for x in np.linspace(0, 8, 17) for y in np.linspace(0, 3, 7)])  # roof behind it
+    wv, wf = _band(length=8.0, height=3.0, nx=16, nz=6)
+    rv = np.array([[x, y, 3.0] for x in np.linspace(0, 8, 17) for y in np.linspace(0, 3, 7)])
     idx = lambda i, j: len(wv) + i * 7 + j  # noqa: E731
     rf = [[idx(i, j), idx(i + 1, j + 1), idx(i + 1, j)] for i in range(16) for j in range(6)]
     rf += [[idx(i, j), idx(i, j + 1), idx(i + 1, j + 1)] for i in range(16) for j in range(6)]
     v, f = np.concatenate([wv, rv]), np.concatenate([wf, np.array(rf, np.int64)])
-    rng = np.random.default_rng(0)
-    wall_pts = np.c_[rng.uniform(0, 8, 6000), rng.normal(0.15, 0.005, 6000), rng.uniform(0, 2.9, 6000)]  # 15 cm off
+    rng = np.random.default_rng(seed)
+    wall_pts = np.c_[rng.uniform(0, 8, 6000), rng.normal(0.15, 0.005, 6000), rng.uniform(0, 2.9, 6000)]
     data = RegionInput(xyz=v, vertex_id=np.arange(len(v)), zone_faces=f, context_faces=np.zeros((0, 3), np.int64),
                        near_zone=np.ones(len(v), bool), mls_xyz=wall_pts, mls_class=np.zeros(len(wall_pts), np.uint8),
                        ctx_xyz=np.zeros((0, 3)), face_normals=None)
+    return data, np.arange(len(f)) >= len(wf)
+
+
+def test_a_roof_strip_in_a_facade_zone_is_never_rebuilt():
+    """A zone over a wall's top storey takes a strip of the roof with it. The street MLS sees the wall
+    only: the roof faces come out exactly as they went in, and no rebuilt triangle cuts across the eave."""
+    from tasks.config.repair import RepairConfig
+    from tasks.repair.geometry import repair_region_geometry
+
+    data, roof = _wall_and_roof(seed=0)
+    v, f = data.xyz, data.zone_faces
     geo = repair_region_geometry(data, EDGE_IS_MESH_EDGE)
-    roof = np.arange(len(f)) >= len(wf)
     cz = v[f].mean(axis=1)
     deep_roof = roof & (cz[:, 1] > 1.2)  # every vertex more than clear_m back from the scanned wall top
     assert (~geo.replaced[deep_roof]).all()
@@ -275,20 +284,10 @@ def test_the_roof_strip_beside_a_scanned_wall_top_stays_too():
     """The strip of roof within keep_unseen_m of the scanned wall top has wall points near it, but none that
     faces like it: it stays as it went in. Counting any near point as seeing (keep_facing_cos 0, the old
     rule) rebuilds that strip, so the check can fail."""
-    from tasks.repair.geometry import RegionInput, repair_region_geometry
+    from tasks.repair.geometry import repair_region_geometry
 
-    wv, wf = _band(length=8.0, height=3.0, nx=16, nz=6)
-    rv = np.array([[x, y, 3.0] for x in np.linspace(0, 8, 17) for y in np.linspace(0, 3, 7)])
-    idx = lambda i, j: len(wv) + i * 7 + j  # noqa: E731
-    rf = [[idx(i, j), idx(i + 1, j + 1), idx(i + 1, j)] for i in range(16) for j in range(6)]
-    rf += [[idx(i, j), idx(i, j + 1), idx(i + 1, j + 1)] for i in range(16) for j in range(6)]
-    v, f = np.concatenate([wv, rv]), np.concatenate([wf, np.array(rf, np.int64)])
-    rng = np.random.default_rng(1)
-    wall_pts = np.c_[rng.uniform(0, 8, 6000), rng.normal(0.15, 0.005, 6000), rng.uniform(0, 2.9, 6000)]
-    data = RegionInput(xyz=v, vertex_id=np.arange(len(v)), zone_faces=f, context_faces=np.zeros((0, 3), np.int64),
-                       near_zone=np.ones(len(v), bool), mls_xyz=wall_pts, mls_class=np.zeros(len(wall_pts), np.uint8),
-                       ctx_xyz=np.zeros((0, 3)), face_normals=None)
-    roof = np.arange(len(f)) >= len(wf)
+    data, roof = _wall_and_roof(seed=1)
+    v, f = data.xyz, data.zone_faces
     geo = repair_region_geometry(data, EDGE_IS_MESH_EDGE)
     assert not geo.replaced[roof].any()  # the whole roof, its edge strip included
     assert geo.replaced[~roof & (v[f].mean(axis=1)[:, 2] < 2.0)].all()
