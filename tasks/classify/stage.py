@@ -52,6 +52,7 @@ from tasks.classify.pairs import (
     read_tile_pairs,
     tile_pair_set,
 )
+from tasks.classify.user import apply_user_labels, labels_digest, tile_user_labels
 from tasks.units import Done, run_unit
 
 log = logging.getLogger("ms3d.classify")
@@ -166,6 +167,12 @@ def run_classify_tile(tile: TileId, cfg, wd: WorkDir) -> dict | None:
               "min_faces": cfg.partition.min_faces, "min_points": cfg.partition.min_points}
     if ccfg.evidence:
         params["evidence"] = {k: v for k, v in ccfg.model_dump().items() if k.startswith("evidence_")}
+    try:
+        ukeys, ulabs = tile_user_labels(wd.root, cfg.grid(), (tile.ix, tile.iy)) if ccfg.user_labels else ((), ())
+    except InputError as e:
+        return {"unit": tile.key, "status": "failed", "error": str(e), "skipped": False}
+    if labels_digest(ukeys, ulabs):
+        params["user_labels"] = labels_digest(ukeys, ulabs)
 
     def work() -> Done:
         t0 = time.perf_counter()
@@ -186,14 +193,17 @@ def run_classify_tile(tile: TileId, cfg, wd: WorkDir) -> dict | None:
         ev = tile_evidence(tp, store.patches(), ccfg) if ccfg.evidence else None
         if ev is not None:
             grade[ev.bad] = 1
+        user = apply_user_labels(np.asarray(keys, np.int64), grade, np.asarray(ukeys, np.int64),
+                                 np.asarray(ulabs, np.int8))
         t_evidence = time.perf_counter() - t1 - t_grade
         write_side_table(tile_dir, "grades", {"patch": keys, "score": score, "grade": grade}, store.meta,
                          model_hash=model.hash, model=Path(model.path).name, profile=model.profile.name,
-                         threshold=threshold)
+                         threshold=threshold, user_labels=int((user >= 0).sum()))
         summary = {"tile": tile.key, "n_patches": len(keys), "n_pairs": int(np.isfinite(score).sum()), "n_bad": int((grade == 1).sum()),
                    "n_unknown": int((grade == -1).sum()), "model_hash": model.hash,
                    "n_evidence_bad": int(ev.bad.sum()) if ev is not None else 0,
                    "n_missing_surface": int(ev.missing.sum()) if ev is not None else 0,
+                   "n_user_labels": int((user >= 0).sum()),
                    "read_seconds": t_read, "grade_seconds": t_grade, "evidence_seconds": t_evidence,
                    "pairs_per_s": len(tp) / t_grade if t_grade > 0 and len(tp) else 0.0}
         return Done(outputs=[str(side_table_path(tile_dir, "grades").relative_to(wd.root))], summary=summary)

@@ -14,6 +14,8 @@ class ClassifyConfig(BaseModel):
     threshold: float | None = Field(None, ge=0.0, le=1.0, description="a pair is bad (grade 1) when its score (probability "
                                     "of bad) reaches this; None: the threshold the checkpoint ships (chosen on "
                                     "validation; 0.5 for checkpoints without one)")
+    user_labels: bool = Field(True, description="the user's labels (WORKDIR/labels/*.csv, from `ms3d view --label`) "
+                              "set the grade of the patches they name, over the model and the evidence")
     batch_size: int = Field(64, ge=1, description="pairs per forward pass (inference)")
     threads: int = Field(1, ge=1, description="torch threads per worker process (a Dask worker runs one tile at a time)")
     # geometric evidence beside the network (tasks.classify.evidence): bad when the model says bad OR the

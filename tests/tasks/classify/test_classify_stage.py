@@ -57,3 +57,43 @@ def test_a_missing_model_fails_the_tile_with_one_line(tiny_work, tmp_path):
                                                                             "model": str(tmp_path / "none.pt")})})
     res = run_classify_tile(wd.live_tiles()[0], cfg, wd)
     assert res["status"] == "failed" and "none.pt" in res["error"] and "not found" in res["error"]
+
+
+def test_the_users_labels_win_and_regrade_only_their_tile(tiny_work, tmp_path):
+    """A patch the user marked in the viewer takes the user's grade whatever the model says (both ways);
+    only the tile holding the labels grades again; a broken labels file fails that tile in one line."""
+    import shutil
+
+    from storage.grid import PatchGrid
+    from storage.user_labels import LABELS_DIR, append_user_label
+    from tasks.classify import run_classify_tile
+
+    cfg, wd = tiny_work
+    _checkpoint(tmp_path / "u.pt", 0)
+    cfg = cfg.model_copy(update={"classify": cfg.classify.model_copy(update={"enabled": True, "model": str(tmp_path / "u.pt"),
+                                                                             "evidence": False})})
+    tiles = wd.live_tiles()
+    try:
+        [run_classify_tile(t, cfg, wd) for t in tiles]
+        graded = [t for t in tiles if (PatchStore(wd.tile_dir(t)).side("grades")["grade"] >= 0).any()]
+        t0 = graded[0]
+        tiles = [t0] + [t for t in tiles if t != t0]
+        store = PatchStore(wd.tile_dir(t0))
+        keys, grade = store.patches()["patch"], store.side("grades")["grade"]
+        good, bad = keys[grade == 0][:1], keys[grade == 1][:1]
+        flip = np.concatenate([good, bad])
+        assert len(flip) >= 1
+        for key, lab in zip(flip, [1] * len(good) + [0] * len(bad)):
+            append_user_label(wd.root, tuple(int(v) for v in PatchGrid.unpack(np.array([key]))[0]), lab)
+        res = [run_classify_tile(t, cfg, wd) for t in tiles]
+        assert not res[0]["skipped"] and res[0]["n_user_labels"] == len(flip)
+        assert all(r["skipped"] for r in res[1:])
+        g2 = dict(zip(keys.tolist(), PatchStore(wd.tile_dir(t0)).side("grades")["grade"].tolist()))
+        assert [g2[int(k)] for k in good] == [1] * len(good) and [g2[int(k)] for k in bad] == [0] * len(bad)
+        assert sum(g2[int(k)] != int(g) for k, g in zip(keys, grade)) == len(flip)  # nothing else moved
+        assert run_classify_tile(t0, cfg, wd)["skipped"]
+        (wd.root / LABELS_DIR / "broken.csv").write_text("i,j,k,label,time\n1,2,3,7,now\n")
+        failed = run_classify_tile(t0, cfg, wd)
+        assert failed["status"] == "failed" and "broken.csv" in failed["error"] and "label must be" in failed["error"]
+    finally:
+        shutil.rmtree(wd.root / LABELS_DIR, ignore_errors=True)
