@@ -16,6 +16,10 @@
   such a grade can sit below the threshold), and a points-only patch against the mesh is bad rather than
   unknown (score NaN): a city model looks clean to the network, yet lacks the recesses, balconies and
   passages the scan shows.
+- **The user's labels win** (``classify.user_labels``, :mod:`tasks.classify.user`): a patch named in
+  ``WORKDIR/labels/*.csv`` (``ms3d view WORKDIR --label``) takes the user's grade, over the model and the
+  evidence (the score is kept); the record holds a digest of the tile's labels, so a new label re-grades
+  only its tile and repair re-runs only the regions whose grades changed.
 - **Resumable**: a tile is skipped when its manifest record matches the store's fingerprint (sizes and
   modification times of its three tables) and the parameters, which include the model's sha256: a new model
   or a re-partitioned tile grades again.
