@@ -48,7 +48,7 @@ def _cmd_train(a) -> int:
     models = list(suite()) if a.suite else (a.models or ["ms3dqe"])
     spec = TrainSpec(out=a.out, data=a.data, seeds=a.seeds, work_dirs=a.work_dir or [], profile=a.profile,
                      overrides=overrides, models=models, block_m=a.block_m, buffer_m=a.buffer_m,
-                     progress=sys.stderr.isatty())
+                     progress=sys.stderr.isatty(), workers=a.workers)
     logging.getLogger("ms3d").setLevel(logging.INFO)
     summary = train(spec, use_prefect=not a.no_prefect)
     for name, m in summary["models"].items():
@@ -89,6 +89,7 @@ def add_commands(sub: argparse._SubParsersAction) -> None:
     t.add_argument("--work-dir", action="append", help="a processed, labelled campus to train on as well")
     t.add_argument("--data", default="ms3d-work", help="where synth campuses, their work dirs and caches live")
     t.add_argument("--out", default="ms3d-work/train")
+    t.add_argument("--workers", type=int, default=2, help="training campuses prepared side by side (processes)")
     t.add_argument("--models", nargs="*", help="networks to train (ms3dqe, ms3dqe_plus, ms3dqe_geo, pointnet, meshnet, ablation1..6)")
     t.add_argument("--suite", action="store_true", help="train every network of Tables 3 and 4")
     t.add_argument("--set", action="append", metavar="KEY=VALUE", help="override a profile field, e.g. epochs=3")

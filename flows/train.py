@@ -47,6 +47,7 @@ class TrainSpec:
     val_fraction: float = 0.2
     buffer_m: float | None = None  # gap between training and validation; None: the largest defect's extent
     progress: bool = True
+    workers: int = 2  # campuses prepared and featurised side by side (one process each)
 
 
 def suite() -> dict[str, dict]:
@@ -103,6 +104,32 @@ def prepare_campus(seed, data: str, preset: str = "demo") -> str:
                                                            "repair": {"grades": "model"}, "report": {"enabled": False}})
         run_campus(cfg, progress=False)
     return str(work)
+
+
+def _prepare_and_featurise(seed, data: str, preset: str, prof) -> tuple[str, str]:
+    """One campus made ready in a worker process: processed (:func:`prepare_campus`) and its pairs
+    featurised into the per-tile cache that :func:`load_pairs` reads. Returns (name, work dir)."""
+    from tasks.classify import campus_pair_set
+
+    name, work = campus_variant(seed)[3], prepare_campus(seed, data, preset)
+    if prof is not None:
+        campus_pair_set(work, name, prof.max_points, prof.max_faces, prof.k_centre, prof.seed,
+                        str(Path(data) / "cache"), max_pairs=prof.max_pairs)
+    return name, work
+
+
+def prepare_campuses(seeds: list, data: str, preset: str = "demo", workers: int = 2, prof=None) -> dict[str, str]:
+    """{name: work dir} of every training campus, prepared (and featurised at ``prof``'s sizes when given)
+    ``workers`` at a time in their own processes (each campus runs inline, one core); in seed order."""
+    if workers <= 1 or len(seeds) <= 1:
+        return dict(_prepare_and_featurise(s, data, preset, prof) for s in seeds)
+    import multiprocessing as mp
+    from concurrent.futures import ProcessPoolExecutor
+
+    with ProcessPoolExecutor(max_workers=min(workers, len(seeds)), mp_context=mp.get_context("spawn")) as pool:
+        done = list(pool.map(_prepare_and_featurise, seeds, [data] * len(seeds), [preset] * len(seeds),
+                             [prof] * len(seeds)))
+    return dict(done)
 
 
 def dataset_key(campuses: dict[str, str], profile) -> str:
@@ -192,7 +219,7 @@ def run_training(spec: TrainSpec, step=None) -> dict:
     step = step or (lambda fn, *a: fn(*a))
     t0, c0 = time.perf_counter(), time.process_time()
     prof = replace(get_profile(spec.profile), **spec.overrides)
-    campuses = {campus_variant(s)[3]: step(prepare_campus, s, spec.data, spec.preset) for s in spec.seeds}
+    campuses = step(prepare_campuses, spec.seeds, spec.data, spec.preset, spec.workers, prof)
     campuses.update({Path(w).name: w for w in spec.work_dirs})
     t_data = time.perf_counter()
     pairs = step(load_pairs, campuses, prof, str(Path(spec.data) / "cache"))

@@ -120,9 +120,6 @@ class MeshConfig(_Section):
                                  "vertex the MLS surface covers (a roof strip the street scanner never saw) stay as "
                                  "they are and the rebuild stitches to them (tasks.repair.keep); 0: every zone face "
                                  "is rebuilt (the paper)")
-    keep_facing_cos: float = Field(0.5, ge=0, le=1, description="a point sees a zone face for keep_unseen_m only "
-                                   "when its normal is within acos(this) of the face's (|cos|): a scanned wall top does "
-                                   "not see the roof strip beside it; 0: any point within keep_unseen_m sees it")
     free_surface: bool = Field(True, description="MLS points of a region farther than max_map_distance_m from every "
                                "face (a passage through a block model, a wall the mesh lost) are meshed on their own "
                                "(Poisson, cut back to the points: tasks.repair.free) and added, not welded")

@@ -244,8 +244,7 @@ def repair_region_geometry(data: RegionInput, cfg) -> RegionGeometry:
         _, _, both, nrm = thinned
         covered = covered_along_normal(data.xyz, vn, both, nrm, depth_m=fc.point_depth_m,
                                        lateral_m=1.5 * fc.mls_spacing_m)
-        keep = unseen_faces(data.xyz, data.zone_faces, both, covered, clear_m=mc.keep_unseen_m, step_m=mc.fill_step_m,
-                            mls_normals=nrm if mc.keep_facing_cos > 0 else None, min_cos=mc.keep_facing_cos)
+        keep = unseen_faces(data.xyz, data.zone_faces, both, covered, clear_m=mc.keep_unseen_m, step_m=mc.fill_step_m)
         keep = keep if not keep.all() else np.zeros(len(keep), bool)  # all unseen: the typed plan leaves it
     geo = _repair(keep_faces(data, keep), cfg, vn, thinned)
     geo.stats["kept_unseen_faces"] = int(keep.sum())

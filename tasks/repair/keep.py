@@ -23,23 +23,15 @@ from tasks.geometry.sampling import sample_surface
 
 
 def unseen_faces(xyz: np.ndarray, faces: np.ndarray, mls: np.ndarray, covered_vertex: np.ndarray, *,
-                 clear_m: float, step_m: float, mls_normals: np.ndarray | None = None,
-                 min_cos: float = 0.5, k: int = 8) -> np.ndarray:
-    """(m,) bool: faces (m, 3) int64 into xyz (n, 3) that no MLS point (p, 3) sees: none within ``clear_m``
-    of their vertices, centroid or surface samples (``step_m`` apart), and none of whose vertices is covered
+                 clear_m: float, step_m: float) -> np.ndarray:
+    """(m,) bool: faces (m, 3) int64 into xyz (n, 3) with no MLS point (p, 3) within ``clear_m`` of their
+    vertices, centroid or surface samples (``step_m`` apart), and none of whose vertices is covered
     (covered_vertex: (n,) bool, the MLS surface lies along the vertex normal). clear_m <= 0: none.
-
-    With ``mls_normals`` (p, 3) a point sees a face only when it faces like it (|cos| of the normals >=
-    ``min_cos``; among the ``k`` points nearest to each probe): a scanned wall top half a metre below a roof
-    edge does not see the roof strip beside it (the wall faces the street, the roof the sky).
 
     >>> xyz = np.array([[0, 0, 0], [1, 0, 0], [0, 1, 0], [10, 0, 0], [11, 0, 0], [10, 1, 0]], float)
     >>> f = np.array([[0, 1, 2], [3, 4, 5]])
     >>> unseen_faces(xyz, f, np.array([[0.2, 0.2, 0.1]]), np.zeros(6, bool), clear_m=0.5, step_m=0.25).tolist()
     [False, True]
-    >>> wall = np.array([[0.2, 0.2, -0.3]]), np.array([[1.0, 0.0, 0.0]])  # below the face, facing sideways
-    >>> unseen_faces(xyz, f, wall[0], np.zeros(6, bool), clear_m=0.5, step_m=0.25, mls_normals=wall[1]).tolist()
-    [True, True]
     """
     m = len(faces)
     if clear_m <= 0 or not m:
@@ -49,28 +41,15 @@ def unseen_faces(xyz: np.ndarray, faces: np.ndarray, mls: np.ndarray, covered_ve
     if not len(mls):
         return keep
     tree = cKDTree(mls)
-    fn = None
-    if mls_normals is not None:
-        fn = np.cross(xyz[faces[:, 1]] - xyz[faces[:, 0]], xyz[faces[:, 2]] - xyz[faces[:, 0]])
-        fn /= np.maximum(np.linalg.norm(fn, axis=1, keepdims=True), 1e-12)
-
-    def seen(probes: np.ndarray, fid: np.ndarray) -> np.ndarray:
-        """(q,) bool: probes (q, 3) on faces fid (q,) with a point near that sees the face."""
-        if fn is None:
-            return np.isfinite(tree.query(probes, distance_upper_bound=clear_m)[0])
-        d, j = tree.query(probes, k=min(k, len(mls)), distance_upper_bound=clear_m)
-        d, j = d.reshape(len(probes), -1), j.reshape(len(probes), -1)
-        ok = np.isfinite(d)
-        cos = np.abs(np.einsum("qkc,qc->qk", mls_normals[np.where(ok, j, 0)], fn[fid]))
-        return (ok & (cos >= min_cos)).any(axis=1)
-
-    ids = np.arange(m)
-    keep &= ~seen(xyz[faces].reshape(-1, 3), np.repeat(ids, 3)).reshape(m, 3).any(axis=1)
-    keep &= ~seen(xyz[faces].mean(axis=1), ids)
+    near_v = np.isfinite(tree.query(xyz, distance_upper_bound=clear_m)[0])
+    keep &= ~near_v[faces].any(axis=1)
+    cen = xyz[faces].mean(axis=1)
+    keep &= ~np.isfinite(tree.query(cen, distance_upper_bound=clear_m)[0])
     if step_m > 0 and keep.any():
         s, fid = sample_surface(xyz, faces, spacing_m=step_m, rng=0, face_mask=keep)
         if len(s):
-            keep[fid[seen(s, fid)]] = False
+            hit = np.isfinite(tree.query(s, distance_upper_bound=clear_m)[0])
+            keep[fid[hit]] = False
     return keep
 
 
