@@ -199,7 +199,7 @@ def fit_tree_model(prof, tr, va, out: Path) -> dict:
     arrays = tree_arrays(clf)
     prof = replace(prof, net=replace(prof.net, tree_depth=tree_depth(arrays)))
     net = build_net(prof.net, {k: torch.from_numpy(v) for k, v in arrays.items()})
-    _, rep = validation_row(va.labels, predict(net, va, 1024), prof.min_precision)  # threshold chosen as for nets
+    _, rep = validation_row(va.labels, predict(net, va, 1024), prof.min_precision, prof.threshold_objective)
     rep["epoch"] = int(clf.n_iter_)
     secs, cpu = time.perf_counter() - t0, time.process_time() - c0
     h = save_checkpoint(out / "best.pt", net, prof, rep, [], rep["threshold"])

@@ -49,23 +49,31 @@ def classification_report(labels: np.ndarray, p_bad: np.ndarray, threshold: floa
     return out
 
 
-def choose_threshold(labels: np.ndarray, p_bad: np.ndarray, min_precision: float = 0.80) -> dict:
-    """The operating threshold on "bad" chosen on validation: the largest F1 on bad among the thresholds whose
-    precision on bad reaches ``min_precision``; when none does, the largest F1 overall (``floor_met`` False).
+def choose_threshold(labels: np.ndarray, p_bad: np.ndarray, min_precision: float = 0.80,
+                     objective: str = "f1") -> dict:
+    """The operating threshold on "bad" chosen on validation among the thresholds whose precision on bad
+    reaches ``min_precision``: objective "f1" takes the largest F1 on bad, "recall" the largest recall (the
+    lowest such threshold: repair can only fix what is flagged). When no threshold reaches the floor, the
+    largest F1 overall (``floor_met`` False).
 
     labels: (n,) int (0 good, 1 bad); p_bad: (n,) float. Candidate thresholds are the distinct scores (a pair
-    is bad when its score >= the threshold); ties in F1 go to the higher threshold (fewer repairs).
-    Returns {"threshold", "precision", "recall", "f1", "floor_met", "min_precision"}; threshold 0.5 and NaN
-    figures when there is no bad pair.
+    is bad when its score >= the threshold); ties go to the higher threshold (fewer repairs).
+    Returns {"threshold", "precision", "recall", "f1", "floor_met", "min_precision", "objective"}; threshold
+    0.5 and NaN figures when there is no bad pair.
 
     >>> y = np.array([0, 0, 1, 0, 1, 1]); p = np.array([.1, .2, .3, .6, .7, .9])
     >>> choose_threshold(y, p, 0.9)["threshold"], round(choose_threshold(y, p, 0.5)["f1"], 3)
     (0.7, 0.857)
+    >>> y, p = np.array([1, 0, 0, 1, 1, 1]), np.array([.4, .5, .6, .7, .8, .9])
+    >>> choose_threshold(y, p, 0.6, "f1")["threshold"], choose_threshold(y, p, 0.6, "recall")["threshold"]
+    (0.7, 0.4)
     """
+    if objective not in ("f1", "recall"):
+        raise ValueError(f"threshold objective must be 'f1' or 'recall', got {objective!r}")
     y = np.asarray(labels).astype(bool)
     s = np.asarray(p_bad, np.float64)
     out = {"threshold": 0.5, "precision": float("nan"), "recall": float("nan"), "f1": float("nan"),
-           "floor_met": False, "min_precision": float(min_precision)}
+           "floor_met": False, "min_precision": float(min_precision), "objective": objective}
     n_pos = int(y.sum())
     if n_pos == 0:
         return out
@@ -79,7 +87,8 @@ def choose_threshold(labels: np.ndarray, p_bad: np.ndarray, min_precision: float
     f1 = np.where(tp > 0, 2 * precision * recall / np.maximum(precision + recall, 1e-12), 0.0)
     ok = precision >= min_precision
     cand = np.flatnonzero(ok) if ok.any() else np.arange(len(thr))
-    best = cand[np.argmax(f1[cand])]  # argmax takes the first maximum = the highest threshold
+    goal = recall if objective == "recall" and ok.any() else f1
+    best = cand[np.argmax(goal[cand])]  # argmax takes the first maximum = the highest threshold
     out.update(threshold=float(thr[best]), precision=float(precision[best]), recall=float(recall[best]),
                f1=float(f1[best]), floor_met=bool(ok.any()))
     return out

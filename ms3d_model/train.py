@@ -4,7 +4,7 @@ curves, checkpoints that load with ``torch.load(weights_only=True)``.
 Training (defaults in :mod:`ms3d_model.profiles`, objectives in :mod:`ms3d_model.objectives`): the pairs are
 held as tensors once (:class:`~ms3d_model.dataset.PairTensors`); each epoch draws ``pairs_per_epoch`` of
 them; after each epoch the validation pairs are scored, the operating threshold is chosen on them
-(:func:`~ms3d_model.metrics.choose_threshold`: best F1 on bad at precision >= ``min_precision``), and the
+(:func:`~ms3d_model.metrics.choose_threshold`: the largest recall (or F1) on bad at precision >= ``min_precision``), and the
 epoch that ``select_by`` ranks first (validation AP on bad by default) is kept as ``best.pt``.
 
 A checkpoint is a plain dict: ``{"format": "ms3d-model/1", "profile": Profile.to_json(), "state_dict": ...,
@@ -184,17 +184,19 @@ def _loss_on(labels: np.ndarray, p_bad: np.ndarray) -> float:
     return float(-np.log(p).mean()) if len(p) else float("nan")
 
 
-def validation_row(labels: np.ndarray, p_bad: np.ndarray, min_precision: float) -> tuple[dict, dict]:
+def validation_row(labels: np.ndarray, p_bad: np.ndarray, min_precision: float,
+                   objective: str = "f1") -> tuple[dict, dict]:
     """(the epoch's validation figures for the history, the report at the chosen threshold for the checkpoint).
 
     History keys: val_loss, val_acc (at 0.5, the paper's), val_map, val_ap_bad, threshold, val_acc_at_threshold,
     val_precision_bad, val_recall_bad, val_f1_bad (at the threshold chosen on these pairs)."""
     labels = np.asarray(labels)
     at_half = classification_report(labels, p_bad)
-    choice = choose_threshold(labels, p_bad, min_precision)
+    choice = choose_threshold(labels, p_bad, min_precision, objective)
     rep = classification_report(labels, p_bad, choice["threshold"]) | {"threshold": choice["threshold"],
                                                                         "precision_floor_met": choice["floor_met"],
                                                                         "min_precision": min_precision,
+                                                                        "threshold_objective": objective,
                                                                         "acc_at_0.5": at_half["acc"]}
     row = {"val_loss": _loss_on(labels, p_bad), "val_acc": at_half["acc"], "val_map": rep["map"],
            "val_ap_bad": rep["ap_bad"], "threshold": choice["threshold"], "val_acc_at_threshold": rep["acc"],
@@ -272,7 +274,8 @@ def train_model(profile: Profile, train: PairSet, val: PairSet, out_dir: str | P
                                        sched if per_step else None, crit, gen, bar)
         if not per_step:
             sched.step()
-        vrow, rep = validation_row(val.labels, predict_tensors(net, val_t, profile.eval_batch), profile.min_precision)
+        vrow, rep = validation_row(val.labels, predict_tensors(net, val_t, profile.eval_batch), profile.min_precision,
+                                     profile.threshold_objective)
         row = {"epoch": epoch, "train_loss": loss, "train_acc": acc, **vrow, "lr": opt.param_groups[0]["lr"],
                "epoch_seconds": time.perf_counter() - t_ep, "pairs_per_s": seen / max(time.perf_counter() - t_ep, 1e-9)}
         history.append(row)
