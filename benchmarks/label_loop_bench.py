@@ -200,7 +200,7 @@ def main(argv=None) -> dict:
     ap.add_argument("--n-labels", type=int, default=200)
     ap.add_argument("--base", default=None, help="checkpoint to start from (default: the shipped default.pt)")
     ap.add_argument("--data", default="ms3d-work", help="synth campuses and caches of `ms3d train` (as its --data)")
-    ap.add_argument("--seeds", type=int, nargs="*", default=[7, 11], help="synth seeds mixed in (as `ms3d train`)")
+    ap.add_argument("--seeds", nargs="*", default=["7", "11"], help="synth campuses mixed in (as `ms3d train --seeds`: SEED, SEED@DENSITY, SEED:coarse)")
     ap.add_argument("--mix-work-dir", action="append", default=[], help="a labelled work dir mixed in as well")
     ap.add_argument("--synth", type=Path, default=None, help="the campus's synth folder (truth/): F@5cm before/after")
     ap.add_argument("--omp-threads", type=int, default=None, help="OMP_NUM_THREADS of the fine-tune (unset: as the CLI)")
