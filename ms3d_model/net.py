@@ -344,18 +344,22 @@ class TreeNet(nn.Module):
         x = batch["cues"].double()
         b = x.shape[0]
         t, m = self.feature.shape
-        # nodes as flat indices into the (t, m) arrays: one 1-D gather per array and level, and the walk
-        # stops once every pair has reached a leaf of every tree (most trees are shallower than the deepest)
-        base = torch.arange(t, dtype=torch.int64) * m
+        # nodes as flat indices into the (t, m) arrays, one entry per (pair, tree); each level walks only the
+        # entries not yet at a leaf (most trees are far shallower than the deepest, so few entries go deep)
         feature, leaf, miss = self.feature.reshape(-1), self.is_leaf.reshape(-1), self.missing_left.reshape(-1)
         threshold, left, right = self.threshold.reshape(-1).double(), self.left.reshape(-1), self.right.reshape(-1)
-        node = base.expand(b, t)
+        tree_base = torch.arange(t, dtype=torch.int64) * m
+        node = tree_base.repeat(b)  # (b * t,) entry e = pair e // t, tree e % t
+        active = torch.arange(b * t, dtype=torch.int64)
         for _ in range(self.depth):
-            at_leaf = leaf[node]
-            if bool(at_leaf.all()):
+            n = node[active]
+            inner = ~leaf[n]
+            if not bool(inner.any()):
                 break
-            v = torch.gather(x, 1, feature[node])
-            go_left = torch.where(torch.isnan(v), miss[node], v <= threshold[node])
-            node = torch.where(at_leaf, node, torch.where(go_left, left[node], right[node]) + base)
+            active, n = active[inner], n[inner]
+            v = x[torch.div(active, t, rounding_mode="floor"), feature[n]]
+            go_left = torch.where(torch.isnan(v), miss[n], v <= threshold[n])
+            node[active] = torch.where(go_left, left[n], right[n]) + tree_base[active % t]
+        node = node.reshape(b, t)
         raw = self.value.reshape(-1)[node].double().sum(1) + self.baseline.double()
         return torch.stack([torch.zeros_like(raw), raw], dim=1).float()
