@@ -120,6 +120,12 @@ class MeshConfig(_Section):
                                  "vertex the MLS surface covers (a roof strip the street scanner never saw) stay as "
                                  "they are and the rebuild stitches to them (tasks.repair.keep); 0: every zone face "
                                  "is rebuilt (the paper)")
+    overhead_min_height_m: float = Field(2.5, ge=0, description="zone faces within 45° of horizontal whose lowest "
+                                         "vertex lies this far or more above the region's lowest MLS point (1st "
+                                         "percentile) are overhead: a street scanner saw them from below only, so an "
+                                         "MLS point more than 5 cm under such a face (an eave's soffit under the roof's "
+                                         "top) is not evidence of it, and keep_unseen_m keeps it (tasks.repair.keep); "
+                                         "0: every point counts")
     free_surface: bool = Field(True, description="MLS points of a region farther than max_map_distance_m from every "
                                "face (a passage through a block model, a wall the mesh lost) are meshed on their own "
                                "(Poisson, cut back to the points: tasks.repair.free) and added, not welded")

@@ -16,14 +16,11 @@ import numpy as np
 from scipy.spatial import cKDTree
 
 from storage.vertex_ids import local_ids
-
 from tasks.repair.chart import zone_charts
 from tasks.repair.coarsen import coarsen_flat
+from tasks.repair.defect_types import DefectEvidence, classify_evidence, repair_plan
 from tasks.repair.fill import SOURCE_FILL, unseen_samples
 from tasks.repair.free import behind_surface, far_points, free_surface
-from tasks.repair.keep import covered_along_normal, expand_replaced, keep_faces, unseen_faces
-from tasks.repair.support import unsupported_share
-from tasks.repair.defect_types import DefectEvidence, classify_evidence, repair_plan
 from tasks.repair.fuse import (
     FusionParams,
     coverage_offsets,
@@ -33,6 +30,7 @@ from tasks.repair.fuse import (
     thin_points,
     vertex_normals,
 )
+from tasks.repair.keep import covered_along_normal, expand_replaced, keep_faces, overhead_faces, unseen_faces
 from tasks.repair.mesh import (
     RebuiltMesh,
     border_edges,
@@ -43,6 +41,7 @@ from tasks.repair.mesh import (
     rebuild_charts,
     triangle_areas,
 )
+from tasks.repair.support import unsupported_share
 
 
 @dataclass(frozen=True)
@@ -242,9 +241,13 @@ def repair_region_geometry(data: RegionInput, cfg) -> RegionGeometry:
     keep = np.zeros(len(data.zone_faces), bool)
     if mc.keep_unseen_m > 0 and len(data.zone_faces):
         _, _, both, nrm = thinned
+        oh = overhead_faces(data.xyz, data.zone_faces, both, min_height_m=mc.overhead_min_height_m)
+        oh_v = np.zeros(len(data.xyz), bool)
+        oh_v[data.zone_faces[oh].ravel()] = True
         covered = covered_along_normal(data.xyz, vn, both, nrm, depth_m=fc.point_depth_m,
-                                       lateral_m=1.5 * fc.mls_spacing_m)
-        keep = unseen_faces(data.xyz, data.zone_faces, both, covered, clear_m=mc.keep_unseen_m, step_m=mc.fill_step_m)
+                                       lateral_m=1.5 * fc.mls_spacing_m, overhead=oh_v)
+        keep = unseen_faces(data.xyz, data.zone_faces, both, covered, clear_m=mc.keep_unseen_m, step_m=mc.fill_step_m,
+                            overhead=oh)
         keep = keep if not keep.all() else np.zeros(len(keep), bool)  # all unseen: the typed plan leaves it
     geo = _repair(keep_faces(data, keep), cfg, vn, thinned)
     geo.stats["kept_unseen_faces"] = int(keep.sum())

@@ -1,0 +1,108 @@
+"""Overhead faces (tasks.repair.keep): a street scanner sees a horizontal surface above its head from below
+only, so the soffit under an eave is not evidence of the roof's top above it."""
+
+import numpy as np
+
+from tasks.config.repair import RepairConfig
+from tasks.repair.keep import covered_along_normal, overhead_faces, unseen_faces
+
+
+def _grid(x0, x1, y0, y1, z, n=8):
+    """A horizontal quad grid at height z: (vertices (k, 3), faces (m, 3) int64), up-facing."""
+    xs, ys = np.linspace(x0, x1, n + 1), np.linspace(y0, y1, n + 1)
+    v = np.array([[x, y, z] for x in xs for y in ys])
+    idx = lambda i, j: i * (n + 1) + j
+    f = [[idx(i, j), idx(i + 1, j), idx(i + 1, j + 1)] for i in range(n) for j in range(n)]
+    f += [[idx(i, j), idx(i + 1, j + 1), idx(i, j + 1)] for i in range(n) for j in range(n)]
+    return v, np.array(f, np.int64)
+
+
+def _plane_points(x0, x1, y0, y1, z, step=0.05):
+    g = np.stack(np.meshgrid(np.arange(x0, x1, step), np.arange(y0, y1, step)), -1).reshape(-1, 2)
+    return np.c_[g, np.full(len(g), z)]
+
+
+def test_points_under_an_overhead_face_are_not_evidence_of_it_but_points_on_or_above_are():
+    v, f = _grid(0, 2, 0, 2, 6.0)
+    wall = np.c_[np.full(200, -3.0), np.linspace(0, 2, 200), np.linspace(0, 5, 200)]  # the region's low points
+    soffit = _plane_points(0, 2, 0, 2, 5.75)  # 25 cm under the face
+    oh = overhead_faces(v, f, np.concatenate([wall, soffit]), min_height_m=2.5)
+    assert oh.all()
+    no_cover = np.zeros(len(v), bool)
+    kw = {"clear_m": 0.5, "step_m": 0.4}
+    assert unseen_faces(v, f, np.concatenate([wall, soffit]), no_cover, overhead=oh, **kw).all()
+    assert not unseen_faces(v, f, np.concatenate([wall, soffit]), no_cover, **kw).any()  # the old rule: all seen
+    on_top = _plane_points(0, 2, 0, 2, 6.02)  # points on the face (within the 5 cm tolerance) do count
+    assert not unseen_faces(v, f, np.concatenate([wall, soffit, on_top]), no_cover, overhead=oh, **kw).any()
+    above = _plane_points(0, 2, 0, 2, 6.3)
+    assert not unseen_faces(v, f, np.concatenate([wall, above]), no_cover, overhead=oh, **kw).any()
+
+
+def test_a_low_horizontal_face_is_not_overhead_and_the_ground_under_it_still_counts():
+    """A ground mesh floating 25 cm over the scanned ground is seen (the scanner looks down on it)."""
+    v, f = _grid(0, 2, 0, 2, 0.25)
+    ground = _plane_points(-1, 3, -1, 3, 0.0)
+    assert not overhead_faces(v, f, ground, min_height_m=2.5).any()
+    vn = np.tile([0, 0, 1.0], (len(v), 1))
+    cov = covered_along_normal(v, vn, ground, vn[:1].repeat(len(ground), 0), depth_m=1.2, lateral_m=0.075)
+    assert cov.all()
+    assert not unseen_faces(v, f, ground, cov, clear_m=0.5, step_m=0.4).any()
+    steep = v.copy()
+    steep[:, 2] += 6.0 + 2.0 * steep[:, 0]  # 63° from horizontal, high up: a wall-like face is never overhead
+    assert not overhead_faces(steep, f, ground, min_height_m=2.5).any()
+
+
+def test_covered_along_normal_ignores_a_soffit_under_an_overhead_vertex():
+    v, _ = _grid(0, 2, 0, 2, 6.0)
+    soffit = _plane_points(0, 2, 0, 2, 5.75)
+    vn = np.tile([0, 0, 1.0], (len(v), 1))
+    sn = vn[:1].repeat(len(soffit), 0)
+    kw = {"depth_m": 1.2, "lateral_m": 0.075}
+    assert covered_along_normal(v, vn, soffit, sn, **kw).all()
+    assert not covered_along_normal(v, vn, soffit, sn, overhead=np.ones(len(v), bool), **kw).any()
+
+
+def _eave_region():
+    """A wall (x-z plane at y = 0, z 0..6, street at y < 0) under a flat roof at z = 6 that overhangs the
+    street by 0.6 m; the MLS sees the wall (15 cm off the mesh: a misregistered storey) and the eave's
+    soffit 25 cm under the roof's top, never the top. Returns (RegionInput, (m,) bool overhang roof faces)."""
+    from tasks.repair.geometry import RegionInput
+
+    xs, zs = np.linspace(0, 8, 33), np.linspace(0, 6, 25)
+    wv = np.array([[x, 0.0, z] for x in xs for z in zs])
+    idx = lambda i, j: i * len(zs) + j
+    wf = [[idx(i, j), idx(i + 1, j), idx(i + 1, j + 1)] for i in range(32) for j in range(24)]
+    wf += [[idx(i, j), idx(i + 1, j + 1), idx(i, j + 1)] for i in range(32) for j in range(24)]
+    rv, rf = _grid(0, 8, -0.6, 2.0, 6.0, n=32)
+    v, f = np.concatenate([wv, rv]), np.concatenate([np.array(wf, np.int64), rf + len(wv)])
+    rng = np.random.default_rng(3)
+    wall = np.c_[rng.uniform(0, 8, 20000), rng.normal(-0.15, 0.004, 20000), rng.uniform(0.0, 5.7, 20000)]
+    soffit = np.c_[rng.uniform(0, 8, 6000), rng.uniform(-0.6, -0.15, 6000), rng.normal(5.75, 0.004, 6000)]
+    mls = np.concatenate([wall, soffit])
+    data = RegionInput(xyz=v, vertex_id=np.arange(len(v)), zone_faces=f, context_faces=np.zeros((0, 3), np.int64),
+                       near_zone=np.ones(len(v), bool), mls_xyz=mls, mls_class=np.zeros(len(mls), np.uint8),
+                       ctx_xyz=np.zeros((0, 3)), face_normals=None)
+    c = v[f].mean(axis=1)
+    return data, (np.arange(len(f)) >= len(wf)) & (c[:, 1] < -0.05)
+
+
+def test_the_roof_over_an_eave_stays_while_the_wall_under_it_is_rebuilt():
+    """The default keeps every roof face over the overhang and rebuilds the wall onto its scan; with the
+    rule off (overhead_min_height_m 0, the code before it) the soffit takes the roof's faces."""
+    from tasks.repair.geometry import repair_region_geometry
+
+    data, overhang = _eave_region()
+    base = {"mesh": {"max_hole_loop_m": 5.0}}
+    geo = repair_region_geometry(data, RepairConfig.model_validate(base))
+    assert not geo.replaced[overhang].any()
+    c = data.xyz[data.zone_faces].mean(axis=1)
+    wall = np.abs(data.xyz[data.zone_faces][:, :, 1]).max(axis=1) < 1e-9
+    assert geo.replaced[wall & (c[:, 2] > 0.5) & (c[:, 2] < 5.0)].all()
+    m = geo.mesh
+    mc = m.xyz[m.faces].mean(axis=1)
+    mid = (mc[:, 2] > 0.5) & (mc[:, 2] < 5.0) & (mc[:, 0] > 0.5) & (mc[:, 0] < 7.5)
+    assert mid.sum() > 50 and np.median(np.abs(mc[mid, 1] + 0.15)) < 0.02  # the wall moved onto the scan
+    assert not ((mc[:, 1] < -0.2) & (mc[:, 2] > 5.9)).any()  # nothing rebuilt on the kept roof's top (the soffit may be)
+    off = repair_region_geometry(data, RepairConfig.model_validate({"mesh": {"max_hole_loop_m": 5.0,
+                                                                             "overhead_min_height_m": 0}}))
+    assert off.replaced[overhang].mean() > 0.5
