@@ -30,7 +30,14 @@ from tasks.repair.fuse import (
     thin_points,
     vertex_normals,
 )
-from tasks.repair.keep import covered_along_normal, expand_replaced, keep_faces, overhead_faces, unseen_faces
+from tasks.repair.keep import (
+    covered_along_normal,
+    expand_replaced,
+    keep_faces,
+    overhead_faces,
+    top_faces,
+    unseen_faces,
+)
 from tasks.repair.mesh import (
     RebuiltMesh,
     border_edges,
@@ -242,12 +249,14 @@ def repair_region_geometry(data: RegionInput, cfg) -> RegionGeometry:
     if mc.keep_unseen_m > 0 and len(data.zone_faces):
         _, _, both, nrm = thinned
         oh = overhead_faces(data.xyz, data.zone_faces, both, min_height_m=mc.overhead_min_height_m)
-        oh_v = np.zeros(len(data.xyz), bool)
+        top = oh & top_faces(data.xyz, data.zone_faces)
+        oh_v, top_v = np.zeros(len(data.xyz), bool), np.zeros(len(data.xyz), bool)
         oh_v[data.zone_faces[oh].ravel()] = True
+        top_v[data.zone_faces[top].ravel()] = True
         covered = covered_along_normal(data.xyz, vn, both, nrm, depth_m=fc.point_depth_m,
-                                       lateral_m=1.5 * fc.mls_spacing_m, overhead=oh_v)
+                                       lateral_m=1.5 * fc.mls_spacing_m, overhead=oh_v, top=top_v)
         keep = unseen_faces(data.xyz, data.zone_faces, both, covered, clear_m=mc.keep_unseen_m, step_m=mc.fill_step_m,
-                            overhead=oh)
+                            overhead=oh, mls_n=nrm, top=top)
         keep = keep if not keep.all() else np.zeros(len(keep), bool)  # all unseen: the typed plan leaves it
     geo = _repair(keep_faces(data, keep), cfg, vn, thinned)
     geo.stats["kept_unseen_faces"] = int(keep.sum())

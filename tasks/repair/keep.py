@@ -13,7 +13,9 @@ A street scanner sees a horizontal surface above its head from below only. The t
 eave has the eave's soffit 10-40 cm under it: near, parallel, "along the normal", yet the underside of the
 slab, not its top. Measured on the demo campus (seed 7), such soffit points made 2.7 % of the roof area
 lose its coverage. :func:`overhead_faces` marks the near-horizontal faces well above the region's lowest
-scanned point; for them an MLS point counts as evidence only when it does not lie under the face.
+scanned point; for them an MLS point under the face is no evidence, nor one beside it that faces sideways
+(a fascia or a wall top next to the roof's edge). An overhead face wound upward is a top (:func:`top_faces`):
+only a point above it is evidence of it.
 
 Frames and units: campus-local metres, float64.
 """
@@ -48,32 +50,60 @@ def overhead_faces(xyz: np.ndarray, faces: np.ndarray, mls: np.ndarray, *, min_h
     return (nz >= min_abs_nz) & (tri[:, :, 2].min(axis=1) >= np.percentile(mls[:, 2], 1) + min_height_m)
 
 
-def _under(q: np.ndarray, pts: np.ndarray, up: np.ndarray, tol_m: float) -> np.ndarray:
-    """(q, k) bool: points pts (q, k, 3) more than ``tol_m`` under the plane through q (q, 3) with upward
-    unit normal up (q, 3)."""
-    return np.einsum("qkd,qd->qk", pts - q[:, None, :], up) < -tol_m
+def top_faces(xyz: np.ndarray, faces: np.ndarray) -> np.ndarray:
+    """(m,) bool: faces (m, 3) int64 into xyz (n, 3) whose winding normal points up (z > 0). Meshes are wound
+    outward (OBJ/PLY convention, the MVS and city-model exports ms3d reads), so an overhead one is a
+    roof's or a slab's top, which a street scanner below never sees; a mesh wound inward makes them
+    undersides, and only the weaker rule (points under the face) applies to them.
+
+    >>> top_faces(np.array([[0, 0, 0], [1, 0, 0], [0, 1, 0]], float), np.array([[0, 1, 2], [0, 2, 1]])).tolist()
+    [True, False]
+    """
+    tri = xyz[np.asarray(faces, np.int64)]
+    return np.cross(tri[:, 1] - tri[:, 0], tri[:, 2] - tri[:, 0])[:, 2] > 0
 
 
-def _near_not_under(tree: cKDTree, mls: np.ndarray, q: np.ndarray, up: np.ndarray, clear_m: float, tol_m: float,
-                    k: int = 16) -> np.ndarray:
-    """(q,) bool: an MLS point within ``clear_m`` of q (q, 3) among its ``k`` nearest that is not under q's
-    plane (upward unit normal up (q, 3))."""
+def _not_evidence(q: np.ndarray, pts: np.ndarray, pts_n: np.ndarray | None, up: np.ndarray, floor_m: np.ndarray
+                  ) -> np.ndarray:
+    """(q, k) bool: points pts (q, k, 3) that say nothing of an overhead surface through q (q, 3) with upward
+    unit normal up (q, 3): lower than ``floor_m`` (q,) along it (the underside of the slab: -tol for a face
+    of unknown side, +tol for a roof's top, which a scanner below never sees), or off to the side of the
+    45° cone above it while facing sideways (normals pts_n (q, k, 3) more than 60° from up: a fascia or a
+    wall top beside the roof's edge). Without normals only the first test is made."""
+    delta = pts - q[:, None, :]
+    off = np.einsum("qkd,qd->qk", delta, up)
+    under = off < floor_m[:, None]
+    if pts_n is None:
+        return under
+    lateral = np.sqrt(np.maximum(np.einsum("qkd,qkd->qk", delta, delta) - off**2, 0.0))
+    sideways = np.abs(np.einsum("qkd,qd->qk", pts_n, up)) < 0.5
+    return under | (sideways & (lateral > np.maximum(off, 0.0)))
+
+
+def _near_evidence(tree: cKDTree, mls: np.ndarray, mls_n: np.ndarray | None, q: np.ndarray, up: np.ndarray,
+                   floor_m: np.ndarray, clear_m: float, k: int = 16) -> np.ndarray:
+    """(q,) bool: an MLS point within ``clear_m`` of q (q, 3) among its ``k`` nearest that is evidence of
+    q's overhead surface (upward unit normal up (q, 3), floor floor_m (q,)): :func:`_not_evidence`."""
     if not len(q):
         return np.zeros(0, bool)
     d, j = tree.query(q, k=min(k, len(mls)), distance_upper_bound=clear_m)
     d, j = d.reshape(len(q), -1), j.reshape(len(q), -1)
     ok = np.isfinite(d)
-    return (ok & ~_under(q, mls[np.where(ok, j, 0)], up, tol_m)).any(axis=1)
+    jj = np.where(ok, j, 0)
+    return (ok & ~_not_evidence(q, mls[jj], None if mls_n is None else mls_n[jj], up, floor_m)).any(axis=1)
 
 
 def unseen_faces(xyz: np.ndarray, faces: np.ndarray, mls: np.ndarray, covered_vertex: np.ndarray, *,
                  clear_m: float, step_m: float, overhead: np.ndarray | None = None,
-                 under_tol_m: float = 0.05) -> np.ndarray:
+                 under_tol_m: float = 0.05, mls_n: np.ndarray | None = None, top: np.ndarray | None = None
+                 ) -> np.ndarray:
     """(m,) bool: faces (m, 3) int64 into xyz (n, 3) with no MLS point (p, 3) within ``clear_m`` of their
     vertices, centroid or surface samples (``step_m`` apart), and none of whose vertices is covered
     (covered_vertex: (n,) bool, the MLS surface lies along the vertex normal). clear_m <= 0: none.
-    overhead: (m,) bool faces (:func:`overhead_faces`) for which points more than ``under_tol_m`` under
-    the face's plane do not count (nor does ``covered_vertex``: pass it computed likewise).
+    overhead: (m,) bool faces (:func:`overhead_faces`) for which points more than ``under_tol_m`` under the
+    face's plane do not count, nor, given the points' normals mls_n (p, 3), points facing sideways beside it
+    (``covered_vertex``: pass it computed likewise). top: (m,) bool overhead faces whose winding normal
+    points up (a roof's top, never seen from below): only points more than ``under_tol_m`` above count.
 
     >>> xyz = np.array([[0, 0, 0], [1, 0, 0], [0, 1, 0], [10, 0, 0], [11, 0, 0], [10, 1, 0]], float)
     >>> f = np.array([[0, 1, 2], [3, 4, 5]])
@@ -92,15 +122,16 @@ def unseen_faces(xyz: np.ndarray, faces: np.ndarray, mls: np.ndarray, covered_ve
     tri = xyz[faces]
     up = np.cross(tri[:, 1] - tri[:, 0], tri[:, 2] - tri[:, 0])
     up *= np.where(up[:, 2] < 0, -1.0, 1.0)[:, None] / np.maximum(np.linalg.norm(up, axis=1), 1e-300)[:, None]
+    floor = np.where(np.zeros(m, bool) if top is None else np.asarray(top, bool), under_tol_m, -under_tol_m)
     near_v = np.isfinite(tree.query(xyz, distance_upper_bound=clear_m)[0])
     keep[~oh] &= ~near_v[faces[~oh]].any(axis=1)
     cen = tri.mean(axis=1)
     keep[~oh] &= ~np.isfinite(tree.query(cen[~oh], distance_upper_bound=clear_m)[0])
     f_oh = np.flatnonzero(oh & keep)
-    if len(f_oh):  # overhead faces: their vertices and centroid, points under the face's plane do not count
+    if len(f_oh):  # overhead faces: points under them or beside them facing sideways do not count
         q = np.concatenate([tri[f_oh].reshape(-1, 3), cen[f_oh]])
-        hit = _near_not_under(tree, mls, q, np.concatenate([np.repeat(up[f_oh], 3, axis=0), up[f_oh]]), clear_m,
-                              under_tol_m)
+        hit = _near_evidence(tree, mls, mls_n, q, np.concatenate([np.repeat(up[f_oh], 3, axis=0), up[f_oh]]),
+                             np.r_[np.repeat(floor[f_oh], 3), floor[f_oh]], clear_m)
         keep[f_oh] &= ~(hit[: 3 * len(f_oh)].reshape(-1, 3).any(axis=1) | hit[3 * len(f_oh):])
     if step_m > 0 and keep.any():
         s, fid = sample_surface(xyz, faces, spacing_m=step_m, rng=0, face_mask=keep)
@@ -108,21 +139,22 @@ def unseen_faces(xyz: np.ndarray, faces: np.ndarray, mls: np.ndarray, covered_ve
             hit = np.isfinite(tree.query(s, distance_upper_bound=clear_m)[0])
             so = oh[fid] & hit
             if so.any():
-                hit[so] = _near_not_under(tree, mls, s[so], up[fid[so]], clear_m, under_tol_m)
+                hit[so] = _near_evidence(tree, mls, mls_n, s[so], up[fid[so]], floor[fid[so]], clear_m)
             keep[fid[hit]] = False
     return keep
 
 
 def covered_along_normal(xyz: np.ndarray, normals: np.ndarray, pts: np.ndarray, pts_n: np.ndarray, *,
                          depth_m: float, lateral_m: float, min_cos: float = 0.5, overhead: np.ndarray | None = None,
-                         under_tol_m: float = 0.05) -> np.ndarray:
+                         under_tol_m: float = 0.05, top: np.ndarray | None = None) -> np.ndarray:
     """(n,) bool: vertices (n, 3) whose nearest MLS point (p, 3) lies within ``depth_m`` with the foot of
     the perpendicular on the scanned surface (lateral offset <= ``lateral_m`` in the point's tangent plane)
     and the point's normal (p, 3) within 60° of the vertex normal (n, 3) (|cos| >= ``min_cos``): the MLS
     surface lies along the vertex normal, in front or behind. A roof vertex above a scanned wall top is not
     covered (the wall faces the street, the roof the sky); a facade 1 m off its scan is. overhead: (n,) bool
     vertices (of :func:`overhead_faces`) that a point more than ``under_tol_m`` below does not cover (a
-    soffit under a roof's top)."""
+    soffit under a roof's top); top: (n,) bool overhead vertices of a roof's top (:func:`top_faces`) that
+    only a point more than ``under_tol_m`` above covers."""
     if not (len(pts) and len(xyz)):
         return np.zeros(len(xyz), bool)
     d, j = cKDTree(pts).query(xyz, distance_upper_bound=depth_m)
@@ -134,7 +166,9 @@ def covered_along_normal(xyz: np.ndarray, normals: np.ndarray, pts: np.ndarray, 
     agree = np.abs(np.einsum("ij,ij->i", normals, pts_n[jj])) >= min_cos
     out = ok & (lat <= lateral_m) & agree
     if overhead is not None:
-        out &= ~(np.asarray(overhead, bool) & (pts[jj][:, 2] - xyz[:, 2] < -under_tol_m))
+        rise = pts[jj][:, 2] - xyz[:, 2]
+        floor = np.where(np.zeros(len(xyz), bool) if top is None else np.asarray(top, bool), under_tol_m, -under_tol_m)
+        out &= ~(np.asarray(overhead, bool) & (rise < floor))
     return out
 
 
@@ -159,4 +193,4 @@ def expand_replaced(replaced: np.ndarray, keep: np.ndarray) -> np.ndarray:
     return out
 
 
-__all__ = ["covered_along_normal", "expand_replaced", "keep_faces", "overhead_faces", "unseen_faces"]
+__all__ = ["covered_along_normal", "expand_replaced", "keep_faces", "overhead_faces", "top_faces", "unseen_faces"]

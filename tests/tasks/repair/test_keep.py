@@ -4,7 +4,7 @@ only, so the soffit under an eave is not evidence of the roof's top above it."""
 import numpy as np
 
 from tasks.config.repair import RepairConfig
-from tasks.repair.keep import covered_along_normal, overhead_faces, unseen_faces
+from tasks.repair.keep import covered_along_normal, overhead_faces, top_faces, unseen_faces
 
 
 def _grid(x0, x1, y0, y1, z, n=8):
@@ -36,6 +36,33 @@ def test_points_under_an_overhead_face_are_not_evidence_of_it_but_points_on_or_a
     assert not unseen_faces(v, f, np.concatenate([wall, soffit, on_top]), no_cover, overhead=oh, **kw).any()
     above = _plane_points(0, 2, 0, 2, 6.3)
     assert not unseen_faces(v, f, np.concatenate([wall, above]), no_cover, overhead=oh, **kw).any()
+    fascia = np.array([[x, -0.3, z] for x in np.arange(0, 2, 0.05) for z in np.arange(5.7, 6.15, 0.05)])
+    edge = (v[f][:, :, 1] < 0.3).all(axis=1)  # the strip within clear_m of the fascia, 10 cm over it at most
+    assert not unseen_faces(v, f, np.concatenate([wall, fascia]), no_cover, **kw)[edge].any()
+    pts = np.concatenate([wall, fascia])
+    along_y = np.tile([0, 1.0, 0], (len(pts), 1))
+    assert unseen_faces(v, f, pts, no_cover, overhead=oh, mls_n=along_y, **kw).all()  # beside, facing sideways
+    assert not unseen_faces(v, f, pts, no_cover, overhead=oh, **kw)[edge].any()  # without normals: counted
+    up = np.tile([0, 0, 1.0], (len(pts), 1))
+    assert not unseen_faces(v, f, pts, no_cover, overhead=oh, mls_n=up, **kw)[edge].any()  # a roof-like surface
+
+
+def test_a_roofs_top_takes_evidence_only_from_points_above_it():
+    """An overhead face wound upward is a top: a scanner below never saw it, so points on its plane (a thin
+    slab's soffit, 3 cm under a sagging mesh roof) are no evidence; with the winding unknown they are."""
+    v, f = _grid(0, 2, 0, 2, 6.0)
+    assert top_faces(v, f).all() and not top_faces(v, f[:, ::-1]).any()
+    low = np.c_[np.full(200, -3.0), np.linspace(0, 2, 200), np.linspace(0, 5, 200)]
+    thin = _plane_points(0, 2, 0, 2, 5.97)
+    pts = np.concatenate([low, thin])
+    oh = overhead_faces(v, f, pts, min_height_m=2.5)
+    kw = {"clear_m": 0.5, "step_m": 0.4, "overhead": oh, "mls_n": np.tile([0, 0, 1.0], (len(pts), 1))}
+    no_cover = np.zeros(len(v), bool)
+    assert not unseen_faces(v, f, pts, no_cover, **kw).any()
+    assert unseen_faces(v, f, pts, no_cover, top=top_faces(v, f), **kw).all()
+    above = np.concatenate([low, _plane_points(0, 2, 0, 2, 6.3)])  # something over the roof does count
+    assert not unseen_faces(v, f, above, no_cover, top=top_faces(v, f),
+                            **{**kw, "mls_n": np.tile([0, 0, 1.0], (len(above), 1))}).any()
 
 
 def test_a_low_horizontal_face_is_not_overhead_and_the_ground_under_it_still_counts():
