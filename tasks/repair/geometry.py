@@ -35,6 +35,7 @@ from tasks.repair.keep import (
     expand_replaced,
     keep_faces,
     overhead_faces,
+    tidy_keep,
     top_faces,
     unseen_faces,
 )
@@ -257,7 +258,9 @@ def repair_region_geometry(data: RegionInput, cfg) -> RegionGeometry:
                                        lateral_m=1.5 * fc.mls_spacing_m, overhead=oh_v, top=top_v)
         keep = unseen_faces(data.xyz, data.zone_faces, both, covered, clear_m=mc.keep_unseen_m, step_m=mc.fill_step_m,
                             overhead=oh, mls_n=nrm, top=top)
-        keep = keep if not keep.all() else np.zeros(len(keep), bool)  # all unseen: the typed plan leaves it
+        keep = tidy_keep(data.xyz, data.zone_faces, keep, oh, mc.keep_min_area_m2)
+        if keep.all() and not (keep & oh).any():  # all unseen: the typed plan leaves it
+            keep = np.zeros(len(keep), bool)
     geo = _repair(keep_faces(data, keep), cfg, vn, thinned)
     geo.stats["kept_unseen_faces"] = int(keep.sum())
     return replace(geo, replaced=expand_replaced(geo.replaced, keep)) if keep.any() else geo

@@ -133,3 +133,23 @@ def test_the_roof_over_an_eave_stays_while_the_wall_under_it_is_rebuilt():
     off = repair_region_geometry(data, RepairConfig.model_validate({"mesh": {"max_hole_loop_m": 5.0,
                                                                              "overhead_min_height_m": 0}}))
     assert off.replaced[overhang].mean() > 0.5
+
+
+def test_tidy_keep_removes_specks_both_ways():
+    """A kept roof with a scatter of single faces to rebuild (near a railing's points) becomes one kept piece;
+    a single kept face inside a big piece to rebuild is rebuilt; a big piece to rebuild stays one."""
+    from tasks.repair.chart import face_components
+    from tasks.repair.keep import tidy_keep
+
+    v, f = _grid(0, 8, 0, 8, 6.0, n=32)  # 0.25 m cells: 2,048 faces of 0.03 m²
+    rng = np.random.default_rng(0)
+    keep = np.ones(len(f), bool)
+    keep[rng.choice(len(f), 60, replace=False)] = False
+    assert len(np.unique(face_components(f[~keep], len(v)))) > 40
+    assert tidy_keep(v, f, keep, np.ones(len(f), bool), 1.0).all()
+    assert not tidy_keep(v, f, keep, np.ones(len(f), bool), 0.0).all()  # off: as found
+    half = v[f].mean(axis=1)[:, 0] < 4.0
+    keep = half.copy()
+    keep[np.flatnonzero(~half)[100]] = True  # a speck kept inside the half to rebuild
+    out = tidy_keep(v, f, keep, np.zeros(len(f), bool), 1.0)
+    assert (out == half).all()
