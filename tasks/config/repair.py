@@ -127,8 +127,9 @@ class MeshConfig(_Section):
                                          "top) is not evidence of it, and keep_unseen_m keeps it (tasks.repair.keep); "
                                          "0: every point counts")
     keep_min_area_m2: float = Field(1.0, ge=0, description="kept (unseen) pieces of the zone smaller than this are "
-                                    "rebuilt, and pieces to rebuild this small made only of overhead faces are kept, so "
-                                    "the zone is not cut into specks (tasks.repair.keep.tidy_keep); 0: as found")
+                                    "rebuilt, then pieces to rebuild this small are kept (unless the whole rebuild is one "
+                                    "such piece without an overhead face), so the zone is not cut into specks "
+                                    "(tasks.repair.keep.tidy_keep); 0: as found")
     free_surface: bool = Field(True, description="MLS points of a region farther than max_map_distance_m from every "
                                "face (a passage through a block model, a wall the mesh lost) are meshed on their own "
                                "(Poisson, cut back to the points: tasks.repair.free) and added, not welded")
