@@ -21,6 +21,7 @@ import logging
 import time
 from dataclasses import dataclass, field
 
+import dask
 import numpy as np
 from prefect import flow
 from prefect.artifacts import create_table_artifact
@@ -54,6 +55,9 @@ from tasks.batches import balanced_batches, fixed_batches
 from tasks.config import CampusConfig
 
 log = logging.getLogger("ms3d.flow")
+# Dask priority of the export's node tasks over the quality shares and the report's renders submitted before
+# them: each level of the quadtree waits for the one below, so a queued node must not wait behind a side task
+EXPORT_PRIORITY = 10
 RECYCLE_OVER = 0.25  # restart the local workers before merge when one holds more than this share of the budget
 
 __all__ = ["CampusRunFailed", "InlineExecutor", "make_task_runner", "reprocess_campus", "reprocess_from_config",
@@ -223,16 +227,26 @@ def _outputs(run: _Run) -> tuple[dict, dict]:
 
     cfg, wd, ex, cj = run.cfg, run.wd, run.ex, run.cfg_json
 
+    side: dict = {}
+
+    def start_renders() -> None:  # the report's figures, drawn beside the export's upper levels
+        if "renders" not in side:
+            with dask.annotate(priority=-EXPORT_PRIORITY):
+                side["renders"] = ex.submit(region_renders_task, cj) \
+                    if cfg.report.enabled and not region_renders_fresh(cfg, wd) else None
+
     def map_jobs(jobs: list) -> list[dict]:  # one level of the quadtree at a time; records in job order
-        results = ex.map(export_nodes_task, node_batches(jobs, run.n_workers), "export").results()
-        return node_records(results, len(jobs))
+        with dask.annotate(priority=EXPORT_PRIORITY):  # the export's levels are the chain the run waits on
+            mapped = ex.map(export_nodes_task, node_batches(jobs, run.n_workers), "export")
+        start_renders()  # after the leaves: on a worker's queue, a task of lower priority runs after them
+        return node_records(mapped.results(), len(jobs))
 
     qplan = quality_plan(local_view(cfg, "truth"), wd) if cfg.report.enabled and cfg.report.quality else None
     parts = quality_parts(qplan, run.n_workers)
     shares = [ex.submit(quality_task, cj, qplan, part) for part in parts]
-    renders = ex.submit(region_renders_task, cj) \
-        if cfg.report.enabled and not region_renders_fresh(cfg, wd) else None  # the report's figures, drawn here
     exported = run_export_stage(cfg, wd, map_jobs=map_jobs)
+    start_renders()  # when the export built no node
+    renders = side["renders"]
     if shares:  # the model against the truth, measured beside the export
         got = run.note("quality", [s.result() for s in shares], per_unit=False)
         if not any(g.get("status") == "failed" for g in got):
