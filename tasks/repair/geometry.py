@@ -263,6 +263,9 @@ def repair_region_geometry(data: RegionInput, cfg) -> RegionGeometry:
             keep = np.zeros(len(keep), bool)
     geo = _repair(keep_faces(data, keep), cfg, vn, thinned)
     geo.stats["kept_unseen_faces"] = int(keep.sum())
+    if len(keep) and keep.all():  # nothing of the zone left to rebuild: the plan of an empty zone says nothing
+        geo.stats["plan"] = "unseen by the MLS (overhead or clear of its points): the input mesh kept" \
+            + (f", {geo.mesh.n_faces} free-surface faces added" if geo.mesh.n_faces else "")
     return replace(geo, replaced=expand_replaced(geo.replaced, keep)) if keep.any() else geo
 
 

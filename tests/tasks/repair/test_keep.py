@@ -135,6 +135,26 @@ def test_the_roof_over_an_eave_stays_while_the_wall_under_it_is_rebuilt():
     assert off.replaced[overhang].mean() > 0.5
 
 
+def test_a_roof_seen_only_through_its_soffit_is_kept_whole_and_says_so():
+    """A region whose zone is the overhanging roof alone: every face is kept (the soffit is no evidence of
+    it), nothing is replaced, and the region's plan says the input mesh was kept, not re-triangulated."""
+    from tasks.repair.geometry import RegionInput, repair_region_geometry
+
+    v, f = _grid(0, 8, -0.6, 2.0, 6.0, n=32)
+    rng = np.random.default_rng(5)
+    soffit = np.c_[rng.uniform(0, 8, 6000), rng.uniform(-0.6, -0.15, 6000), rng.normal(5.75, 0.004, 6000)]
+    ground = np.c_[rng.uniform(0, 8, 6000), rng.uniform(-6, -1, 6000), rng.normal(0.0, 0.004, 6000)]
+    mls = np.concatenate([soffit, ground])
+    data = RegionInput(xyz=v, vertex_id=np.arange(len(v)), zone_faces=f, context_faces=np.zeros((0, 3), np.int64),
+                       near_zone=np.ones(len(v), bool), mls_xyz=mls, mls_class=np.zeros(len(mls), np.uint8),
+                       ctx_xyz=np.zeros((0, 3)), face_normals=None)
+    geo = repair_region_geometry(data, RepairConfig())
+    assert geo.stats["kept_unseen_faces"] == len(f) and not geo.replaced.any()
+    assert geo.stats["plan"].startswith("unseen by the MLS") and "re-triangulated" not in geo.stats["plan"]
+    off = repair_region_geometry(data, RepairConfig.model_validate({"mesh": {"overhead_min_height_m": 0}}))
+    assert off.replaced.any()  # without the rule the soffit takes the roof: the test can fail
+
+
 def test_tidy_keep_removes_specks_both_ways():
     """A kept roof with a scatter of single faces to rebuild (near a railing's points) becomes one kept piece;
     a single kept face inside a big piece to rebuild is rebuilt; a big piece to rebuild stays one."""
