@@ -55,8 +55,8 @@ from tasks.batches import balanced_batches, fixed_batches
 from tasks.config import CampusConfig
 
 log = logging.getLogger("ms3d.flow")
-# Dask priority of the export's node tasks over the quality shares and the report's renders submitted before
-# them: each level of the quadtree waits for the one below, so a queued node must not wait behind a side task
+# Dask priority of the export's node tasks over the report's renders (the quality shares, submitted first, are
+# already running): each level of the quadtree waits for the one below, so a queued node must not wait behind them
 EXPORT_PRIORITY = 10
 RECYCLE_OVER = 0.25  # restart the local workers before merge when one holds more than this share of the budget
 
