@@ -130,6 +130,11 @@ class MeshConfig(_Section):
                                     "rebuilt, then pieces to rebuild this small are kept (unless the whole rebuild is one "
                                     "such piece without an overhead face), so the zone is not cut into specks "
                                     "(tasks.repair.keep.tidy_keep); 0: as found")
+    retained_point_m: float = Field(0.1, ge=0, description="an MLS point of the zone within this distance of a "
+                                    "retained (context or kept) face, straight along its normal, and farther by this "
+                                    "from every face to rebuild is explained by the retained face and not fused into the "
+                                    "rebuild (tasks.repair.keep.on_retained): the MLS seeing a kept roof's top over an "
+                                    "eave otherwise folds the soffit's chart up to it; 0: every zone point is fused")
     free_surface: bool = Field(True, description="MLS points of a region farther than max_map_distance_m from every "
                                "face (a passage through a block model, a wall the mesh lost) are meshed on their own "
                                "(Poisson, cut back to the points: tasks.repair.free) and added, not welded")

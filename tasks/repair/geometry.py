@@ -34,6 +34,7 @@ from tasks.repair.keep import (
     covered_along_normal,
     expand_replaced,
     keep_faces,
+    on_retained,
     overhead_faces,
     tidy_keep,
     top_faces,
@@ -280,6 +281,10 @@ def _repair(data: RegionInput, cfg, vn: np.ndarray, thinned: tuple) -> RegionGeo
     locked = np.isin(zone_v, border_edges(data.zone_faces, data.context_faces, len(data.xyz)).ravel())
     mls, mls_n, both, nrm = thinned
     stats: dict = {"mls_points": len(data.mls_xyz), "mls_thinned": len(mls)}
+    if mc.retained_point_m > 0 and len(mls) and len(data.context_faces) and mz:
+        off = on_retained(mls, data.xyz, data.zone_faces, data.context_faces, mc.retained_point_m)
+        stats["on_retained"] = int(off.sum())  # the retained surface explains them: not rebuilt into a chart
+        mls, mls_n = mls[~off], mls_n[~off]
     t1 = time.perf_counter()
     # evidence (typed repair) from the MLS surface over zone + context
     tree = cKDTree(both) if len(both) else None

@@ -222,6 +222,43 @@ def keep_faces(data, keep: np.ndarray):
                    context_faces=np.concatenate([data.context_faces, data.zone_faces[keep]]), face_normals=fn)
 
 
+def on_retained(pts: np.ndarray, xyz: np.ndarray, rebuild_faces: np.ndarray, retained_faces: np.ndarray,
+                tol_m: float, min_cos: float = 0.9) -> np.ndarray:
+    """(k,) bool: points pts (k, 3) that lie on the retained surface and off the one to rebuild.
+
+    xyz: (n, 3) region vertices; rebuild_faces: (m, 3) zone faces left to rebuild; retained_faces: (r, 3)
+    context and kept faces. A point is on the retained surface when its foot on it is within ``tol_m``
+    and straight along the face's normal (|cos| >= ``min_cos``: a point beyond the rim of a hole, off to
+    the side of the retained edge, is not), and every face to rebuild lies more than ``tol_m`` farther.
+    Such a point (the MLS seeing a kept roof's top over an eave) explains the kept face; in the rebuild it
+    would be mapped onto the nearest chart (the soffit 20 cm under it) and folded into it.
+
+    >>> xyz = np.array([[0, 0, 0], [1, 0, 0], [0, 1, 0], [0, 0, -0.3], [1, 0, -0.3], [0, 1, -0.3]], float)
+    >>> top, soffit = np.array([[0, 1, 2]]), np.array([[3, 4, 5]])
+    >>> pts = np.array([[0.2, 0.2, 0.01], [0.2, 0.2, -0.29], [1.3, 0.2, 0.0]])
+    >>> on_retained(pts, xyz, soffit, top, 0.1).tolist()
+    [True, False, False]
+    """
+    from tasks.repair.mesh import ClosestPoint
+
+    out = np.zeros(len(pts), bool)
+    if tol_m <= 0 or not (len(pts) and len(retained_faces)):
+        return out
+    fid, bary, d_ret = ClosestPoint(xyz, retained_faces).query(pts)
+    idx = np.flatnonzero((fid >= 0) & (d_ret <= tol_m))
+    if not len(idx):
+        return out
+    tri = np.asarray(xyz, np.float64)[retained_faces[fid[idx]]]
+    delta = pts[idx] - np.einsum("kc,kcd->kd", bary[idx], tri)
+    n = np.cross(tri[:, 1] - tri[:, 0], tri[:, 2] - tri[:, 0])
+    n /= np.maximum(np.linalg.norm(n, axis=1, keepdims=True), 1e-12)
+    dist = np.linalg.norm(delta, axis=1)
+    along = (np.abs(np.einsum("kd,kd->k", delta, n)) >= min_cos * dist) | (dist <= 1e-3)
+    _, _, d_reb = ClosestPoint(xyz, rebuild_faces).query(pts[idx])
+    out[idx] = along & (d_reb > d_ret[idx] + tol_m)
+    return out
+
+
 def expand_replaced(replaced: np.ndarray, keep: np.ndarray) -> np.ndarray:
     """(mz,) bool over the original zone faces from ``replaced`` over the zone faces left after
     :func:`keep_faces` (kept faces are never replaced)."""
@@ -230,4 +267,5 @@ def expand_replaced(replaced: np.ndarray, keep: np.ndarray) -> np.ndarray:
     return out
 
 
-__all__ = ["covered_along_normal", "expand_replaced", "keep_faces", "overhead_faces", "tidy_keep", "top_faces", "unseen_faces"]
+__all__ = ["covered_along_normal", "expand_replaced", "keep_faces", "on_retained", "overhead_faces", "tidy_keep", "top_faces",
+           "unseen_faces"]

@@ -173,3 +173,88 @@ def test_tidy_keep_removes_specks_both_ways():
     keep[np.flatnonzero(~half)[100]] = True  # a speck kept inside the half to rebuild
     out = tidy_keep(v, f, keep, np.zeros(len(f), bool), 1.0)
     assert (out == half).all()
+
+
+def _profile_mesh(profile: np.ndarray, outward: np.ndarray, xs: np.ndarray):
+    """A y-z polyline profile (p, 2) extruded along x: (vertices, faces (m, 3) int64), each segment's faces
+    wound so their normals point along its outward direction (p - 1, 3)."""
+    p = len(profile)
+    v = np.array([[x, y, z] for x in xs for y, z in profile])
+    f = []
+    for i in range(len(xs) - 1):
+        for j in range(p - 1):
+            a, b, c, d = i * p + j, (i + 1) * p + j, (i + 1) * p + j + 1, i * p + j + 1
+            for t in ([a, b, c], [a, c, d]):
+                n = np.cross(v[t[1]] - v[t[0]], v[t[2]] - v[t[0]])
+                f.append(t if n @ outward[j] > 0 else [t[0], t[2], t[1]])
+    return v, np.array(f, np.int64)
+
+
+def _slab_region(with_top_points: bool = True):
+    """A wall (y = 0, street at y < 0) under a roof slab that overhangs by 0.6 m: soffit at z = 5.75, fascia,
+    top at z = 6.0. The MLS sees the wall (15 cm off the mesh), the soffit and, sloping towards the street as a
+    pitched roof does, part of the top over the overhang. Returns (RegionInput, (m,) bool overhang top faces)."""
+    from tasks.repair.geometry import RegionInput
+
+    prof, outs = [], []
+    for (y0, z0), (y1, z1), out, step in (((0, 0), (0, 5.75), (0, -1, 0), 0.25), ((0, 5.75), (-0.6, 5.75), (0, 0, -1), 0.1),
+                                          ((-0.6, 5.75), (-0.6, 6.0), (0, -1, 0), 0.25), ((-0.6, 6.0), (2.0, 6.0), (0, 0, 1), 0.1)):
+        n = max(1, round(np.hypot(y1 - y0, z1 - z0) / step))
+        prof += [(y0 + (y1 - y0) * k / n, z0 + (z1 - z0) * k / n) for k in range(n)]
+        outs += [out] * n
+    prof.append((2.0, 6.0))
+    v, f = _profile_mesh(np.array(prof), np.array(outs, float), np.linspace(0, 8, 33))
+    rng = np.random.default_rng(3)
+    wall = np.c_[rng.uniform(0, 8, 20000), rng.normal(-0.15, 0.004, 20000), rng.uniform(0.0, 5.6, 20000)]
+    soffit = np.c_[rng.uniform(0, 8, 6000), rng.uniform(-0.6, -0.15, 6000), rng.normal(5.75, 0.004, 6000)]
+    top = np.c_[rng.uniform(0, 8, 1500), rng.uniform(-0.6, 0.3, 1500), rng.normal(6.0, 0.004, 1500)]
+    mls = np.concatenate([wall, soffit] + ([top] if with_top_points else []))
+    data = RegionInput(xyz=v, vertex_id=np.arange(len(v)), zone_faces=f, context_faces=np.zeros((0, 3), np.int64),
+                       near_zone=np.ones(len(v), bool), mls_xyz=mls, mls_class=np.zeros(len(mls), np.uint8),
+                       ctx_xyz=np.zeros((0, 3)), face_normals=None)
+    c = v[f].mean(axis=1)
+    return data, (c[:, 2] > 5.99) & (c[:, 1] < 0)
+
+
+def _slab_area(geo) -> float:
+    """Area (m²) of rebuilt faces inside the roof slab over the overhang (between soffit and top)."""
+    t = geo.mesh.xyz[geo.mesh.faces]
+    c = t.mean(axis=1)
+    a = 0.5 * np.linalg.norm(np.cross(t[:, 1] - t[:, 0], t[:, 2] - t[:, 0]), axis=1)
+    return float(a[(c[:, 1] < -0.05) & (c[:, 1] > -0.55) & (c[:, 2] > 5.8) & (c[:, 2] < 5.95)].sum())
+
+
+def test_points_on_a_kept_roofs_top_are_not_folded_into_the_soffit_under_it():
+    """Real-density diagnosis (held-out 9103 at MLS density 1.0): the MLS sees a pitched roof's top over the
+    eave; the top is kept, so those points were mapped onto the nearest chart (the soffit 25 cm under it) and
+    triangulated into it, a zigzag through the slab. The retained surface explains them now; without the rule
+    (retained_point_m 0) the slab fills with rebuilt faces, so the test can fail."""
+    from tasks.repair.geometry import repair_region_geometry
+
+    data, top = _slab_region()
+    geo = repair_region_geometry(data, RepairConfig())
+    assert not geo.replaced[top].any() and geo.stats["on_retained"] > 1000
+    assert _slab_area(geo) < 1.0
+    assert geo.replaced[~top].mean() > 0.5  # the wall and soffit are still rebuilt
+    off = repair_region_geometry(data, RepairConfig.model_validate({"mesh": {"retained_point_m": 0}}))
+    assert _slab_area(off) > 5.0
+    none = repair_region_geometry(_slab_region(with_top_points=False)[0], RepairConfig())
+    assert none.stats["on_retained"] == 0 and _slab_area(none) < 1.0  # no top points: nothing to explain
+
+
+def test_on_retained_takes_points_on_a_kept_face_not_beyond_its_rim_nor_near_the_rebuild():
+    """One plane, its x < 1 half kept and its x > 1 half to rebuild: a point on the kept half is explained by
+    it, one within the tolerance of the rebuilt half is not, nor one beyond the kept rim or too far above."""
+    from tasks.repair.keep import on_retained
+
+    v, f = _grid(0, 2, 0, 2, 0.0)
+    c = v[f].mean(axis=1)
+    kept, rebuild = f[c[:, 0] < 1], f[c[:, 0] > 1]
+    pts = np.array([[0.5, 1.0, 0.01],    # on the kept half, 0.5 m from the rebuild: explained
+                    [0.95, 1.0, 0.01],   # on the kept half but 5 cm from the rebuild: stays in it
+                    [1.5, 1.0, 0.01],    # on the rebuilt half
+                    [0.5, -0.3, 0.0],    # beyond the kept rim, off to the side
+                    [0.5, 1.0, 0.15]])   # 15 cm above: farther than the tolerance
+    assert on_retained(pts, v, rebuild, kept, 0.1).tolist() == [True, False, False, False, False]
+    assert not on_retained(pts, v, rebuild, kept, 0.0).any()
+    assert on_retained(pts, v, rebuild, kept, 0.2).tolist()[:2] == [True, False]
