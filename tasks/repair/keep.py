@@ -28,6 +28,7 @@ import numpy as np
 from scipy.spatial import cKDTree
 
 from tasks.geometry.sampling import sample_surface
+from tasks.geometry.triangles import face_normals
 
 
 def overhead_faces(xyz: np.ndarray, faces: np.ndarray, mls: np.ndarray, *, min_height_m: float,
@@ -248,10 +249,9 @@ def on_retained(pts: np.ndarray, xyz: np.ndarray, rebuild_faces: np.ndarray, ret
     idx = np.flatnonzero((fid >= 0) & (d_ret <= tol_m))
     if not len(idx):
         return out
-    tri = np.asarray(xyz, np.float64)[retained_faces[fid[idx]]]
-    delta = pts[idx] - np.einsum("kc,kcd->kd", bary[idx], tri)
-    n = np.cross(tri[:, 1] - tri[:, 0], tri[:, 2] - tri[:, 0])
-    n /= np.maximum(np.linalg.norm(n, axis=1, keepdims=True), 1e-12)
+    xyz, faces = np.asarray(xyz, np.float64), retained_faces[fid[idx]]
+    delta = pts[idx] - np.einsum("kc,kcd->kd", bary[idx], xyz[faces])
+    n = face_normals(xyz, faces)
     dist = np.linalg.norm(delta, axis=1)
     along = (np.abs(np.einsum("kd,kd->k", delta, n)) >= min_cos * dist) | (dist <= 1e-3)
     _, _, d_reb = ClosestPoint(xyz, rebuild_faces).query(pts[idx])
