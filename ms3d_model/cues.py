@@ -24,6 +24,7 @@ import numpy as np
 from scipy.spatial import cKDTree
 
 from .features import edge_neighbours, pair_seed, vertex_ids_from_coords
+from .hashing import order_free_subset
 from .segments import median_of_sorted, percentile_of_sorted, segment_max, segment_mean, sorted_segments
 
 CUE_NAMES = (
@@ -177,8 +178,8 @@ def _cue_points(points: list, seeds: list, cap: int = MAX_CUE_POINTS) -> tuple[n
     distances, ``MAX_SHAPE_POINTS`` for the whole-point-set cues): (q, 3) float64 and their (q,) pair index."""
     sub = []
     for p, s in zip(points, seeds):
-        if len(p) > cap:
-            p = p[np.random.default_rng(s).choice(len(p), cap, replace=False)]
+        if len(p) > cap:  # chosen by the points' coordinates, not their rows: any input order, same cues
+            p = p[order_free_subset(p, cap, s)]
         sub.append(p)
     return np.concatenate(sub), np.repeat(np.arange(len(sub)), [len(p) for p in sub])
 

@@ -35,10 +35,10 @@ STAGE_VERSIONS = {
     "scan": 3,       # v3: stable source ids; mesh surface samples as float32 offsets from a corner
     "register": 2,   # v2: surface target, modes auto / pinned / off
     "ingest": 4,     # v4: faces longer than the smallest patch side split (conforming); v3: sorted runs, vertex ids, normals
-    "partition": 2,  # v2: store schema 2 (vertex ids, vertex patches, normals, side tables)
+    "partition": 3,  # v3: a patch's rows in content order, not run order; v2: store schema 2 (vertex ids, ...)
     "labels": 1,
     "outliers": 2,   # v2: flags in outliers.parquet, not in patches.parquet
-    "classify": 2,   # v2: points-only patches inside the solid are bad (evidence.inside_solid)
+    "classify": 3,   # v3: cue subsets by the points' coordinates, not their rows; v2: points-only patches inside the solid are bad (evidence.inside_solid)
     "regions": 1,
     "region": 3,     # v3: zone faces the MLS did not see kept as they are; v2: conformal charts, one vertex-id namespace
     "merge": 2,      # v2: faces graded under repair.grades (the regions stage's rule), not grades-else-labels

@@ -26,7 +26,7 @@ from storage.patch_store import PatchStore
 from storage.store_state import store_fingerprint
 
 FACE_COLUMNS = [f"{a}{v}" for v in range(3) for a in "xyz"] + ["vid0", "vid1", "vid2"]
-CACHE_VERSION = 2  # 2: pairs above ms3d_model.cues.MAX_SHAPE_POINTS points give other cues
+CACHE_VERSION = 3  # 2: pairs above ms3d_model.cues.MAX_SHAPE_POINTS give other cues; 3: order-free subsets
 CUE_CHUNK = 512  # pairs per batch_cues call (one k-d tree per kind per call)
 CUE_POINTS = 3_000_000  # and at most this many points per call (real MLS density: bounded memory)
 SPAN_ROWS = 4_000_000  # rows of the points table a streamed reader holds at once

@@ -16,6 +16,7 @@ from __future__ import annotations
 
 import numpy as np
 
+from ms3d_model.hashing import splitmix64 as _splitmix64
 from storage.ids import TileId
 from tasks.geometry.triangles import face_areas
 
@@ -37,14 +38,6 @@ def seed_of(rng) -> int:
     if isinstance(rng, np.random.Generator):
         return int(rng.integers(0, 2**62))
     return 0 if rng is None else int(rng)
-
-
-def _splitmix64(x: np.ndarray) -> np.ndarray:
-    """splitmix64 finaliser, elementwise on uint64 (wrapping arithmetic)."""
-    z = x + np.uint64(0x9E3779B97F4A7C15)
-    z = (z ^ (z >> np.uint64(30))) * np.uint64(0xBF58476D1CE4E5B9)
-    z = (z ^ (z >> np.uint64(27))) * np.uint64(0x94D049BB133111EB)
-    return z ^ (z >> np.uint64(31))
 
 
 def _hash_uniforms(seed: int, keys: np.ndarray) -> np.ndarray:

@@ -93,6 +93,16 @@ def tables_by_content(work: Path) -> dict:
             out[f"{d.name}/merged"] = np.unique(tri, axis=0).tolist()
     return out
 
+def _first_difference(got: dict, want: dict, keys: list[str]) -> str:
+    """One line per differing table: its key, columns and the first differing row."""
+    lines = []
+    for k in keys:
+        (cols, a), (_, b) = got[k], want[k]
+        i = next((n for n, (x, y) in enumerate(zip(a, b)) if x != y), min(len(a), len(b)))
+        lines.append(f"{k}: {len(a)} vs {len(b)} rows; row {i}: {a[i] if i < len(a) else None} vs "
+                     f"{b[i] if i < len(b) else None} ({cols})")
+    return "\n".join(lines)
+
 def _recorded_textures(work: Path) -> set[str]:
     """Every texture reference the work dir records: the faces tables' metadata and the merged tiles'."""
     from storage.patch_schema import META_KEY
@@ -224,7 +234,8 @@ def test_tiny_campus_on_s3_equals_local_and_reruns_as_noop(tiny_campus, s3, tmp_
     mirror = mirror_for(remote.work_dir)
     got, want = tables_by_content(mirror.root), tables_by_content(tmp_path / "local")
     assert sorted(got) == sorted(want)  # the same tiles, stores and merged meshes
-    assert {k: v for k, v in got.items() if "merged" not in k} == {k: v for k, v in want.items() if "merged" not in k}
+    differ = sorted(k for k in got if "merged" not in k and got[k] != want[k])
+    assert not differ, _first_difference(got, want, differ)  # named, never a dict diff pytest spends minutes on
     # a rebuilt region depends on the order of its points within a patch, which follows the inputs' source
     # ids (paths vs URLs): the same regions are rebuilt and textured, not necessarily to the same triangles
     assert _region_files(mirror.root) == _region_files(tmp_path / "local")
