@@ -16,6 +16,7 @@ from scipy.spatial import cKDTree
 from storage.errors import InputError
 from tasks.config import RegistrationConfig
 from tasks.register.base import MIN_POINTS, StepClock, o3d_cloud
+from tasks.register.sac import SacResult, sac_register
 
 _reg = o3d.pipelines.registration
 
@@ -24,7 +25,7 @@ ROTATION_PRIOR_DEG = (5.0, 5.0, 10.0)  # max |roll|, |pitch|, |yaw| (axis-angle 
 NORMAL_RADIUS_VOXELS = 2.5  # normal estimation radius, in voxels
 FPFH_RADIUS_VOXELS = 5.0  # FPFH radius, in voxels
 SAC_MIN_THRESHOLD_VOXELS = 0.5  # RANSAC inlier distance is at least this many voxels (see coarse_register)
-SAC_ATTEMPTS = 3  # independent RANSAC runs (different seeds); the best fitness wins
+SAC_ATTEMPTS = 3  # hypotheses drawn: SAC_ATTEMPTS x cfg.sac_iterations (once three Open3D runs)
 SAC_EVAL_POINTS = 5_000  # source voxels on which RANSAC scores a hypothesis
 SAC_EVAL_HORIZONTAL_SHARE = 0.2  # at most this share of them on horizontal surfaces (see _eval_sample)
 SAC_MAX_KEYPOINTS = (2_000, 6_000)  # FPFH keypoints (source, target), drawn among the most curved voxels
@@ -158,9 +159,9 @@ def coarse_register(
     compatibility graph (:func:`consistent_matches`) and keeping ``SAC_CONSISTENT_MATCHES`` lifts
     that to ~18 %: ~6 all-inlier 3-samples expected in 1000 RANSAC iterations.
 
-    Consensus. Open3D's RANSAC on these correspondences, ``cfg.sac_iterations`` iterations (paper:
-    1000) per attempt, ``SAC_ATTEMPTS`` attempts seeded ``cfg.seed + attempt``, the best fitness
-    wins. Hypotheses whose rotation exceeds ``ROTATION_PRIOR_DEG`` or whose sampled edges differ in
+    Consensus (:mod:`tasks.register.sac`, reproducible run to run, unlike Open3D's threaded RANSAC):
+    ``cfg.sac_iterations`` hypotheses (paper: 1000) times ``SAC_ATTEMPTS``, seeded ``cfg.seed``; the best
+    fitness wins. Hypotheses whose rotation exceeds ``ROTATION_PRIOR_DEG`` or whose sampled edges differ in
     length by > 10 % are rejected before scoring; scoring uses ``SAC_EVAL_POINTS`` source voxels.
     The paper's 10 cm (``cfg.sac_threshold_m``) is the inlier distance, but two independent voxel
     grids put their centroids up to ~half a voxel apart on one surface, so 10 cm on 0.3 m voxels
@@ -248,28 +249,11 @@ def _gated_matches(src_xyz, tgt_xyz, ks, kt, f_src, f_tgt, centroid, voxel: floa
     return pairs[top], n_matches
 
 
-def _best_ransac(src_eval, tgt, corres: np.ndarray, distance: float, cfg: RegistrationConfig):
-    """Open3D's correspondence RANSAC, ``SAC_ATTEMPTS`` attempts seeded ``cfg.seed + attempt``; the best
-    (fitness, then lowest inlier RMSE) result. corres: (k, 2) int32 (row of src_eval, index into tgt)."""
-    corres = o3d.utility.Vector2iVector(corres)
-    checkers = [
-        _reg.CorrespondenceCheckerBasedOnEdgeLength(0.9),
-        _reg.CorrespondenceCheckerBasedOnSourceRotation(np.radians(ROTATION_PRIOR_DEG).reshape(3, 1)),
-        _reg.CorrespondenceCheckerBasedOnDistance(distance),
-    ]
-    best = None
-    for attempt in range(SAC_ATTEMPTS):
-        o3d.utility.random.seed(int(cfg.seed) + attempt)
-        res = _reg.registration_ransac_based_on_correspondence(
-            src_eval,
-            tgt,
-            corres,
-            distance,
-            _reg.TransformationEstimationPointToPoint(False),
-            3,
-            checkers,
-            _reg.RANSACConvergenceCriteria(int(cfg.sac_iterations), 0.9999),
-        )
-        if best is None or (res.fitness, -res.inlier_rmse) > (best.fitness, -best.inlier_rmse):
-            best = res
-    return best
+def _best_ransac(src_eval, tgt, corres: np.ndarray, distance: float, cfg: RegistrationConfig) -> SacResult:
+    """Sample consensus on the correspondences (:func:`tasks.register.sac.sac_register`, reproducible run to
+    run): ``SAC_ATTEMPTS * cfg.sac_iterations`` hypotheses seeded ``cfg.seed``, pruned by edge length (0.9),
+    the rotation prior and the inlier distance; the best (fitness, then lowest inlier RMSE) wins.
+    corres: (k, 2) int32 (row of src_eval, index into tgt)."""
+    return sac_register(np.asarray(src_eval.points), np.asarray(tgt.points), corres, distance, seed=int(cfg.seed),
+                        n_hypotheses=SAC_ATTEMPTS * int(cfg.sac_iterations),
+                        max_rotation_rad=np.radians(ROTATION_PRIOR_DEG))
