@@ -33,7 +33,7 @@ from storage.workdir import WorkDir
 
 STAGE_VERSIONS = {
     "scan": 3,       # v3: stable source ids; mesh surface samples as float32 offsets from a corner
-    "register": 2,   # v2: surface target, modes auto / pinned / off
+    "register": 3,   # v3: reproducible coarse consensus (tasks.register.sac); v2: surface target, modes auto / pinned / off
     "ingest": 4,     # v4: faces longer than the smallest patch side split (conforming); v3: sorted runs, vertex ids, normals
     "partition": 3,  # v3: a patch's rows in content order, not run order; v2: store schema 2 (vertex ids, ...)
     "labels": 1,
