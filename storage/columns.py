@@ -54,6 +54,31 @@ RUN_ROW_GROUP = 32_768  # rows per record batch of a staging run: the unit of pa
 RUN_SUFFIX = ".arrow"
 
 
+# The columns a run's content digest covers: what the rows are, never where they came from (source ids,
+# vertex ids and texture indices follow the inputs' paths).
+CONTENT_COLUMNS = ("patch", "x", "y", "z", "gps_time", "intensity", "x0", "y0", "z0", "x1", "y1", "z1", "x2", "y2", "z2")
+
+
+def content_digest(cols: dict[str, np.ndarray]) -> str:
+    """A digest (32 hex) of a run's rows by :data:`CONTENT_COLUMNS`: the same rows under another input name
+    or URL give the same digest. The partition merges a tile's runs in digest order, so a renamed or
+    re-uploaded input gives the same store (and every later stage sees a patch's rows in the same order).
+
+    >>> a = {"patch": np.arange(3), "x": np.ones(3, np.float32), "source": np.zeros(3)}
+    >>> content_digest(a) == content_digest({**a, "source": np.ones(3)}) != content_digest({**a, "x": np.zeros(3, np.float32)})
+    True
+    """
+    import hashlib
+
+    h = hashlib.blake2b(digest_size=16)
+    for name in CONTENT_COLUMNS:
+        if name in cols:
+            v = np.ascontiguousarray(cols[name])
+            h.update(f"{name}:{v.dtype.str}:{len(v)};".encode())
+            h.update(memoryview(v).cast("B"))
+    return h.hexdigest()
+
+
 def write_run(path: str | Path, cols: dict[str, np.ndarray], meta: dict | None = None) -> Path:
     """Write a *sorted run*: equal-length columns already sorted by their int64 ``patch`` column, as an
     uncompressed Arrow IPC file of record batches of :data:`RUN_ROW_GROUP` rows, with each batch's
@@ -70,7 +95,8 @@ def write_run(path: str | Path, cols: dict[str, np.ndarray], meta: dict | None =
     stops = np.minimum(starts + RUN_ROW_GROUP, n)
     batches = [[int(keys[a]), int(keys[b - 1]), int(b - a)] for a, b in zip(starts, stops)]
     table = pa.table({k: arrow_array(v) for k, v in cols.items()})
-    table = table.replace_schema_metadata({"ms3d": json.dumps(meta or {}), "ms3d_batches": json.dumps(batches)})
+    table = table.replace_schema_metadata({"ms3d": json.dumps(meta or {}), "ms3d_batches": json.dumps(batches),
+                                           "ms3d_content": content_digest(cols)})
     with atomic_path(path) as tmp, pa.OSFile(str(tmp), "wb") as sink, \
             ipc.new_file(sink, table.schema) as writer:
         for batch in table.to_batches(max_chunksize=RUN_ROW_GROUP):
@@ -80,7 +106,7 @@ def write_run(path: str | Path, cols: dict[str, np.ndarray], meta: dict | None =
 
 class RunReader:
     """A sorted run opened for reading. ``groups``: (g, 3) int64 [min key, max key, rows]
-    of its record batches; ``meta``: the ``ms3d`` metadata; ``n_rows``."""
+    of its record batches; ``meta``: the ``ms3d`` metadata; ``content``: its :func:`content_digest`; ``n_rows``."""
 
     def __init__(self, path: str | Path):
         import pyarrow.ipc as ipc
@@ -91,6 +117,7 @@ class RunReader:
             md = self._reader.schema.metadata or {}
             self.meta = json.loads(md.get(b"ms3d", b"{}"))
             self.groups = np.asarray(json.loads(md.get(b"ms3d_batches", b"[]")), np.int64).reshape(-1, 3)
+            self.content = md.get(b"ms3d_content", b"").decode()  # content_digest ("" from an older ingest)
         except (OSError, pa.ArrowInvalid, ValueError) as e:
             raise InputError(self.path, f"unreadable staging run ({e})") from None
         if len(self.groups) != self._reader.num_record_batches:

@@ -34,8 +34,8 @@ from storage.workdir import WorkDir
 STAGE_VERSIONS = {
     "scan": 3,       # v3: stable source ids; mesh surface samples as float32 offsets from a corner
     "register": 3,   # v3: reproducible coarse consensus (tasks.register.sac); v2: surface target, modes auto / pinned / off
-    "ingest": 4,     # v4: faces longer than the smallest patch side split (conforming); v3: sorted runs, vertex ids, normals
-    "partition": 3,  # v3: a patch's rows in content order, not run order; v2: store schema 2 (vertex ids, ...)
+    "ingest": 5,     # v5: runs carry a content digest; v4: faces longer than the smallest patch side split (conforming); v3: sorted runs, vertex ids, normals
+    "partition": 3,  # v3: runs merged in content-digest order, not by name; v2: store schema 2 (vertex ids, ...)
     "labels": 1,
     "outliers": 2,   # v2: flags in outliers.parquet, not in patches.parquet
     "classify": 3,   # v3: cue subsets by the points' coordinates, not their rows; v2: points-only patches inside the solid are bad (evidence.inside_solid)

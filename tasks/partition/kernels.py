@@ -20,7 +20,6 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from ms3d_model.hashing import splitmix64
 from storage.grid import PatchGrid
 from storage.staging import FACE_VERTEX_COLUMNS
 from tasks.geometry.cells import Partition, empty_partition, partition_cells
@@ -88,46 +87,13 @@ def _ranges_for(part: Partition, keys: np.ndarray) -> np.ndarray:
     return out
 
 
-# Columns whose values order the rows of one patch (:func:`content_keys`): coordinates, then what tells two
-# returns at one place apart. Never the source id, vertex ids or texture index (they follow the inputs' paths).
-CONTENT_COLUMNS = ("x", "y", "z", "gps_time", "intensity", *FACE_VERTEX_COLUMNS)
-
-
-def content_keys(cols: dict) -> np.ndarray | None:
-    """(n,) uint64 hash of each row's :data:`CONTENT_COLUMNS` values (bit patterns), or None without any.
-
-    The rows of one patch are stored in this order, not in the order of the input runs (which follows the
-    inputs' source ids, i.e. their paths): a renamed or re-uploaded input gives the same store, and every
-    later stage (cue subsets, evidence samples, rebuilt regions) sees its points in the same order. Rows
-    alike in all these columns keep their run order.
-
-    >>> a = {"x": np.array([1, 2], np.float32), "y": np.zeros(2, np.float32), "z": np.zeros(2, np.float32)}
-    >>> b = {k: v[::-1].copy() for k, v in a.items()}
-    >>> bool((content_keys(a) == content_keys(b)[::-1]).all()), content_keys({"patch": np.zeros(2)})
-    (True, None)
-    """
-    names = [c for c in CONTENT_COLUMNS if c in cols]
-    if not names:
-        return None
-    h = np.zeros(len(cols[names[0]]), np.uint64)
-    for c in names:
-        v = np.ascontiguousarray(cols[c])
-        bits = v.view(f"u{v.dtype.itemsize}") if v.dtype.kind == "f" else v.astype(np.int64).view(np.uint64)
-        h = splitmix64(h ^ bits.astype(np.uint64, copy=False))
-    return h
-
-
-def _partition_of(cols: dict, compute, tie: np.ndarray | None = None) -> Partition:
+def _partition_of(cols: dict, compute) -> Partition:
     """Rows grouped by patch: by the ``patch`` keys ingest computed in float64 world coordinates when the
-    columns carry them (so a place keeps its patch whatever the campus origin), else by cells from the
-    columns. Within a patch, rows follow ``tie`` (:func:`content_keys`) when given, else their order
-    (concatenated sorted runs: a stable argsort of the keys merges them in O(n log runs))."""
+    columns carry them (so a place keeps its patch whatever the campus origin; concatenated sorted runs,
+    so a stable argsort of the keys merges them in O(n log runs)), else by cells from the columns."""
     if "patch" in cols:
         keys = np.asarray(cols["patch"], np.int64)
-        if tie is not None:
-            order = np.lexsort((tie, keys)).astype(np.int64, copy=False)
-        else:
-            order = np.argsort(keys, kind="stable").astype(np.int64, copy=False)
+        order = np.argsort(keys, kind="stable").astype(np.int64, copy=False)
         sk = keys[order]
         change = np.flatnonzero(sk[1:] != sk[:-1]) + 1
         starts = np.concatenate(([0], change)).astype(np.int64)
@@ -157,18 +123,14 @@ def _sorted_columns(cols: dict | None, part: Partition) -> dict:
 
 
 def merge_runs(pieces: list[dict[str, np.ndarray]]) -> tuple[dict[str, np.ndarray], Partition]:
-    """Merge sorted runs into one table sorted by ``patch``, the rows of a patch in content order
-    (:func:`content_keys`; rows alike in content keep run order, then row order).
+    """Merge sorted runs into one table sorted by ``patch``, stably (run order, then row order).
 
     pieces: column dicts, each sorted by its int64 ``patch`` column, same columns and dtypes. Each run's
     rows are scattered straight to their places (their target positions ascend within a run), so the
     columns are copied once, never concatenated first. Returns (sorted columns, Partition).
     """
     keys = np.concatenate([p["patch"] for p in pieces]) if pieces else np.zeros(0, np.int64)
-    ties = [content_keys(p) for p in pieces]
-    tie = np.concatenate(ties) if ties and all(t is not None for t in ties) else None
-    part = _partition_of({"patch": keys}, None, tie)
-    del ties, tie
+    part = _partition_of({"patch": keys}, None)
     n = len(keys)
     pos = np.empty(n, np.int64)
     pos[part.order] = np.arange(n, dtype=np.int64)

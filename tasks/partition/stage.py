@@ -77,12 +77,17 @@ def mark_stale(tile_dir: Path, error: str) -> None:
 def write_tile_store(parts: list[Path], tile_dir: Path, meta: TileMeta, budget_bytes: int,
                      force_stream: bool = False) -> dict:
     """Partition a tile's staging runs into its store: in memory when the estimate fits the budget left
-    above this process's current RSS, else by the k-way merge of ``tasks.partition.stream`` (same files)."""
+    above this process's current RSS, else by the k-way merge of ``tasks.partition.stream`` (same files).
+    Runs merge in the order of their content digests (:func:`storage.columns.content_digest`), not of their
+    names (which carry the inputs' source ids): the same inputs under other names or URLs give the same
+    store, rows of one patch in the same order."""
     from tasks.partition.stream import IN_MEMORY_BYTES, STREAM_BYTES, stream_partition_tile
 
+    info = {p: (r.content, r.n_rows) for p, r in ((p, RunReader(p)) for p in parts)}
+    parts = sorted(parts, key=lambda p: (info[p][0], p.name))  # content order: names do not matter
     point_runs = [p for p in parts if is_point_run(p)]
     face_runs = [p for p in parts if not is_point_run(p)]
-    rows_p, rows_f = (sum(RunReader(p).n_rows for p in runs) for runs in (point_runs, face_runs))
+    rows_p, rows_f = (sum(info[p][1] for p in runs) for runs in (point_runs, face_runs))
     free = budget_bytes - current_rss_bytes()
     need = rows_p * IN_MEMORY_BYTES["points"] + rows_f * IN_MEMORY_BYTES["faces"]
     if need <= free and not force_stream:

@@ -4,11 +4,11 @@ Ingest writes every tile's rows as *sorted runs* (``staging/{tile}/{unit}.parque
 row groups of 32 k rows with min/max key statistics). A tile whose rows would not fit the budget in
 memory is merged here block by block: a block is a range of patch keys ``[lo, hi)`` chosen from the
 row-group statistics so that the row groups it touches fit the budget; its rows are read from every
-run (only the row groups overlapping the range), sorted by key (a patch's rows in content order), and appended to the store's
+run (only the row groups overlapping the range), stably sorted by key, and appended to the store's
 tables, whose row groups are written as they complete (``storage.patch_store.TableWriter``). A block
 never splits a patch (its bounds are keys), and the result is the same file, byte for byte, as the
-in-memory path (``tasks.partition.stage.write_tile_store``: ``merge_runs`` + ``write_tile_tables``): the rows of one
-patch are in the same content order, and the row groups fall at the same rows.
+in-memory path (``tasks.partition.stage.write_tile_store``: ``merge_runs`` + ``write_tile_tables``): rows of one patch keep
+the order run by run, and the row groups fall at the same rows.
 
 Memory: one block (at most the budget's rows, plus up to one row group per run when a single step of
 the plan exceeds it) and the per-patch summaries (a few dozen bytes per patch).

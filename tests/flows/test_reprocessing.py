@@ -221,8 +221,8 @@ def test_labels_file_edited_in_place(campus):
 @pytest.mark.slow
 def test_renamed_inputs_in_another_run_order_give_the_same_stores_and_grades(tiny_campus, tmp_path):
     """The same two MLS strips under other names arrive in the other run order (runs follow source ids, hashes
-    of the paths). The stores keep a patch's rows in content order, so the points tables and the grades are
-    the same bitwise (but for the source ids). Once they followed the runs: the ~200 pairs above the cues'
+    of the paths). The partition merges runs in the order of their content digests, so the points tables and
+    the grades are the same bitwise (but for the source ids). Once they followed the runs: the ~200 pairs above the cues'
     point cap subsampled other points, and an S3 copy of a campus graded differently from the local one."""
     from storage.inputs import assign_source_ids
 
