@@ -32,8 +32,8 @@ from storage.manifest import (
 from storage.workdir import WorkDir
 
 STAGE_VERSIONS = {
-    "scan": 3,       # v3: stable source ids; mesh surface samples as float32 offsets from a corner
-    "register": 3,   # v3: reproducible coarse consensus (tasks.register.sac); v2: surface target, modes auto / pinned / off
+    "scan": 4,       # v4: mesh surface samples seeded alike for every file (not by source id); v3: stable source ids; mesh surface samples as float32 offsets from a corner
+    "register": 3,   # v3: reproducible coarse consensus (tasks.register.sac), samples in coordinate order; v2: surface target, modes auto / pinned / off
     "ingest": 5,     # v5: runs carry a content digest; v4: faces longer than the smallest patch side split (conforming); v3: sorted runs, vertex ids, normals
     "partition": 3,  # v3: runs merged in content-digest order, not by name; v2: store schema 2 (vertex ids, ...)
     "labels": 1,

@@ -27,6 +27,7 @@ from pathlib import Path
 
 import numpy as np
 
+from ms3d_model.hashing import order_free_subset
 from storage.atomic import write_json_atomic
 from storage.errors import InputError
 from storage.frame import CampusFrame
@@ -106,6 +107,12 @@ def _estimate(records: list[InputFile], frame: CampusFrame, cfg: CampusConfig, w
 
     src = mls_sample(records, cfg, frame)
     tgt, nrm = mesh_target(records, wd, frame)
+    # rows in an order of their coordinates, not of the files' source ids (hashes of their paths): every seeded
+    # subsample after this picks the same points when the same inputs come under other names or URLs
+    seed = int(cfg.registration.seed)
+    src = src[order_free_subset(src, len(src), seed)]
+    order = order_free_subset(tgt, len(tgt), seed)
+    tgt, nrm = tgt[order], nrm[order]
     if cfg.registration.mode == "off":
         check = check_coregistered_samples(src, tgt, nrm, seed=cfg.registration.seed)
         if not check.ok:

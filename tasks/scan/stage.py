@@ -69,7 +69,9 @@ def _scan_mesh(rec: InputFile, cfg: CampusConfig, wd: WorkDir, placement: MeshPl
     rec.count = int(mesh.n_faces)
     rec.warnings = list(mesh.warnings)
     rec.lo, rec.hi = used.min(axis=0).tolist(), used.max(axis=0).tolist()
-    xyz, normals = surface_samples(mesh.vertices, mesh.faces, cfg.registration.target_spacing_m, seed=rec.source)
+    # one seed for every file: samples hashed from the faces' geometry alone, whatever the file's name or URL
+    xyz, normals = surface_samples(mesh.vertices, mesh.faces, cfg.registration.target_spacing_m,
+                                   seed=int(cfg.registration.seed))
     out = samples_path(wd, rec.source)
     write_surface_samples(out, xyz, normals, np.asarray(rec.lo, np.float64))
     return [str(out.relative_to(wd.root))]

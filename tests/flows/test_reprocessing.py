@@ -4,6 +4,7 @@ few seconds; the Prefect/Dask path runs the same ``flows.campus.reprocess`` (tes
 
 from __future__ import annotations
 
+import json
 import shutil
 from pathlib import Path
 
@@ -221,8 +222,9 @@ def test_labels_file_edited_in_place(campus):
 @pytest.mark.slow
 def test_renamed_inputs_in_another_run_order_give_the_same_stores_and_grades(tiny_campus, tmp_path):
     """The same two MLS strips under other names arrive in the other run order (runs follow source ids, hashes
-    of the paths). The partition merges runs in the order of their content digests, so the points tables and
-    the grades are the same bitwise (but for the source ids). Once they followed the runs: the ~200 pairs above the cues'
+    of the paths). Registration samples the inputs by coordinates and the partition merges runs in the order of
+    their content digests, so the transform, the points tables and the grades are the same bitwise (but for the
+    source ids). Once they followed the runs: the ~200 pairs above the cues'
     point cap subsampled other points, and an S3 copy of a campus graded differently from the local one."""
     from storage.inputs import assign_source_ids
 
@@ -231,24 +233,27 @@ def test_renamed_inputs_in_another_run_order_give_the_same_stores_and_grades(tin
         ids = assign_source_ids(paths)
         return ids[paths[0]] < ids[paths[1]]
 
-    tables, order = {}, {}
+    tables, order, reg = {}, {}, {}
     for run in ("one", "other"):
         campus = tmp_path / run / "campus"
         shutil.copytree(tiny_campus, campus)
         names = ("s0.laz", "s1.laz")
-        if run == "other":  # names under which the strips' runs come in the opposite order
-            names = next((f"s0-{n}.laz", "s1.laz") for n in range(1000)
-                         if first_strip_first(campus, (f"s0-{n}.laz", "s1.laz")) != order["one"])
+        if run == "other":  # names under which both the paths and the strips' runs sort the other way round
+            names = next((f"z{n}.laz", "s1.laz") for n in range(1000)
+                         if first_strip_first(campus, (f"z{n}.laz", "s1.laz")) != order["one"])
         order[run] = first_strip_first(campus, names)
         for strip, new in zip(sorted((campus / "mls").glob("*.laz")), names):
             strip.rename(campus / "mls" / new)
         work = tmp_path / run / "work"
         _run(CampusConfig.from_yaml(campus / "campus.yaml", {
-            "work_dir": str(work), "runner": "inline", "registration.mode": "off", "repair.enabled": False,
+            "work_dir": str(work), "runner": "inline", "registration.mode": "auto", "repair.enabled": False,
             "report.enabled": False}))
+        reg[run] = json.loads((work / "registration.json").read_text())
         tables[run] = {f"{d.name}/{f}": pq.read_table(d / f) for d in sorted((work / "tiles").iterdir())
                        for f in ("points.parquet", "grades.parquet") if (d / f).exists()}
     assert order["one"] != order["other"]  # the precondition: the runs did come in the other order
+    # the registration samples and subsamples by coordinates, not by source ids: the same transform
+    assert reg["one"]["matrix"] == reg["other"]["matrix"] and reg["one"]["method"].startswith("sac-ia")
     assert sorted(tables["one"]) == sorted(tables["other"]) and any(k.endswith("grades.parquet") for k in tables["one"])
     for key, t in tables["one"].items():
         for c in t.column_names:  # bitwise, so an ungraded NaN equals an ungraded NaN
