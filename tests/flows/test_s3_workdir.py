@@ -206,7 +206,8 @@ def test_tiny_campus_on_s3_equals_local_and_reruns_as_noop(tiny_campus, s3, tmp_
     """The synth tiny campus (a ContextCapture production, COLMAP cameras and images, labels) with inputs and
     work dir on S3, inline, has the local run's stores by content and rebuilds the same regions, and reruns as
     a no-op from an empty mirror.
-    Registration is off: its sampling is seeded by the inputs' source ids, i.e. by their paths."""
+    Registration is off to keep it short (it gives the same transform under other names or URLs:
+    tests/flows/test_reprocessing.py::test_renamed_inputs_in_another_run_order_give_the_same_stores_and_grades)."""
     from flows.campus import InlineExecutor, reprocess
     from flows.remote import mirror_for
     from tasks.config import CampusConfig
