@@ -1,8 +1,9 @@
 """Order-free hashing of points: seeded subsets that do not depend on the order rows arrive in.
 
-Rows of one patch arrive in the order of their input runs, which follows the inputs' source ids (their paths
-or URLs). Anything that subsamples a patch by row position would then grade a renamed input differently;
-hashing the coordinates instead gives the same subset whatever the order.
+A subsample by row position depends on the order rows arrive in, and that order once followed the inputs'
+source ids (hashes of their paths or URLs): an S3 copy of a campus graded differently from the local one.
+The partition now merges runs by content, and these subsets are order-free by construction as well: they hash
+the coordinates, so the same points in any order give the same subset.
 """
 
 from __future__ import annotations
