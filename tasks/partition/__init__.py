@@ -5,8 +5,7 @@ Algorithms 1 and 2 on a world-anchored patch grid).
 - Writes: ``tiles/{tile}/points.parquet``, ``faces.parquet``, ``patches.parquet`` (sorted by patch; the runs
   merged in the order of their content digests, :func:`storage.columns.content_digest`, so renamed or
   re-uploaded inputs give the same store), removes the tile's side tables (they describe the old patches),
-  ``stale.json`` on a blocked tile, and one
-  manifest record per tile.
+  ``stale.json`` on a blocked tile, and one manifest record per tile.
 - Invalidated by: the names and content fingerprints of the tile's staging runs, the blocking error of a
   bad input, the campus frame, the partition parameters and ``STAGE_VERSIONS["partition"]``.
 
