@@ -79,13 +79,13 @@ def _score(tree: cKDTree, src: np.ndarray, r: np.ndarray, t: np.ndarray, distanc
 
 def sac_register(src_eval: np.ndarray, tgt: np.ndarray, corres: np.ndarray, distance: float, *, seed: int,
                  n_hypotheses: int = 3000, n_scored: int = 64, edge_ratio: float = 0.9,
-                 max_rotation_rad: np.ndarray | None = None, tgt_tree: cKDTree | None = None) -> SacResult:
+                 max_rotation_rad: np.ndarray | None = None) -> SacResult:
     """The best rigid transform of ``src_eval`` (n, 3) onto ``tgt`` (m, 3) supported by the correspondences
     ``corres`` (k, 2) int (row of src_eval, row of tgt), reproducibly (module doc). ``max_rotation_rad``:
     (3,) bound on the axis-angle components of a hypothesis (None: any rotation)."""
     src_eval, tgt = np.asarray(src_eval, np.float64), np.asarray(tgt, np.float64)
     corres = np.asarray(corres, np.int64)
-    tree = tgt_tree if tgt_tree is not None else cKDTree(tgt)
+    tree = cKDTree(tgt)
     identity = SacResult(np.eye(4), *_score(tree, src_eval, np.eye(3), np.zeros(3), distance), 0)
     if len(corres) < 3:
         return identity
