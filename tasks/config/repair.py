@@ -135,6 +135,10 @@ class MeshConfig(_Section):
                                     "from every face to rebuild is explained by the retained face and not fused into the "
                                     "rebuild (tasks.repair.keep.on_retained): the MLS seeing a kept roof's top over an "
                                     "eave otherwise folds the soffit's chart up to it; 0: every zone point is fused")
+    stand_off_m: float = Field(0.05, ge=0, description="fused MLS points more than this above an up-facing stretch "
+                               "of their chart (unit normal z >= 0.8) whose own normal is more than 60° from the "
+                               "chart's (the legs of a person, a bollard: things standing on the ground) are not "
+                               "triangulated into it (tasks.repair.standing); 0: every point in reach is")
     free_surface: bool = Field(True, description="MLS points of a region farther than max_map_distance_m from every "
                                "face (a passage through a block model, a wall the mesh lost) are meshed on their own "
                                "(Poisson, cut back to the points: tasks.repair.free) and added, not welded")

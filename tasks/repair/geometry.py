@@ -173,33 +173,32 @@ def in_view(xyz: np.ndarray, normals: np.ndarray, pts: np.ndarray, *, radius_m: 
 
 
 def _mesh_points(fused_xyz: np.ndarray, fused_n: np.ndarray, fused_src: np.ndarray, fused_vertex: np.ndarray, fc, mc,
-                 stats: dict) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+                 stats: dict) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
     """The points the charts are triangulated from: the fused points, or (``mesh.method`` poisson, at least
-    10 points) the Poisson surface's vertices near them. Returns ((k, 3) xyz, (k,) int8 source, (k,) int64
-    original vertex index or -1)."""
+    10 points) the Poisson surface's vertices near them. Returns ((k, 3) xyz, (k, 3) unit normals, (k,) int8
+    source, (k,) int64 original vertex index or -1)."""
     if mc.method != "poisson" or len(fused_xyz) < 10:
-        return fused_xyz, fused_src, fused_vertex
+        return fused_xyz, fused_n, fused_src, fused_vertex
     ext = float(np.ptp(fused_xyz, axis=0).max())
     depth = poisson_depth_for(ext, fc.mls_spacing_m * 1.5, hi=mc.poisson_depth)
-    pv, _, _ = poisson_surface(fused_xyz, fused_n, depth, mc.poisson_trim_quantile)
+    pv, pn, _ = poisson_surface(fused_xyz, fused_n, depth, mc.poisson_trim_quantile)
     near = cKDTree(fused_xyz).query(pv, distance_upper_bound=3 * fc.mls_spacing_m)[0] < np.inf
     stats["poisson"] = {"depth": depth, "vertices": len(pv), "kept": int(near.sum())}
-    return pv[near], np.full(int(near.sum()), 2, np.int8), np.full(int(near.sum()), -1)
+    return pv[near], pn[near], np.full(int(near.sum()), 2, np.int8), np.full(int(near.sum()), -1)
 
 
-def _coarsened(pts: np.ndarray, src: np.ndarray, pvert: np.ndarray, mc, stats: dict
-               ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """The triangulation's points with the MLS points (source 1) of flat stretches thinned to
-    ``mc.flat_spacing_m`` (:mod:`tasks.repair.coarsen`); mesh vertices and Poisson points stay."""
+def _coarsened(pts: np.ndarray, src: np.ndarray, mc, stats: dict) -> np.ndarray:
+    """(k,) bool: the triangulation's points to keep, with the MLS points (source 1) of flat stretches thinned
+    to ``mc.flat_spacing_m`` (:mod:`tasks.repair.coarsen`); mesh vertices and Poisson points stay."""
+    keep = np.ones(len(pts), bool)
     mls = np.flatnonzero(src == 1)
     if mc.flat_spacing_m <= 0 or len(mls) < 6:
-        return pts, src, pvert
+        return keep
     drop = np.ones(len(mls), bool)
     drop[coarsen_flat(pts[mls], mc.flat_spacing_m, mc.flat_tolerance_m)] = False
     stats["flat_dropped"] = int(drop.sum())
-    keep = np.ones(len(pts), bool)
     keep[mls[drop]] = False
-    return pts[keep], src[keep], pvert[keep]
+    return keep
 
 
 def _free_part(data: RegionInput, mls: np.ndarray, mc, fc, stats: dict) -> tuple[np.ndarray, np.ndarray]:
@@ -317,19 +316,21 @@ def _repair(data: RegionInput, cfg, vn: np.ndarray, thinned: tuple) -> RegionGeo
     fused_xyz = np.concatenate([data.xyz[kept_v], acc])
     fused_src = np.r_[np.zeros(len(kept_v), np.int8), np.ones(len(acc), np.int8)]
     t3 = time.perf_counter()
-    pts, src, pvert = _mesh_points(fused_xyz, np.concatenate([vn[kept_v], acc_n]), fused_src,
-                                   np.r_[kept_v, np.full(len(acc), -1)], fc, mc, stats)
-    pts, src, pvert = _coarsened(pts, src, pvert, mc, stats)
+    pts, pn, src, pvert = _mesh_points(fused_xyz, np.concatenate([vn[kept_v], acc_n]), fused_src,
+                                       np.r_[kept_v, np.full(len(acc), -1)], fc, mc, stats)
+    k = _coarsened(pts, src, mc, stats)
+    pts, pn, src, pvert = pts[k], pn[k], src[k], pvert[k]
     cleared = zone_v[fr.replaced & ~locked] if mc.fill_clears_replaced else zone_v[:0]
     fill = unseen_samples(data.xyz, data.zone_faces, fused_xyz, data.xyz[cleared],
                           step_m=mc.fill_step_m, reach_m=mc.max_map_distance_m)
     stats["filled"] = len(fill)
     pts, src = np.concatenate([pts, fill]), np.r_[src, np.full(len(fill), SOURCE_FILL, np.int8)]
-    pvert = np.r_[pvert, np.full(len(fill), -1)]
+    pvert, pn = np.r_[pvert, np.full(len(fill), -1)], np.concatenate([pn, np.zeros((len(fill), 3))])
     vxyz, vids = seam_positions(data, zone_v, fr.replaced, acc, acc_n, topo)
     stats["seam_vertices_moved"] = int((vids != data.vertex_id).sum())
     mesh = rebuild_charts(topo.charts, vids, pts, src, pvert, max_map_distance_m=mc.max_map_distance_m,
-                          border_margin_m=0.5 * fc.mls_spacing_m, max_edge_m=mc.max_edge_m, vertex_xyz=vxyz)
+                          border_margin_m=0.5 * fc.mls_spacing_m, max_edge_m=mc.max_edge_m, vertex_xyz=vxyz,
+                          pts_normal=pn, stand_off_m=mc.stand_off_m)
     replaced = np.ones(mz, bool)
     replaced[topo.rejected] = False
     stats["unsupported_share"] = unsupported_share(mesh.xyz, mesh.faces, both, nrm, data.xyz, data.zone_faces)

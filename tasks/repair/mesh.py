@@ -30,7 +30,9 @@ from scipy.spatial import Delaunay, cKDTree
 from storage.vertex_ids import local_ids
 
 from tasks.repair.chart import Chart, boundary_edges, edges_of, undirected_key
+from tasks.geometry.triangles import face_normals
 from tasks.repair.conformal import constrained_triangles
+from tasks.repair.standing import standing_points
 
 METHODS = ("delaunay", "poisson")
 
@@ -182,8 +184,8 @@ def poisson_surface(xyz: np.ndarray, normals: np.ndarray, depth: int = 8, trim_q
                     threads: int = 1) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """Screened Poisson (open3d) of oriented points, density-trimmed.
 
-    xyz, normals: (n, 3) float64. Returns ((v, 3) float64 vertices, (f, 3) int64 faces, (v,) vertex
-    normals) with the vertices of density below the ``trim_quantile`` quantile removed.
+    xyz, normals: (n, 3) float64. Returns ((v, 3) float64 vertices, (f, 3) int64 faces, (v, 3) unit
+    vertex normals) with the vertices of density below the ``trim_quantile`` quantile removed.
     """
     import open3d as o3d
 
@@ -278,19 +280,25 @@ def triangulate_in_chart(chart: Chart, pts: np.ndarray, *, max_map_distance_m: f
 
 def rebuild_charts(charts: list[Chart], vertex_ids: np.ndarray, pts: np.ndarray, pts_source: np.ndarray,
                    pts_vertex: np.ndarray, *, max_map_distance_m: float, border_margin_m: float,
-                   max_edge_m: float, vertex_xyz: np.ndarray | None = None) -> RebuiltMesh:
+                   max_edge_m: float, vertex_xyz: np.ndarray | None = None, pts_normal: np.ndarray | None = None,
+                   stand_off_m: float = 0.0) -> RebuiltMesh:
     """Triangulate the points in every chart and join the charts into one mesh, welded by vertex id.
 
     vertex_ids: (n,) int64 ids of the region's vertex table (chart.vertex indexes it);
     pts: (k, 3) points to triangulate; pts_source: (k,) int8 (0 mesh vertex, 1 MLS, 2 Poisson);
     pts_vertex: (k,) int64 region vertex index of a point that is an original mesh vertex, else -1;
-    vertex_xyz: (n, 3) output positions of the region's vertices (default: as in the charts).
+    vertex_xyz: (n, 3) output positions of the region's vertices (default: as in the charts);
+    pts_normal: (k, 3) unit normals of pts: with stand_off_m > 0, the MLS points standing on an up-facing
+    stretch of their chart more than stand_off_m above it are left out (:mod:`tasks.repair.standing`).
     """
     xs, ids, fs, srcs, chs = [], [], [], [], []
-    stats = {"charts": len(charts), "dropped_long": 0, "at_border": 0, "too_far": 0}
+    stats = {"charts": len(charts), "dropped_long": 0, "at_border": 0, "too_far": 0, "standing": 0}
     base = 0
     located = [ClosestPoint(ch.xyz, ch.faces).query(pts) for ch in charts]
     owner = np.argmin(np.stack([q[2] for q in located]), axis=0) if charts and len(pts) else np.zeros(0, np.int64)
+    if pts_normal is not None and stand_off_m > 0 and len(pts):
+        owner = np.where(_standing(charts, located, owner, pts, pts_normal, pts_source, stand_off_m), -1, owner)
+        stats["standing"] = int((owner < 0).sum())
     for ci, ch in enumerate(charts):
         mine = np.flatnonzero(owner == ci)  # each point goes to the chart nearest to it
         q = tuple(a[mine] for a in located[ci])
@@ -320,6 +328,23 @@ def rebuild_charts(charts: list[Chart], vertex_ids: np.ndarray, pts: np.ndarray,
     faces = inv.reshape(-1)[faces]
     good = (faces[:, 0] != faces[:, 1]) & (faces[:, 1] != faces[:, 2]) & (faces[:, 0] != faces[:, 2])
     return RebuiltMesh(xyz[first], uid, faces[good], src[first], chart[good], stats)
+
+
+def _standing(charts: list[Chart], located: list[tuple], owner: np.ndarray, pts: np.ndarray, pts_n: np.ndarray,
+              src: np.ndarray, stand_off_m: float) -> np.ndarray:
+    """(k,) bool: MLS points (source 1) standing on their owner chart (:func:`tasks.repair.standing.standing_points`)."""
+    out = np.zeros(len(pts), bool)
+    for ci, ch in enumerate(charts):
+        mine = np.flatnonzero((owner == ci) & (src == 1))
+        fid, bary, _ = (a[mine] for a in located[ci])
+        ok = fid >= 0
+        mine, fid, bary = mine[ok], fid[ok], bary[ok]
+        if not len(mine):
+            continue
+        tri = ch.faces[fid]
+        foot = np.einsum("kc,kcd->kd", bary, ch.xyz[tri])
+        out[mine] = standing_points(pts[mine], pts_n[mine], foot, face_normals(ch.xyz, tri), min_offset_m=stand_off_m)
+    return out
 
 
 # ------------------------------------------------------------------------------------- stitching checks

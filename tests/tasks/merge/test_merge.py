@@ -14,7 +14,7 @@ from storage.frame import CampusFrame
 from storage.ids import TileId
 from storage.patch_store import TileMeta, write_side_table, write_tile_tables
 from storage.tile_mesh import GRADE_BAD, GRADE_GOOD, SOURCE_MESH, SOURCE_REBUILT, read_tile_mesh
-from storage.workdir import WorkDir, write_campus
+from storage.workdir import WorkDir, campus_frame, read_campus, write_campus
 from tasks.config import CampusConfig
 from tasks.merge import FaceSoup, RegionMesh, run_merge_tile, weld_soup
 from tasks.merge.weld import face_keep_mask, weld_corners, weld_keys
@@ -479,3 +479,18 @@ def test_tiny_campus_report_names_its_figures_and_caches_quality(tiny_merged_run
     quality = (wd.report_dir / "quality.json").stat().st_mtime_ns
     run_report(cfg, wd)  # quality comes from the cache: the merged tiles did not change
     assert (wd.report_dir / "quality.json").stat().st_mtime_ns == quality
+
+
+def test_a_merged_model_the_repair_left_alone_scores_exactly_the_input_mesh(tiny_merged_run, tiny_campus):
+    """The quality stage's input row is the ingested mesh, so retained faces get the same samples in both rows:
+    the rows differ only where a region was rebuilt (the raw file would differ by ingest's splits and float32)."""
+    from tasks.quality.stage import MODELS, merged_tiles, quality_share
+
+    cfg, wd, _ = tiny_merged_run
+    origin = campus_frame(read_campus(wd)).origin_array
+    shares = quality_share(wd, tiny_campus, origin, merged_tiles(wd), True, (0, 1))
+    merged, given = (shares[m].report().to_dict() for m in MODELS)
+    assert merged["evaluated_area_m2"] > 0 and merged["fscore"][0] < 1.0  # something to tell apart
+    for name in ("precision", "recall", "fscore", "uncovered_fraction", "chamfer_m"):
+        assert merged[name] == given[name], name
+    assert merged["per_class"] == given["per_class"]
