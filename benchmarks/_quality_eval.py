@@ -97,7 +97,35 @@ def evaluate(v, f, truth, seen, spacing_m: float = 0.05) -> dict:
                    "per_class": {n: _combine([pc.get(n), pc.get(f"unseen_{n}")]) for n in facade}},
            "seen": {**_combine([pc.get(n) for n in facade]), "per_class": {n: _combine([pc.get(n)]) for n in facade}},
            "campus": {"F5": r.fscore[0], "F10": r.fscore[1], "acc_m": r.accuracy.mean_m,
-                      "comp_m": r.completeness.mean_m, "uncovered": r.uncovered_fraction}}
+                      "comp_m": r.completeness.mean_m, "uncovered": r.uncovered_fraction,
+                      "per_class": {n: _combine([pc.get(n), pc.get(f"unseen_{n}")]) for n in CLASS_NAMES
+                                    if n in pc or f"unseen_{n}" in pc}}}
+    return out
+
+
+def _campus_classes(results: dict) -> list[str]:
+    """Every truth class over the whole campus at 5 decimals, and which classes a variant makes worse than (a)
+    (lower F@5cm, or more uncovered facade area)."""
+    classes = [c for c in CLASS_NAMES if any(c in r["campus"].get("per_class", {}) for r in results.values())]
+    if not classes:
+        return []
+    out = ["\nper class, whole campus: F@5cm / uncovered (facade classes)",
+           "| variant | " + " | ".join(classes) + " |", "|---" * (len(classes) + 1) + "|"]
+    for name, r in results.items():
+        pc = r["campus"]["per_class"]
+        cells = ["-" if c not in pc else f"{pc[c]['F5']:.5f}" + ("" if np.isnan(pc[c]["uncovered"]) else
+                                                                 f" / {100 * pc[c]['uncovered']:.2f} %") for c in classes]
+        out.append(f"| {name} | " + " | ".join(cells) + " |")
+    base = results.get("a", {}).get("campus", {}).get("per_class")
+    for name, r in results.items():
+        if base is None or name == "a":
+            continue
+        pc = r["campus"]["per_class"]
+        worse = [f"{c} (F@5cm {pc[c]['F5'] - base[c]['F5']:+.2e})" for c in classes if c in pc and c in base
+                 and pc[c]["F5"] < base[c]["F5"]]
+        worse += [f"{c} (uncovered {100 * (pc[c]['uncovered'] - base[c]['uncovered']):+.3f} points)" for c in classes
+                  if c in pc and c in base and pc[c]["uncovered"] > base[c]["uncovered"]]
+        out.append(f"({name}) classes worse than (a): " + (", ".join(worse) if worse else "none"))
     return out
 
 
@@ -114,6 +142,7 @@ def table(results: dict) -> str:
             out.append(f"| {name} | {a['F5']:.3f} | {a['F10']:.3f} | {100 * a['acc_m']:.2f} | {100 * a['comp_m']:.2f} | "
                        f"{100 * a['uncovered']:.1f} % |")
         if scope == "campus":
+            out += _campus_classes(results)
             continue
         out += [f"\nper class, {title}: F@5cm / F@10cm / uncovered",
                 "| variant | " + " | ".join(classes) + " |", "|---" * (len(classes) + 1) + "|"]

@@ -63,3 +63,25 @@ def test_assembly_keeps_region_local_ids_apart(tmp_path):
     e = v[f]
     longest = np.linalg.norm(e - np.roll(e, -1, axis=1), axis=2).max()
     assert longest < 5.0  # no vertex of one region welded to the other (100 m away)
+
+
+def test_the_campus_table_names_the_classes_a_variant_makes_worse():
+    """Ground (class 0) and a wall (class 2): (e) drops half the ground and moves the wall closer, so the ground
+    is named worse and the wall is not; a variant equal to (a) has none."""
+    from _quality_eval import table
+
+    v = np.array([[0, 0, 0], [2, 0, 0], [2, 2, 0], [0, 2, 0], [0, 3, 0], [2, 3, 0], [2, 3, 2], [0, 3, 2]], float)
+    f = np.array([[0, 1, 2], [0, 2, 3], [4, 5, 6], [4, 6, 7]])
+    truth = (v, f, np.array([0, 0, 2, 2]))
+    seen = np.ones(4, bool)
+    a_v = v + [0, 0, 0.0]
+    a_v[4:] += [0, 0.08, 0]  # (a): the wall 8 cm off
+    e_v = a_v.copy()
+    e_v[4:] -= [0, 0.08, 0]  # (e): the wall in place, half the ground gone
+    res = {"a": qb.evaluate(a_v, f, truth, seen), "e": qb.evaluate(e_v, f[1:], truth, seen),
+           "d": qb.evaluate(a_v, f, truth, seen)}
+    assert res["e"]["campus"]["per_class"]["wall"]["F5"] > res["a"]["campus"]["per_class"]["wall"]["F5"]
+    out = table(res)
+    line = [s for s in out.splitlines() if s.startswith("(e) classes worse")][0]
+    assert "ground" in line and "wall" not in line
+    assert "(d) classes worse than (a): none" in out
