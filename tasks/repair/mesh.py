@@ -29,8 +29,8 @@ from scipy.spatial import Delaunay, cKDTree
 
 from storage.vertex_ids import local_ids
 
-from tasks.repair.chart import Chart, boundary_edges, edges_of, undirected_key
 from tasks.geometry.triangles import face_normals
+from tasks.repair.chart import Chart, boundary_edges, edges_of, undirected_key
 from tasks.repair.conformal import constrained_triangles
 from tasks.repair.standing import standing_points
 
