@@ -28,7 +28,6 @@ import numpy as np
 from scipy.spatial import Delaunay, cKDTree
 
 from storage.vertex_ids import local_ids
-
 from tasks.geometry.triangles import face_normals
 from tasks.repair.chart import Chart, boundary_edges, edges_of, undirected_key
 from tasks.repair.conformal import constrained_triangles

@@ -82,6 +82,6 @@ def test_the_campus_table_names_the_classes_a_variant_makes_worse():
            "d": qb.evaluate(a_v, f, truth, seen)}
     assert res["e"]["campus"]["per_class"]["wall"]["F5"] > res["a"]["campus"]["per_class"]["wall"]["F5"]
     out = table(res)
-    line = [s for s in out.splitlines() if s.startswith("(e) classes worse")][0]
+    line = next(s for s in out.splitlines() if s.startswith("(e) classes worse"))
     assert "ground" in line and "wall" not in line
     assert "(d) classes worse than (a): none" in out

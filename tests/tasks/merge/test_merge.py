@@ -486,7 +486,7 @@ def test_a_merged_model_the_repair_left_alone_scores_exactly_the_input_mesh(tiny
     the rows differ only where a region was rebuilt (the raw file would differ by ingest's splits and float32)."""
     from tasks.quality.stage import MODELS, merged_tiles, quality_share
 
-    cfg, wd, _ = tiny_merged_run
+    _, wd, _ = tiny_merged_run
     origin = campus_frame(read_campus(wd)).origin_array
     shares = quality_share(wd, tiny_campus, origin, merged_tiles(wd), True, (0, 1))
     merged, given = (shares[m].report().to_dict() for m in MODELS)
