@@ -91,13 +91,13 @@ class RegionGeometry:
 
 def _thinned_mls(data: RegionInput, fc, zone_v: np.ndarray, vn: np.ndarray
                  ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
-    """The region's MLS points without the dropped classes, thinned to ``fc.mls_spacing_m``, and the
-    context points likewise; PCA normals oriented like the mesh. Returns (mls (p, 3), mls normals (p, 3),
-    mls + context points (p + q, 3), their normals (p + q, 3)), float64."""
+    """The region's MLS points without the dropped classes, thinned to ``fc.mls_spacing_m`` (unless ``fc.thin`` is
+    off), and the context points likewise; PCA normals oriented like the mesh. Returns (mls (p, 3), mls normals
+    (p, 3), mls + context points (p + q, 3), their normals (p + q, 3)), float64."""
     keep = ~np.isin(data.mls_class, np.asarray(fc.drop_classes, np.uint8))
-    mls = data.mls_xyz[keep]
-    mls = mls[thin_points(mls, fc.mls_spacing_m)]
-    ctx = data.ctx_xyz[thin_points(data.ctx_xyz, fc.mls_spacing_m)] if len(data.ctx_xyz) else np.zeros((0, 3))
+    mls, ctx = data.mls_xyz[keep], data.ctx_xyz if len(data.ctx_xyz) else np.zeros((0, 3))
+    if fc.thin:
+        mls, ctx = mls[thin_points(mls, fc.mls_spacing_m)], ctx[thin_points(ctx, fc.mls_spacing_m)]
     both = np.concatenate([mls, ctx])
     if len(both) >= 3:
         nrm, _ = pca_normals(both, fc.normal_k)

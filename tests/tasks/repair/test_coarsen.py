@@ -72,9 +72,10 @@ def test_far_from_the_origin_the_decision_is_the_same():
     assert near_f.mean() > 0.5 and np.mean(near_f == far_f) > 0.99  # voxel edges may round either way
 
 
-def test_a_region_rebuilds_with_fewer_faces_and_the_same_surface():
-    from tasks.config.repair import RepairConfig
-    from tasks.repair.geometry import RegionInput, repair_region_geometry
+def _wall_region():
+    """A 16 m x 6 m wall mesh at 0.5 m, its 10 m x 3 m middle to rebuild; MLS points every 2 cm on the true wall 10 cm
+    behind it (4 mm noise). Returns (RegionInput, the MLS points (p, 3))."""
+    from tasks.repair.geometry import RegionInput
 
     xs, zs = np.linspace(0, 16, 33), np.linspace(0, 6, 13)  # a 16 m x 6 m wall at 0.5 m
     v = np.array([[x, 0.0, z] for x in xs for z in zs])
@@ -94,6 +95,14 @@ def test_a_region_rebuilds_with_fewer_faces_and_the_same_surface():
     data = RegionInput(xyz=v, vertex_id=np.arange(len(v)), zone_faces=f[zone], context_faces=f[~zone],
                        near_zone=near, mls_xyz=seen[in_zone], mls_class=np.zeros(int(in_zone.sum()), np.uint8),
                        ctx_xyz=seen[~in_zone][::4], face_normals=None)
+    return data, seen
+
+
+def test_a_region_rebuilds_with_fewer_faces_and_the_same_surface():
+    from tasks.config.repair import RepairConfig
+    from tasks.repair.geometry import repair_region_geometry
+
+    data, seen = _wall_region()
     full = repair_region_geometry(data, RepairConfig.model_validate({"mesh": {"flat_spacing_m": 0}}))
     coarse = repair_region_geometry(data, RepairConfig.model_validate({}))
     assert coarse.stats["flat_dropped"] > 0 and "flat_dropped" not in full.stats
@@ -109,3 +118,21 @@ def test_a_region_rebuilds_with_fewer_faces_and_the_same_surface():
         fid, _, dist = ClosestPoint(geo.mesh.xyz, geo.mesh.faces).query(inner_pts)
         assert (fid >= 0).all() and np.quantile(dist, 0.99) < 0.015  # and covering it: no hole, no shrink
     assert coarse.stats["rebuilt_area_m2"] <= full.stats["rebuilt_area_m2"]  # no surface added
+
+
+def test_without_thinning_every_point_is_fused_and_the_wall_is_the_same():
+    from tasks.config.repair import RepairConfig
+    from tasks.repair.geometry import repair_region_geometry
+
+    data, _ = _wall_region()
+    cfg = {"mesh": {"flat_spacing_m": 0}}
+    thinned = repair_region_geometry(data, RepairConfig.model_validate(cfg))
+    every = repair_region_geometry(data, RepairConfig.model_validate({**cfg, "fusion": {"thin": False}}))
+    assert every.stats["mls_thinned"] == every.stats["mls_points"] == len(data.mls_xyz)
+    assert thinned.stats["mls_thinned"] < 0.5 * len(data.mls_xyz)  # 2 cm points, 5 cm voxels
+    assert every.stats["plan"] == thinned.stats["plan"] and (every.replaced == thinned.replaced).all()
+    for geo in (thinned, every):
+        c = geo.mesh.xyz[geo.mesh.faces].mean(axis=1)
+        inner = (c[:, 0] > 3.6) & (c[:, 0] < 12.4) & (c[:, 2] > 2.1) & (c[:, 2] < 3.9)
+        assert np.mean(np.abs(c[inner, 1] - 0.1) < 0.02) > 0.99
+    assert every.mesh.n_faces > 3 * thinned.mesh.n_faces
