@@ -19,7 +19,7 @@ from scipy.spatial import cKDTree
 
 from tasks.repair.fuse import thin_points
 
-__all__ = ["one_per_voxel", "flat_points", "coarsen_flat"]
+__all__ = ["coarsen_flat", "flat_points", "one_per_voxel", "thin_with_detail"]
 
 CHUNK = 16384  # points per k-NN query (~50 MB of neighbour arrays)
 MAX_GAP = np.radians(120)  # an empty sector of the neighbourhood wider than this: the point is at an edge
@@ -42,9 +42,11 @@ def one_per_voxel(xyz: np.ndarray, voxel_m: float) -> np.ndarray:
     return np.sort(np.unique(packed, return_index=True)[1])
 
 
-def flat_points(xyz: np.ndarray, coarse_m: float, tolerance_m: float, max_neighbours: int = 32) -> np.ndarray:
+def flat_points(xyz: np.ndarray, coarse_m: float, tolerance_m: float, max_neighbours: int = 32,
+                edges: bool = True) -> np.ndarray:
     """(n,) bool: points whose neighbours within ``coarse_m`` fit a plane to ``tolerance_m`` RMS and sit
-    all around them (no empty sector wider than ``MAX_GAP`` in their plane: not at an edge).
+    all around them (no empty sector wider than ``MAX_GAP`` in their plane: not at an edge; ``edges`` false:
+    the plane alone decides).
 
     xyz: (n, 3) float metres. The neighbours are taken from the points thinned to one per ``coarse_m / 2``
     voxel, so that the nearest ``max_neighbours`` span the whole radius at any density (a 5 cm-thinned
@@ -79,8 +81,8 @@ def flat_points(xyz: np.ndarray, coarse_m: float, tolerance_m: float, max_neighb
         nb = (rel - mean[:, None, :]) * w
         lam, vec = np.linalg.eigh(np.einsum("nki,nkj->nij", nb, nb) / cnt[:, None, None])
         planar = np.sqrt(np.maximum(lam[:, 0], 0.0)) <= tolerance_m
-        gap = _widest_gap(rel, ok & (d > 1e-9), vec[:, :, 2], vec[:, :, 1])
-        out[s:s + CHUNK] = (ok.sum(axis=1) >= 6) & planar & (gap <= MAX_GAP)
+        inner = _widest_gap(rel, ok & (d > 1e-9), vec[:, :, 2], vec[:, :, 1]) <= MAX_GAP if edges else True
+        out[s:s + CHUNK] = (ok.sum(axis=1) >= 6) & planar & inner
     return out
 
 
@@ -115,3 +117,44 @@ def coarsen_flat(xyz: np.ndarray, coarse_m: float, tolerance_m: float) -> np.nda
     keep[flat] = False
     keep[flat[thin_points(xyz[flat], coarse_m)]] = True
     return np.flatnonzero(keep)
+
+
+def thin_with_detail(xyz: np.ndarray, spacing_m: float, detail_m: float, radius_m: float, tolerance_m: float
+                     ) -> np.ndarray:
+    """Sorted indices of the points to fuse: one per ``spacing_m`` voxel where the surface is flat, one per
+    ``detail_m`` voxel where it is not. xyz: (n, 3) float metres (campus-local).
+
+    The points are first thinned to one per ``spacing_m`` voxel (:func:`tasks.repair.fuse.thin_points`);
+    those whose neighbours within ``radius_m`` do not fit a plane to ``tolerance_m`` RMS (:func:`flat_points`
+    without its edge test: a frame, a reveal, a balcony's edge) mark their voxel, and inside a marked voxel the points are thinned to
+    one per ``detail_m`` voxel instead. The ``detail_m`` grid nests in the ``spacing_m`` one when
+    ``spacing_m / detail_m`` is an integer; otherwise a fine voxel belongs to the coarse voxel of its point.
+    ``detail_m`` <= 0 or >= ``spacing_m``: the plain ``spacing_m`` thinning.
+
+    >>> g = np.stack(np.meshgrid(np.arange(80), np.arange(80), [0.0]), -1).reshape(-1, 3) * 0.01
+    >>> len(thin_with_detail(g, 0.05, 0.025, 0.15, 0.015)) < 0.3 * len(g)   # the plane's middle stays coarse
+    True
+    >>> g[:, 2] = np.where(g[:, 0] > 0.4, 0.1, 0.0)                          # a 10 cm step across it
+    >>> flat = thin_with_detail(g, 0.05, 0.0, 0.15, 0.015)
+    >>> len(thin_with_detail(g, 0.05, 0.025, 0.15, 0.015)) > len(flat)       # finer along the step
+    True
+    """
+    xyz = np.asarray(xyz, np.float64)
+    coarse = thin_points(xyz, spacing_m)
+    if detail_m <= 0 or detail_m >= spacing_m or len(coarse) < 6:
+        return coarse
+    rough = ~flat_points(xyz[coarse], radius_m, tolerance_m, edges=False)  # the scan's edge needs no detail
+    if not rough.any():
+        return coarse
+    cell = _packed_cells(np.floor(xyz / spacing_m).astype(np.int64))
+    marked = np.isin(cell, cell[coarse[rough]])
+    fine = np.flatnonzero(marked)
+    fine = fine[thin_points(xyz[fine], detail_m)]
+    return np.sort(np.concatenate([coarse[~marked[coarse]], fine]))
+
+
+def _packed_cells(cells: np.ndarray) -> np.ndarray:
+    """(n,) int64 key of each (n, 3) int64 voxel index, equal exactly when the rows are equal."""
+    c = cells - cells.min(axis=0)
+    span = c.max(axis=0) + 1
+    return (c[:, 0] * span[1] + c[:, 1]) * span[2] + c[:, 2]

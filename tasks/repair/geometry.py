@@ -17,7 +17,7 @@ from scipy.spatial import cKDTree
 
 from storage.vertex_ids import local_ids
 from tasks.repair.chart import zone_charts
-from tasks.repair.coarsen import coarsen_flat
+from tasks.repair.coarsen import coarsen_flat, thin_with_detail
 from tasks.repair.defect_types import DefectEvidence, classify_evidence, repair_plan
 from tasks.repair.fill import SOURCE_FILL, unseen_samples
 from tasks.repair.free import behind_surface, far_points, free_surface
@@ -89,15 +89,18 @@ class RegionGeometry:
     stats: dict = field(default_factory=dict)
 
 
-def _thinned_mls(data: RegionInput, fc, zone_v: np.ndarray, vn: np.ndarray
+def _thinned_mls(data: RegionInput, fc, mc, zone_v: np.ndarray, vn: np.ndarray
                  ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
-    """The region's MLS points without the dropped classes, thinned to ``fc.mls_spacing_m`` (unless ``fc.thin`` is
-    off), and the context points likewise; PCA normals oriented like the mesh. Returns (mls (p, 3), mls normals
+    """The region's MLS points without the dropped classes, thinned to ``fc.mls_spacing_m`` and to
+    ``fc.detail_spacing_m`` where their surface is not flat (:func:`tasks.repair.coarsen.thin_with_detail`;
+    neither when ``fc.thin`` is off), and the context points to ``fc.mls_spacing_m``; PCA normals oriented like the mesh. Returns (mls (p, 3), mls normals
     (p, 3), mls + context points (p + q, 3), their normals (p + q, 3)), float64."""
     keep = ~np.isin(data.mls_class, np.asarray(fc.drop_classes, np.uint8))
     mls, ctx = data.mls_xyz[keep], data.ctx_xyz if len(data.ctx_xyz) else np.zeros((0, 3))
     if fc.thin:
-        mls, ctx = mls[thin_points(mls, fc.mls_spacing_m)], ctx[thin_points(ctx, fc.mls_spacing_m)]
+        radius = mc.flat_spacing_m if mc.flat_spacing_m > 0 else 3 * fc.mls_spacing_m
+        mls = mls[thin_with_detail(mls, fc.mls_spacing_m, fc.detail_spacing_m, radius, fc.detail_tolerance_m)]
+        ctx = ctx[thin_points(ctx, fc.mls_spacing_m)]
     both = np.concatenate([mls, ctx])
     if len(both) >= 3:
         nrm, _ = pca_normals(both, fc.normal_k)
@@ -109,13 +112,14 @@ def _thinned_mls(data: RegionInput, fc, zone_v: np.ndarray, vn: np.ndarray
 
 def _hole_area_m2(data: RegionInput, zone_v: np.ndarray, mls: np.ndarray, mls_n: np.ndarray, spacing_m: float) -> float:
     """Area of MLS surface with no mesh near it, nor straight in front of or behind it (m², one
-    ``spacing_m`` square per thinned point)."""
+    ``spacing_m`` square per ``spacing_m`` voxel holding such a point, whatever the points' density)."""
     if not (len(mls) and len(zone_v)):
         return 0.0
     dmesh, j = cKDTree(data.xyz[zone_v]).query(mls)
     delta = data.xyz[zone_v][j] - mls
     lateral = np.linalg.norm(delta - np.einsum("ij,ij->i", delta, mls_n)[:, None] * mls_n, axis=1)
-    return float(((dmesh > 0.2) & (lateral > 0.2)).sum()) * spacing_m**2
+    hole = mls[(dmesh > 0.2) & (lateral > 0.2)]
+    return float(len(thin_points(hole, spacing_m))) * spacing_m**2
 
 
 def _conflicts(data: RegionInput, zone_v: np.ndarray, vn: np.ndarray, mls: np.ndarray, mls_n: np.ndarray, tc,
@@ -245,7 +249,7 @@ def repair_region_geometry(data: RegionInput, cfg) -> RegionGeometry:
     mesh first; the rest is rebuilt and stitched to them. ``replaced`` is over all zone faces."""
     fc, mc = cfg.fusion, cfg.mesh
     vn = vertex_normals(data.xyz, np.concatenate([data.zone_faces, data.context_faces]), data.face_normals)
-    thinned = _thinned_mls(data, fc, np.unique(data.zone_faces), vn)
+    thinned = _thinned_mls(data, fc, mc, np.unique(data.zone_faces), vn)
     keep = np.zeros(len(data.zone_faces), bool)
     if mc.keep_unseen_m > 0 and len(data.zone_faces):
         _, _, both, nrm = thinned
