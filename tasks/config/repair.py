@@ -53,13 +53,15 @@ class FusionConfig(_Section):
                        "voxel; the evidence tolerances still follow mls_spacing_m, so this measures what the thinning "
                        "alone costs (at real density: several times the time and memory of a region)")
     detail_spacing_m: float = Field(0.025, ge=0, description="where the 5 cm-thinned MLS surface is not flat (its "
-                                    "neighbours within mesh.flat_spacing_m do not fit a plane to mesh.flat_tolerance_m "
+                                    "neighbours within detail_radius_m do not fit a plane to detail_tolerance_m "
                                     "RMS: a window's frame and reveal, a balcony's edge) the points are thinned to one "
                                     "per voxel of this size instead of mls_spacing_m; 0 or >= mls_spacing_m: off. "
                                     "Measured on held-out 9103 at real density: 5 cm everywhere cost 0.0108 F@5cm "
                                     "on the MLS-seen facades against unthinned fusion (docs/repair.md)")
     detail_tolerance_m: float = Field(0.02, gt=0, description="RMS distance to the neighbourhood's plane (radius "
-                                      "mesh.flat_spacing_m) above which a stretch gets detail_spacing_m")
+                                      "detail_radius_m) above which a stretch gets detail_spacing_m")
+    detail_radius_m: float = Field(0.15, gt=0, description="radius of the neighbourhood the plane of "
+                                   "detail_tolerance_m is fitted to (a relief marks a band this wide on each side)")
     drop_classes: tuple[int, ...] = Field((3, 4, 5, 7, 18), description="ASPRS classes never fused "
                                           "(vegetation, noise)")
 

@@ -89,7 +89,7 @@ class RegionGeometry:
     stats: dict = field(default_factory=dict)
 
 
-def _thinned_mls(data: RegionInput, fc, mc, zone_v: np.ndarray, vn: np.ndarray
+def _thinned_mls(data: RegionInput, fc, zone_v: np.ndarray, vn: np.ndarray
                  ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
     """The region's MLS points without the dropped classes, thinned to ``fc.mls_spacing_m`` and to
     ``fc.detail_spacing_m`` where their surface is not flat (:func:`tasks.repair.coarsen.thin_with_detail`;
@@ -98,8 +98,8 @@ def _thinned_mls(data: RegionInput, fc, mc, zone_v: np.ndarray, vn: np.ndarray
     keep = ~np.isin(data.mls_class, np.asarray(fc.drop_classes, np.uint8))
     mls, ctx = data.mls_xyz[keep], data.ctx_xyz if len(data.ctx_xyz) else np.zeros((0, 3))
     if fc.thin:
-        radius = mc.flat_spacing_m if mc.flat_spacing_m > 0 else 3 * fc.mls_spacing_m
-        mls = mls[thin_with_detail(mls, fc.mls_spacing_m, fc.detail_spacing_m, radius, fc.detail_tolerance_m)]
+        mls = mls[thin_with_detail(mls, fc.mls_spacing_m, fc.detail_spacing_m, fc.detail_radius_m,
+                                   fc.detail_tolerance_m)]
         ctx = ctx[thin_points(ctx, fc.mls_spacing_m)]
     both = np.concatenate([mls, ctx])
     if len(both) >= 3:
@@ -249,7 +249,7 @@ def repair_region_geometry(data: RegionInput, cfg) -> RegionGeometry:
     mesh first; the rest is rebuilt and stitched to them. ``replaced`` is over all zone faces."""
     fc, mc = cfg.fusion, cfg.mesh
     vn = vertex_normals(data.xyz, np.concatenate([data.zone_faces, data.context_faces]), data.face_normals)
-    thinned = _thinned_mls(data, fc, mc, np.unique(data.zone_faces), vn)
+    thinned = _thinned_mls(data, fc, np.unique(data.zone_faces), vn)
     keep = np.zeros(len(data.zone_faces), bool)
     if mc.keep_unseen_m > 0 and len(data.zone_faces):
         _, _, both, nrm = thinned

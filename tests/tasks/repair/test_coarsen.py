@@ -160,7 +160,7 @@ def test_detail_thinning_keeps_the_fine_points_only_where_the_surface_is_not_fla
     fc = RepairConfig().fusion
     p, frame = _framed_wall()
     plain = thin_points(p, 0.05)
-    keep = thin_with_detail(p, 0.05, fc.detail_spacing_m, 0.15, fc.detail_tolerance_m)  # as the repair calls it
+    keep = thin_with_detail(p, 0.05, fc.detail_spacing_m, fc.detail_radius_m, fc.detail_tolerance_m)  # as the repair calls it
     assert (np.diff(keep) > 0).all()
     inside = (p[:, 0] > 0.3) & (p[:, 0] < 3.7) & (p[:, 2] > 0.3) & (p[:, 2] < 2.7)  # the scan's edge is no plane
     far = inside & ((np.abs(p[:, 0] - 2) > 0.9) | (np.abs(p[:, 2] - 1.5) > 0.9))  # wall well clear of the frame
