@@ -152,10 +152,9 @@ def _framed_wall(seed=0):
 
 
 def test_detail_thinning_keeps_the_fine_points_only_where_the_surface_is_not_flat():
+    from tasks.config.repair import RepairConfig
     from tasks.repair.coarsen import thin_with_detail
     from tasks.repair.fuse import thin_points
-
-    from tasks.config.repair import RepairConfig
 
     fc = RepairConfig().fusion
     p, frame = _framed_wall()
