@@ -79,7 +79,7 @@ def flat_points(xyz: np.ndarray, coarse_m: float, tolerance_m: float, max_neighb
         rel = local_ref[np.where(ok, j, 0)] - local[s:s + CHUNK, None, :]  # relative to the point
         mean = (rel * w).sum(axis=1) / cnt[:, None]
         nb = (rel - mean[:, None, :]) * w
-        lam, vec = np.linalg.eigh(np.einsum("nki,nkj->nij", nb, nb) / cnt[:, None, None])
+        lam, vec = np.linalg.eigh(np.matmul(nb.transpose(0, 2, 1), nb) / cnt[:, None, None])
         planar = np.sqrt(np.maximum(lam[:, 0], 0.0)) <= tolerance_m
         inner = _widest_gap(rel, ok & (d > 1e-9), vec[:, :, 2], vec[:, :, 1]) <= MAX_GAP if edges else True
         out[s:s + CHUNK] = (ok.sum(axis=1) >= 6) & planar & inner
