@@ -126,8 +126,8 @@ def thin_with_detail(xyz: np.ndarray, spacing_m: float, detail_m: float, radius_
 
     The points are first thinned to one per ``spacing_m`` voxel (:func:`tasks.repair.fuse.thin_points`);
     those whose neighbours within ``radius_m`` do not fit a plane to ``tolerance_m`` RMS (:func:`flat_points`
-    without its edge test: a frame, a reveal, a balcony's edge) mark their voxel, and inside a marked voxel the points are thinned to
-    one per ``detail_m`` voxel instead. The ``detail_m`` grid nests in the ``spacing_m`` one when
+    without its edge test: a frame, a reveal, a balcony's edge) mark their voxel, and inside a marked voxel
+    the points are thinned to one per ``detail_m`` voxel instead. The ``detail_m`` grid nests in the ``spacing_m`` one when
     ``spacing_m / detail_m`` is an integer; otherwise a fine voxel belongs to the coarse voxel of its point.
     ``detail_m`` <= 0 or >= ``spacing_m``: the plain ``spacing_m`` thinning.
 

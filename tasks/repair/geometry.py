@@ -93,8 +93,9 @@ def _thinned_mls(data: RegionInput, fc, zone_v: np.ndarray, vn: np.ndarray
                  ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
     """The region's MLS points without the dropped classes, thinned to ``fc.mls_spacing_m`` and to
     ``fc.detail_spacing_m`` where their surface is not flat (:func:`tasks.repair.coarsen.thin_with_detail`;
-    neither when ``fc.thin`` is off), and the context points to ``fc.mls_spacing_m``; PCA normals oriented like the mesh. Returns (mls (p, 3), mls normals
-    (p, 3), mls + context points (p + q, 3), their normals (p + q, 3)), float64."""
+    neither when ``fc.thin`` is off), and the context points to ``fc.mls_spacing_m``; PCA normals oriented
+    like the mesh. Returns (mls (p, 3), mls normals (p, 3), mls + context points (p + q, 3), their normals
+    (p + q, 3)), float64."""
     keep = ~np.isin(data.mls_class, np.asarray(fc.drop_classes, np.uint8))
     mls, ctx = data.mls_xyz[keep], data.ctx_xyz if len(data.ctx_xyz) else np.zeros((0, 3))
     if fc.thin:
