@@ -36,9 +36,7 @@ def one_per_voxel(xyz: np.ndarray, voxel_m: float) -> np.ndarray:
     """
     if not len(xyz):
         return np.zeros(0, np.int64)
-    key = np.floor((xyz - xyz.min(axis=0)) / voxel_m).astype(np.int64)
-    span = key.max(axis=0) + 1
-    packed = (key[:, 0] * span[1] + key[:, 1]) * span[2] + key[:, 2]
+    packed = _packed_cells(np.floor((xyz - xyz.min(axis=0)) / voxel_m).astype(np.int64))
     return np.sort(np.unique(packed, return_index=True)[1])
 
 
