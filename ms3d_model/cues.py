@@ -25,6 +25,7 @@ from scipy.spatial import cKDTree
 
 from .features import edge_neighbours, pair_seed, vertex_ids_from_coords
 from .hashing import order_free_subset
+from .kernels import closest_points_on_triangles
 from .segments import median_of_sorted, percentile_of_sorted, segment_max, segment_mean, sorted_segments
 
 CUE_NAMES = (
@@ -65,7 +66,8 @@ _PAIR_GAP_M = 1.0e6  # pairs sit this far apart on the k-d trees' fourth axis (a
 
 
 def closest_point_on_triangles(p: np.ndarray, tri: np.ndarray) -> np.ndarray:
-    """Closest points on triangles, row by row (Ericson, Real-Time Collision Detection §5.1.5, vectorised).
+    """Closest points on triangles, row by row (Ericson, Real-Time Collision Detection §5.1.5; compiled:
+    :func:`ms3d_model.kernels.closest_points_on_triangles`).
 
     p: (q, 3) float64 points; tri: (q, 3, 3) float64 triangles. Returns (q, 3) float64. A degenerate
     triangle (zero area: a segment or a point) gives the closest point on its longest side.
@@ -76,64 +78,14 @@ def closest_point_on_triangles(p: np.ndarray, tri: np.ndarray) -> np.ndarray:
     >>> closest_point_on_triangles(np.array([[.5, 1, 0]]), np.array([[[0., 0, 0], [0, 0, 0], [2, 0, 0]]])).tolist()
     [[0.5, 0.0, 0.0]]
     """
-    a, b, c = tri[:, 0], tri[:, 1], tri[:, 2]
-    ab, ac, ap = b - a, c - a, p - a
-    d1, d2 = _dot(ab, ap), _dot(ac, ap)
-    bp = p - b
-    d3, d4 = _dot(ab, bp), _dot(ac, bp)
-    cp = p - c
-    d5, d6 = _dot(ab, cp), _dot(ac, cp)
-    va = d3 * d6 - d5 * d4
-    vb = d5 * d2 - d1 * d6
-    vc = d1 * d4 - d3 * d2
-    # the answer is a + v ab + w ac in every one of Ericson's regions: choose (v, w) per row, build once
-    with np.errstate(divide="ignore", invalid="ignore"):
-        denom = va + vb + vc
-        v = np.where(denom != 0, vb / denom, 0.0)  # interior
-        w = np.where(denom != 0, vc / denom, 0.0)
-        # Ericson's tests in reverse order (a later np.where wins): edge bc, edge ac, vertex c, edge ab, b, a
-        t_bc = (d4 - d3) / ((d4 - d3) + (d5 - d6))
-        on_bc = (va <= 0) & (d4 - d3 >= 0) & (d5 - d6 >= 0)
-        v, w = np.where(on_bc, 1.0 - t_bc, v), np.where(on_bc, t_bc, w)
-        t_ac = d2 / (d2 - d6)
-        on_ac = (vb <= 0) & (d2 >= 0) & (d6 <= 0)
-        v, w = np.where(on_ac, 0.0, v), np.where(on_ac, t_ac, w)
-        at_c = (d6 >= 0) & (d5 <= d6)  # vertex c
-        v, w = np.where(at_c, 0.0, v), np.where(at_c, 1.0, w)
-        t_ab = d1 / (d1 - d3)
-        m = (vc <= 0) & (d1 >= 0) & (d3 <= 0)
-        v, w = np.where(m, t_ab, v), np.where(m, 0.0, w)
-    at_b = (d3 >= 0) & (d4 <= d3)
-    at_a = (d1 <= 0) & (d2 <= 0)
-    at_c &= ~(m | at_b | at_a)  # the region that wins last
-    at_b &= ~at_a
-    on_bc &= ~(on_ac | at_c | m | at_b | at_a)
-    out = a + ab * v[:, None] + ac * w[:, None]
-    # corners and side bc as Ericson writes them, so faces sharing a corner or a side tie exactly
-    out[on_bc] = b[on_bc] + (c[on_bc] - b[on_bc]) * t_bc[on_bc, None]
-    for at, corner in ((at_a, a), (at_b, b), (at_c, c)):
-        out[at] = corner[at]
-    flat = (np.cross(ab, ac) == 0).all(axis=1)  # Ericson's divisions are 0 / 0 there
-    if flat.any():
-        out[flat] = _closest_point_on_longest_side(p[flat], tri[flat])
-    return out
+    tri = np.ascontiguousarray(tri, np.float64).reshape(-1, 3, 3)
+    return closest_points_on_triangles(np.ascontiguousarray(p, np.float64).reshape(-1, 3), tri,
+                                       np.arange(len(tri), dtype=np.int64))
 
 
 def _dot(u: np.ndarray, v: np.ndarray) -> np.ndarray:
     """(q,) row-wise dot products of (q, 3) arrays (``(u * v).sum(1)`` without the (q, 3) temporary)."""
     return np.einsum("ij,ij->i", u, v)
-
-
-def _closest_point_on_longest_side(p: np.ndarray, tri: np.ndarray) -> np.ndarray:
-    """(q, 3) closest points of p (q, 3) on the longest side of degenerate triangles (q, 3, 3) (it spans
-    all three vertices, which are collinear)."""
-    start, end = tri, np.roll(tri, -1, axis=1)
-    length2 = ((end - start) ** 2).sum(2)
-    j = length2.argmax(axis=1)
-    rows = np.arange(len(p))
-    a, ab, l2 = start[rows, j], end[rows, j] - start[rows, j], length2[rows, j]
-    t = np.clip(np.divide(((p - a) * ab).sum(1), l2, out=np.zeros(len(p)), where=l2 > 0), 0.0, 1.0)
-    return a + ab * t[:, None]
 
 
 def open_edge_flags(vids: np.ndarray) -> np.ndarray:
@@ -207,7 +159,7 @@ def _point_to_mesh(p, gp, t, gf, normals, centres, k_max) -> tuple[np.ndarray, n
     dc, fi = _tree(_lifted(centres, gf)).query(_lifted(p, gp), k=k, distance_upper_bound=_PAIR_GAP_M / 2)
     fi, dc = np.asarray(fi).reshape(len(p), k), np.asarray(dc).reshape(len(p), k)
     dist = np.full((len(p), k), np.inf)
-    near = closest_point_on_triangles(p, t[fi[:, 0]])
+    near = closest_points_on_triangles(p, t, np.ascontiguousarray(fi[:, 0], np.int64))  # no (q, 3, 3) gather
     dist[:, 0] = np.linalg.norm(near - p, axis=1)
     valid = fi < len(t)  # a pair with fewer than k faces: the missing neighbours come back as len(t)
     valid[:, 0] = False
@@ -219,7 +171,7 @@ def _point_to_mesh(p, gp, t, gf, normals, centres, k_max) -> tuple[np.ndarray, n
     row, col, f = row[keep], col[keep], f[keep]
     keep = np.abs(_dot(p[row] - t[f, 0], normals[f])) <= bound[row]
     row, col, f = row[keep], col[keep], f[keep]
-    q = closest_point_on_triangles(p[row], t[f])
+    q = closest_points_on_triangles(p[row], t, f.astype(np.int64))
     dist[row, col] = np.linalg.norm(q - p[row], axis=1)
     rows = np.arange(len(p))
     best = dist.argmin(axis=1)

@@ -17,6 +17,7 @@ from __future__ import annotations
 import numpy as np
 from scipy.spatial import cKDTree
 
+from ms3d_model.kernels import local_planes
 from tasks.repair.fuse import thin_points
 
 __all__ = ["coarsen_flat", "flat_points", "one_per_voxel", "thin_with_detail"]
@@ -67,35 +68,14 @@ def flat_points(xyz: np.ndarray, coarse_m: float, tolerance_m: float, max_neighb
         return out
     ref = one_per_voxel(xyz, coarse_m / 2)  # the same ~20 neighbours whatever the density: the whole radius
     tree, k = cKDTree(xyz[ref]), min(max_neighbours, len(ref))
-    local = (xyz - xyz.mean(axis=0)).astype(np.float32)  # a region spans < 1 km: ~0.1 mm steps at worst
-    local_ref = local[ref]
+    local = xyz - xyz.mean(axis=0)  # a region spans < 1 km
+    local_ref = np.ascontiguousarray(local[ref])
     for s in range(0, n, CHUNK):  # bounded working set
         d, j = tree.query(xyz[s:s + CHUNK], k=k, distance_upper_bound=coarse_m)
-        ok = np.isfinite(d)
-        cnt = np.maximum(ok.sum(axis=1), 1).astype(np.float32)
-        w = ok[:, :, None].astype(np.float32)
-        rel = local_ref[np.where(ok, j, 0)] - local[s:s + CHUNK, None, :]  # relative to the point
-        mean = (rel * w).sum(axis=1) / cnt[:, None]
-        nb = (rel - mean[:, None, :]) * w
-        lam, vec = np.linalg.eigh(np.matmul(nb.transpose(0, 2, 1), nb) / cnt[:, None, None])
-        planar = np.sqrt(np.maximum(lam[:, 0], 0.0)) <= tolerance_m
-        inner = _widest_gap(rel, ok & (d > 1e-9), vec[:, :, 2], vec[:, :, 1]) <= MAX_GAP if edges else True
-        out[s:s + CHUNK] = (ok.sum(axis=1) >= 6) & planar & inner
+        j = np.asarray(j, np.int64).reshape(len(d), k)
+        out[s:s + CHUNK] = local_planes(local[s:s + CHUNK], local_ref, j, np.asarray(d).reshape(len(j), k),
+                                        tolerance_m, edges, MAX_GAP)
     return out
-
-
-def _widest_gap(rel: np.ndarray, ok: np.ndarray, t1: np.ndarray, t2: np.ndarray) -> np.ndarray:
-    """(n,) widest empty angular sector (radians) around each point of its neighbours' offsets rel
-    (n, k, 3) (valid where ok (n, k)), seen in the plane of the tangents t1, t2 (n, 3); 2 pi with fewer
-    than two neighbours."""
-    ang = np.arctan2(np.einsum("nkd,nd->nk", rel, t2), np.einsum("nkd,nd->nk", rel, t1))
-    m = ok.sum(axis=1)
-    ang = np.sort(np.where(ok, ang, 4 * np.pi), axis=1)  # the valid ones first, ascending
-    inner = np.diff(ang, axis=1)
-    inner[np.arange(inner.shape[1])[None, :] >= (m - 1)[:, None]] = 0.0  # steps into the padding
-    first, last = ang[:, 0], ang[np.arange(len(ang)), np.maximum(m - 1, 0)]
-    wrap = np.where(m >= 2, first + 2 * np.pi - last, 2 * np.pi)
-    return np.maximum(inner.max(axis=1, initial=0.0), wrap)
 
 
 def coarsen_flat(xyz: np.ndarray, coarse_m: float, tolerance_m: float) -> np.ndarray:

@@ -41,6 +41,8 @@ import maxflow
 import numpy as np
 from scipy.spatial import cKDTree
 
+from ms3d_model.kernels import knn_pca, nearest_to_centroid
+
 _BIG = 1e6
 
 
@@ -98,13 +100,7 @@ def pca_normals(xyz: np.ndarray, k: int = 12, tree: cKDTree | None = None) -> tu
     k = min(k, n)
     tree = tree or cKDTree(xyz)
     _, idx = tree.query(xyz, k=k)
-    nb = xyz[idx]
-    nb -= nb.mean(axis=1, keepdims=True)
-    cov = np.matmul(nb.transpose(0, 2, 1), nb) / k  # batched (3, k) @ (k, 3): ~3x faster than einsum here
-    w, v = np.linalg.eigh(cov)
-    normals = v[:, :, 0]
-    variation = w[:, 0] / np.maximum(w.sum(1), 1e-18)
-    return normals, variation
+    return knn_pca(xyz, np.asarray(idx, np.int64).reshape(n, k))  # compiled: no (n, k, 3) gather, no LAPACK
 
 
 def orient_like(normals: np.ndarray, xyz: np.ndarray, ref_xyz: np.ndarray, ref_normals: np.ndarray) -> np.ndarray:
@@ -154,17 +150,8 @@ def thin_points(xyz: np.ndarray, voxel_m: float) -> np.ndarray:
     else:
         order = np.lexsort((cell[:, 2], cell[:, 1], cell[:, 0]))
     cs = cell[order]
-    new = np.r_[True, (cs[1:] != cs[:-1]).any(axis=1)]
-    g_sorted = np.cumsum(new) - 1  # voxel of each sorted row
-    inv = np.empty(n, np.int64)
-    inv[order] = g_sorted
-    cnt = np.bincount(inv)
-    mean = np.stack([np.bincount(inv, xyz[:, c], minlength=len(cnt)) for c in range(3)], axis=1) / cnt[:, None]
-    d = np.linalg.norm(xyz - mean[inv], axis=1)[order]
-    dmin = np.minimum.reduceat(d, np.flatnonzero(new))
-    pos = np.flatnonzero(d == dmin[g_sorted])  # rows at their voxel's minimum, ascending row within a voxel
-    first = np.r_[True, g_sorted[pos][1:] != g_sorted[pos][:-1]]
-    return np.sort(order[pos[first]])
+    starts = np.flatnonzero(np.r_[True, (cs[1:] != cs[:-1]).any(axis=1)])
+    return np.sort(nearest_to_centroid(xyz, order.astype(np.int64), starts))  # rows ascend within a voxel
 
 
 # ------------------------------------------------------------------------------------- similarity
