@@ -1,0 +1,181 @@
+"""The compiled kernels (``ms3d_model.kernels``) against the numpy code they replaced, side by side, on
+inputs of a real-density region's size built here (issue 17, 2).
+
+    .venv/bin/python benchmarks/kernel_bench.py [--points 500000] [--repeat 3]
+
+Each row runs the numpy version (the code as it was before the kernels, kept here as the baseline: the same
+inputs, the same outputs) and the function ms3d calls now, checks that both give the same answer, and prints
+the best of ``--repeat`` wall times. The k-d tree queries both share are timed inside both.
+
+Inputs: a 5 cm-thinned scan of a wall (noise 3 mm) with a 10 cm-deep window reveal every 1.5 m, ``--points``
+points; for the closest points, the pairs of a classify batch (1024 points over a 120-face patch each).
+"""
+
+from __future__ import annotations
+
+import argparse
+import sys
+import time
+from pathlib import Path
+
+import numpy as np
+from scipy.spatial import cKDTree
+
+sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
+
+from ms3d_model.cues import closest_point_on_triangles  # noqa: E402
+from tasks.repair.coarsen import MAX_GAP, flat_points, one_per_voxel  # noqa: E402
+from tasks.repair.fuse import pca_normals, thin_points  # noqa: E402
+
+
+def wall(n: int, seed: int = 0) -> np.ndarray:
+    """(n, 3) float64: a 5 cm-spaced facade scan (x along, z up, y depth) with recessed windows."""
+    rng = np.random.default_rng(seed)
+    side = int(np.sqrt(n))
+    x, z = np.meshgrid(np.arange(side) * 0.05, np.arange(side) * 0.05)
+    x, z = x.ravel(), z.ravel()
+    window = ((x % 1.5) > 0.4) & ((x % 1.5) < 1.1) & ((z % 3.0) > 0.9) & ((z % 3.0) < 2.2)
+    y = np.where(window, 0.10, 0.0) + rng.normal(scale=0.003, size=len(x))
+    return np.c_[x + 500.0, y + 200.0, z + 30.0]
+
+
+# --------------------------------------------------------------------- the numpy code before the kernels
+
+def pca_normals_numpy(xyz: np.ndarray, k: int) -> tuple[np.ndarray, np.ndarray]:
+    _, idx = cKDTree(xyz).query(xyz, k=k)
+    nb = xyz[idx]
+    nb -= nb.mean(axis=1, keepdims=True)
+    w, v = np.linalg.eigh(np.matmul(nb.transpose(0, 2, 1), nb) / k)
+    return v[:, :, 0], w[:, 0] / np.maximum(w.sum(1), 1e-18)
+
+
+def thin_points_numpy(xyz: np.ndarray, voxel_m: float) -> np.ndarray:
+    n = len(xyz)
+    cell = np.floor(xyz / voxel_m).astype(np.int64)
+    cell -= cell.min(axis=0)
+    order = np.argsort((cell[:, 0] << 42) | (cell[:, 1] << 21) | cell[:, 2], kind="stable")
+    cs = cell[order]
+    new = np.r_[True, (cs[1:] != cs[:-1]).any(axis=1)]
+    g_sorted = np.cumsum(new) - 1
+    inv = np.empty(n, np.int64)
+    inv[order] = g_sorted
+    cnt = np.bincount(inv)
+    mean = np.stack([np.bincount(inv, xyz[:, c], minlength=len(cnt)) for c in range(3)], axis=1) / cnt[:, None]
+    d = np.linalg.norm(xyz - mean[inv], axis=1)[order]
+    dmin = np.minimum.reduceat(d, np.flatnonzero(new))
+    pos = np.flatnonzero(d == dmin[g_sorted])
+    first = np.r_[True, g_sorted[pos][1:] != g_sorted[pos][:-1]]
+    return np.sort(order[pos[first]])
+
+
+def _widest_gap(rel, ok, t1, t2):
+    ang = np.arctan2(np.einsum("nkd,nd->nk", rel, t2), np.einsum("nkd,nd->nk", rel, t1))
+    m = ok.sum(axis=1)
+    ang = np.sort(np.where(ok, ang, 4 * np.pi), axis=1)
+    inner = np.diff(ang, axis=1)
+    inner[np.arange(inner.shape[1])[None, :] >= (m - 1)[:, None]] = 0.0
+    first, last = ang[:, 0], ang[np.arange(len(ang)), np.maximum(m - 1, 0)]
+    wrap = np.where(m >= 2, first + 2 * np.pi - last, 2 * np.pi)
+    return np.maximum(inner.max(axis=1, initial=0.0), wrap)
+
+
+def flat_points_numpy(xyz: np.ndarray, coarse_m: float, tolerance_m: float, edges: bool = True) -> np.ndarray:
+    n = len(xyz)
+    out = np.zeros(n, bool)
+    ref = one_per_voxel(xyz, coarse_m / 2)
+    tree, k = cKDTree(xyz[ref]), min(32, len(ref))
+    local = (xyz - xyz.mean(axis=0)).astype(np.float32)
+    local_ref = local[ref]
+    for s in range(0, n, 16384):
+        d, j = tree.query(xyz[s:s + 16384], k=k, distance_upper_bound=coarse_m)
+        ok = np.isfinite(d)
+        cnt = np.maximum(ok.sum(axis=1), 1).astype(np.float32)
+        w = ok[:, :, None].astype(np.float32)
+        rel = local_ref[np.where(ok, j, 0)] - local[s:s + 16384, None, :]
+        mean = (rel * w).sum(axis=1) / cnt[:, None]
+        nb = (rel - mean[:, None, :]) * w
+        lam, vec = np.linalg.eigh(np.matmul(nb.transpose(0, 2, 1), nb) / cnt[:, None, None])
+        planar = np.sqrt(np.maximum(lam[:, 0], 0.0)) <= tolerance_m
+        inner = _widest_gap(rel, ok & (d > 1e-9), vec[:, :, 2], vec[:, :, 1]) <= MAX_GAP if edges else True
+        out[s:s + 16384] = (ok.sum(axis=1) >= 6) & planar & inner
+    return out
+
+
+def closest_numpy(p: np.ndarray, tri: np.ndarray) -> np.ndarray:
+    """Ericson's closest point, vectorised with np.where (the code before the kernel; no degenerate faces)."""
+    a, b, c = tri[:, 0], tri[:, 1], tri[:, 2]
+    ab, ac = b - a, c - a
+    dot = lambda u, v: np.einsum("ij,ij->i", u, v)  # noqa: E731
+    d1, d2 = dot(ab, p - a), dot(ac, p - a)
+    d3, d4 = dot(ab, p - b), dot(ac, p - b)
+    d5, d6 = dot(ab, p - c), dot(ac, p - c)
+    va, vb, vc = d3 * d6 - d5 * d4, d5 * d2 - d1 * d6, d1 * d4 - d3 * d2
+    with np.errstate(divide="ignore", invalid="ignore"):
+        denom = va + vb + vc
+        v, w = vb / denom, vc / denom
+        t_bc = (d4 - d3) / ((d4 - d3) + (d5 - d6))
+        on_bc = (va <= 0) & (d4 - d3 >= 0) & (d5 - d6 >= 0)
+        v, w = np.where(on_bc, 1.0 - t_bc, v), np.where(on_bc, t_bc, w)
+        on_ac = (vb <= 0) & (d2 >= 0) & (d6 <= 0)
+        v, w = np.where(on_ac, 0.0, v), np.where(on_ac, d2 / (d2 - d6), w)
+        at_c = (d6 >= 0) & (d5 <= d6)
+        v, w = np.where(at_c, 0.0, v), np.where(at_c, 1.0, w)
+        on_ab = (vc <= 0) & (d1 >= 0) & (d3 <= 0)
+        v, w = np.where(on_ab, d1 / (d1 - d3), v), np.where(on_ab, 0.0, w)
+        at_b = (d3 >= 0) & (d4 <= d3)
+        v, w = np.where(at_b, 1.0, v), np.where(at_b, 0.0, w)
+        at_a = (d1 <= 0) & (d2 <= 0)
+        v, w = np.where(at_a, 0.0, v), np.where(at_a, 0.0, w)
+    return a + ab * v[:, None] + ac * w[:, None]
+
+
+# --------------------------------------------------------------------- the bench
+
+def best(fn, repeat: int) -> tuple[float, object]:
+    out, times = None, []
+    for _ in range(repeat):
+        t = time.perf_counter()
+        out = fn()
+        times.append(time.perf_counter() - t)
+    return min(times), out
+
+
+def main(argv=None) -> list[dict]:
+    ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    ap.add_argument("--points", type=int, default=500_000)
+    ap.add_argument("--repeat", type=int, default=3)
+    a = ap.parse_args(argv)
+    xyz = wall(a.points)
+    dense = np.concatenate([xyz + np.random.default_rng(i).normal(scale=0.01, size=xyz.shape) for i in range(3)])
+    rng = np.random.default_rng(1)
+    tri = rng.uniform(0, 2, size=(120 * 900, 3, 3))
+    p = rng.uniform(0, 2, size=(1024 * 900, 3))
+    rows = rng.integers(0, len(tri), len(p))
+    pca_normals(xyz[:100], 12), flat_points(xyz[:100], 0.15, 0.015), thin_points(xyz[:100], 0.05)  # compile
+    closest_point_on_triangles(p[:4], tri[:4])
+    cases = [
+        ("PCA normals, k=12", f"{len(xyz):,} points",
+         lambda: pca_normals_numpy(xyz, 12), lambda: pca_normals(xyz, 12),
+         lambda o, n: np.allclose(np.abs((o[0] * n[0]).sum(1)), 1, atol=1e-9) and np.allclose(o[1], n[1], atol=1e-12)),
+        ("plane + edge test (flat_points)", f"{len(xyz):,} points",
+         lambda: flat_points_numpy(xyz, 0.15, 0.015), lambda: flat_points(xyz, 0.15, 0.015),
+         lambda o, n: (o != n).mean() < 1e-4),
+        ("voxel thinning, 5 cm", f"{len(dense):,} points",
+         lambda: thin_points_numpy(dense, 0.05), lambda: thin_points(dense, 0.05), np.array_equal),
+        ("closest point on triangle", f"{len(p):,} queries",
+         lambda: closest_numpy(p, tri[rows]), lambda: closest_point_on_triangles(p, tri[rows]),
+         lambda o, n: np.abs(o - n).max() < 1e-9),
+    ]
+    print(f"{'kernel':<34}{'input':>20}{'numpy s':>10}{'ms3d s':>10}{'speed-up':>10}  same result")
+    rows_out = []
+    for name, size, old, new, same in cases:
+        t_old, o = best(old, a.repeat)
+        t_new, n = best(new, a.repeat)
+        ok = bool(same(o, n))
+        print(f"{name:<34}{size:>20}{t_old:>10.3f}{t_new:>10.3f}{t_old / t_new:>9.1f}x  {ok}")
+        rows_out.append({"kernel": name, "numpy_s": t_old, "ms3d_s": t_new, "same": ok})
+    return rows_out
+
+
+if __name__ == "__main__":
+    main()
