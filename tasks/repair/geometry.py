@@ -248,6 +248,7 @@ def repair_region_geometry(data: RegionInput, cfg) -> RegionGeometry:
 
     Zone faces the MLS did not see (``mesh.keep_unseen_m``, :mod:`tasks.repair.keep`) join the retained
     mesh first; the rest is rebuilt and stitched to them. ``replaced`` is over all zone faces."""
+    t0 = time.perf_counter()
     fc, mc = cfg.fusion, cfg.mesh
     vn = vertex_normals(data.xyz, np.concatenate([data.zone_faces, data.context_faces]), data.face_normals)
     thinned = _thinned_mls(data, fc, np.unique(data.zone_faces), vn)
@@ -266,8 +267,11 @@ def repair_region_geometry(data: RegionInput, cfg) -> RegionGeometry:
         keep = tidy_keep(data.xyz, data.zone_faces, keep, oh, mc.keep_min_area_m2)
         if keep.all() and not (keep & oh).any():  # all unseen: the typed plan leaves it
             keep = np.zeros(len(keep), bool)
+    prep = time.perf_counter() - t0
     geo = _repair(keep_faces(data, keep), cfg, vn, thinned)
     geo.stats["kept_unseen_faces"] = int(keep.sum())
+    sec = geo.stats.setdefault("seconds", {})  # thinning, PCA normals and the unseen faces, before the steps
+    geo.stats["seconds"] = {"prepare": prep, **sec, "total": prep + sec.get("total", 0.0)}
     if len(keep) and keep.all():  # nothing of the zone left to rebuild: the plan of an empty zone says nothing
         geo.stats["plan"] = "unseen by the MLS (overhead or clear of its points): the input mesh kept" \
             + (f", {geo.mesh.n_faces} free-surface faces added" if geo.mesh.n_faces else "")
