@@ -2,8 +2,9 @@
 
 Each kernel replaces a vectorised numpy expression that built (n, k, 3) neighbour arrays or (n, 3, 3)
 matrices and then called LAPACK once per 3x3 matrix; here one pass per point does the same arithmetic in
-registers. Measured on a real-density region (500 k points, k = 12): PCA normals 0.86 s -> 0.1 s after the
-k-d tree query (``benchmarks/kernel_bench.py``).
+registers. ``benchmarks/kernel_bench.py`` times each against the numpy code it replaced, k-d tree queries
+included (both share them): PCA normals of 500 k points 1.6x faster, the plane + edge test 2.1x, the 5 cm
+voxel thinning 1.6x, closest points on triangles 6x.
 
 All kernels are ``cache=True``: the first call on a machine compiles them (~1-3 s each) into
 ``__pycache__``, later processes load them.
