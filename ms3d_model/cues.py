@@ -25,7 +25,7 @@ from scipy.spatial import cKDTree
 
 from .features import edge_neighbours, pair_seed, vertex_ids_from_coords
 from .hashing import order_free_subset
-from .kernels import closest_points_on_triangles
+from .kernels import closest_points_on_triangles, nearest_of_candidates
 from .segments import median_of_sorted, percentile_of_sorted, segment_max, segment_mean, sorted_segments
 
 CUE_NAMES = (
@@ -158,30 +158,8 @@ def _point_to_mesh(p, gp, t, gf, normals, centres, k_max) -> tuple[np.ndarray, n
     k = min(k_max, int(np.bincount(gf).max()))
     dc, fi = _tree(_lifted(centres, gf)).query(_lifted(p, gp), k=k, distance_upper_bound=_PAIR_GAP_M / 2)
     fi, dc = np.asarray(fi).reshape(len(p), k), np.asarray(dc).reshape(len(p), k)
-    dist = np.full((len(p), k), np.inf)
-    near = closest_points_on_triangles(p, t, np.ascontiguousarray(fi[:, 0], np.int64))  # no (q, 3, 3) gather
-    dist[:, 0] = np.linalg.norm(near - p, axis=1)
-    valid = fi < len(t)  # a pair with fewer than k faces: the missing neighbours come back as len(t)
-    valid[:, 0] = False
-    row, col = np.nonzero(valid)
-    f = fi[row, col]
     radius = np.linalg.norm(t - centres[:, None], axis=2).max(axis=1)
-    bound = dist[:, 0] + 1e-9 * (1.0 + dist[:, 0])
-    keep = dc[row, col] - radius[f] <= bound[row]  # the cheap bound first, the plane distance on what is left
-    row, col, f = row[keep], col[keep], f[keep]
-    keep = np.abs(_dot(p[row] - t[f, 0], normals[f])) <= bound[row]
-    row, col, f = row[keep], col[keep], f[keep]
-    q = closest_points_on_triangles(p[row], t, f.astype(np.int64))
-    dist[row, col] = np.linalg.norm(q - p[row], axis=1)
-    rows = np.arange(len(p))
-    best = dist.argmin(axis=1)
-    d = dist[rows, best]
-    fbest = fi[rows, best]
-    at = np.full((len(p), k), -1)
-    at[row, col] = np.arange(len(row))
-    other = best > 0
-    near[other] = q[at[other, best[other]]]
-    signed = np.sign(((p - near) * normals[fbest]).sum(1)) * d
+    d, signed = nearest_of_candidates(p, t, normals, radius, fi.astype(np.int64), dc)  # compiled: one pass
     return d, signed
 
 

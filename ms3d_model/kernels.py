@@ -21,7 +21,8 @@ import math
 import numpy as np
 from numba import njit
 
-__all__ = ["closest_points_on_triangles", "eig3", "knn_pca", "local_planes", "nearest_to_centroid"]
+__all__ = ["closest_points_on_triangles", "eig3", "knn_pca", "local_planes", "nearest_of_candidates",
+           "nearest_to_centroid"]
 
 
 @njit(cache=True, nogil=True)
@@ -215,67 +216,99 @@ def _closest_on_segment(px, py, pz, ax, ay, az, bx, by, bz):
 
 
 @njit(cache=True, nogil=True)
+def _closest(px: float, py: float, pz: float, tri: np.ndarray, f: int) -> tuple[float, float, float]:
+    """Closest point of (px, py, pz) on triangle tri[f] (Ericson §5.1.5; degenerate: its longest side)."""
+    ax, ay, az = tri[f, 0, 0], tri[f, 0, 1], tri[f, 0, 2]
+    bx, by, bz = tri[f, 1, 0], tri[f, 1, 1], tri[f, 1, 2]
+    cx, cy, cz = tri[f, 2, 0], tri[f, 2, 1], tri[f, 2, 2]
+    abx, aby, abz = bx - ax, by - ay, bz - az
+    acx, acy, acz = cx - ax, cy - ay, cz - az
+    nx, ny, nz = aby * acz - abz * acy, abz * acx - abx * acz, abx * acy - aby * acx
+    if nx == 0.0 and ny == 0.0 and nz == 0.0:  # degenerate: the longest of the three sides
+        l0 = abx * abx + aby * aby + abz * abz
+        l1 = (cx - bx) ** 2 + (cy - by) ** 2 + (cz - bz) ** 2
+        l2 = acx * acx + acy * acy + acz * acz
+        if l0 >= l1 and l0 >= l2:
+            return _closest_on_segment(px, py, pz, ax, ay, az, bx, by, bz)
+        if l1 >= l2:
+            return _closest_on_segment(px, py, pz, bx, by, bz, cx, cy, cz)
+        return _closest_on_segment(px, py, pz, cx, cy, cz, ax, ay, az)
+    apx, apy, apz = px - ax, py - ay, pz - az
+    d1 = abx * apx + aby * apy + abz * apz
+    d2 = acx * apx + acy * apy + acz * apz
+    if d1 <= 0 and d2 <= 0:
+        return ax, ay, az
+    bpx, bpy, bpz = px - bx, py - by, pz - bz
+    d3 = abx * bpx + aby * bpy + abz * bpz
+    d4 = acx * bpx + acy * bpy + acz * bpz
+    if d3 >= 0 and d4 <= d3:
+        return bx, by, bz
+    vc = d1 * d4 - d3 * d2
+    if vc <= 0 and d1 >= 0 and d3 <= 0:
+        v = d1 / (d1 - d3)
+        return ax + abx * v, ay + aby * v, az + abz * v
+    cpx, cpy, cpz = px - cx, py - cy, pz - cz
+    d5 = abx * cpx + aby * cpy + abz * cpz
+    d6 = acx * cpx + acy * cpy + acz * cpz
+    if d6 >= 0 and d5 <= d6:
+        return cx, cy, cz
+    vb = d5 * d2 - d1 * d6
+    if vb <= 0 and d2 >= 0 and d6 <= 0:
+        w = d2 / (d2 - d6)
+        return ax + acx * w, ay + acy * w, az + acz * w
+    va = d3 * d6 - d5 * d4
+    if va <= 0 and (d4 - d3) >= 0 and (d5 - d6) >= 0:
+        w = (d4 - d3) / ((d4 - d3) + (d5 - d6))
+        return bx + (cx - bx) * w, by + (cy - by) * w, bz + (cz - bz) * w
+    denom = va + vb + vc
+    v, w = vb / denom, vc / denom
+    return ax + abx * v + acx * w, ay + aby * v + acy * w, az + abz * v + acz * w
+
+
+@njit(cache=True, nogil=True)
 def closest_points_on_triangles(p: np.ndarray, tri: np.ndarray, rows: np.ndarray) -> np.ndarray:
     """Closest point of p[i] (p: (q, 3) float64) on triangle tri[rows[i]] (tri: (m, 3, 3) float64; rows:
     (q,) int64), Ericson's Real-Time Collision Detection §5.1.5 region by region. A zero-area triangle
     (its edge cross product exactly 0) gives the closest point on its longest side. Returns (q, 3)."""
-    nq = len(rows)
-    out = np.empty((nq, 3))
-    for i in range(nq):
-        f = rows[i]
-        ax, ay, az = tri[f, 0, 0], tri[f, 0, 1], tri[f, 0, 2]
-        bx, by, bz = tri[f, 1, 0], tri[f, 1, 1], tri[f, 1, 2]
-        cx, cy, cz = tri[f, 2, 0], tri[f, 2, 1], tri[f, 2, 2]
-        px, py, pz = p[i, 0], p[i, 1], p[i, 2]
-        abx, aby, abz = bx - ax, by - ay, bz - az
-        acx, acy, acz = cx - ax, cy - ay, cz - az
-        nx, ny, nz = aby * acz - abz * acy, abz * acx - abx * acz, abx * acy - aby * acx
-        if nx == 0.0 and ny == 0.0 and nz == 0.0:  # degenerate: the longest of the three sides
-            l0 = abx * abx + aby * aby + abz * abz
-            l1 = (cx - bx) ** 2 + (cy - by) ** 2 + (cz - bz) ** 2
-            l2 = acx * acx + acy * acy + acz * acz
-            if l0 >= l1 and l0 >= l2:
-                r = _closest_on_segment(px, py, pz, ax, ay, az, bx, by, bz)
-            elif l1 >= l2:
-                r = _closest_on_segment(px, py, pz, bx, by, bz, cx, cy, cz)
-            else:
-                r = _closest_on_segment(px, py, pz, cx, cy, cz, ax, ay, az)
-            out[i, 0], out[i, 1], out[i, 2] = r
-            continue
-        apx, apy, apz = px - ax, py - ay, pz - az
-        d1 = abx * apx + aby * apy + abz * apz
-        d2 = acx * apx + acy * apy + acz * apz
-        if d1 <= 0 and d2 <= 0:
-            out[i, 0], out[i, 1], out[i, 2] = ax, ay, az
-            continue
-        bpx, bpy, bpz = px - bx, py - by, pz - bz
-        d3 = abx * bpx + aby * bpy + abz * bpz
-        d4 = acx * bpx + acy * bpy + acz * bpz
-        if d3 >= 0 and d4 <= d3:
-            out[i, 0], out[i, 1], out[i, 2] = bx, by, bz
-            continue
-        vc = d1 * d4 - d3 * d2
-        if vc <= 0 and d1 >= 0 and d3 <= 0:
-            v = d1 / (d1 - d3)
-            out[i, 0], out[i, 1], out[i, 2] = ax + abx * v, ay + aby * v, az + abz * v
-            continue
-        cpx, cpy, cpz = px - cx, py - cy, pz - cz
-        d5 = abx * cpx + aby * cpy + abz * cpz
-        d6 = acx * cpx + acy * cpy + acz * cpz
-        if d6 >= 0 and d5 <= d6:
-            out[i, 0], out[i, 1], out[i, 2] = cx, cy, cz
-            continue
-        vb = d5 * d2 - d1 * d6
-        if vb <= 0 and d2 >= 0 and d6 <= 0:
-            w = d2 / (d2 - d6)
-            out[i, 0], out[i, 1], out[i, 2] = ax + acx * w, ay + acy * w, az + acz * w
-            continue
-        va = d3 * d6 - d5 * d4
-        if va <= 0 and (d4 - d3) >= 0 and (d5 - d6) >= 0:
-            w = (d4 - d3) / ((d4 - d3) + (d5 - d6))
-            out[i, 0], out[i, 1], out[i, 2] = bx + (cx - bx) * w, by + (cy - by) * w, bz + (cz - bz) * w
-            continue
-        denom = va + vb + vc
-        v, w = vb / denom, vc / denom
-        out[i, 0], out[i, 1], out[i, 2] = ax + abx * v + acx * w, ay + aby * v + acy * w, az + abz * v + acz * w
+    out = np.empty((len(rows), 3))
+    for i in range(len(rows)):
+        out[i, 0], out[i, 1], out[i, 2] = _closest(p[i, 0], p[i, 1], p[i, 2], tri, rows[i])
     return out
+
+
+@njit(cache=True, nogil=True)
+def nearest_of_candidates(p: np.ndarray, tri: np.ndarray, normals: np.ndarray, radius: np.ndarray,
+                          cand: np.ndarray, cand_d: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Unsigned and signed distance (q,) float64 of each point p[i] (p: (q, 3)) to the nearest of its
+    candidate faces cand[i] (cand: (q, k) int64 rows of tri (m, 3, 3), m where there is none; cand_d:
+    (q, k) their centres' distances, the nearest first; normals: (m, 3) unit; radius: (m,) each face's
+    largest corner distance from its centre).
+
+    The exact distance is computed for the first candidate, then only for a candidate whose lower bounds
+    (centre distance minus radius, and distance to its plane) are within it (1e-9 relative slack): the others
+    cannot be nearer. The first of equal distances wins. The sign is that of the offset from the foot along
+    the chosen face's normal (0 on the face)."""
+    q, k = cand.shape
+    m = len(tri)
+    d_out, s_out = np.empty(q), np.empty(q)
+    for i in range(q):
+        px, py, pz = p[i, 0], p[i, 1], p[i, 2]
+        fb = cand[i, 0]
+        nx, ny, nz = _closest(px, py, pz, tri, fb)
+        best = math.sqrt((nx - px) ** 2 + (ny - py) ** 2 + (nz - pz) ** 2)
+        bound = best + 1e-9 * (1.0 + best)
+        for c in range(1, k):
+            f = cand[i, c]
+            if f >= m or cand_d[i, c] - radius[f] > bound:
+                continue
+            if abs((px - tri[f, 0, 0]) * normals[f, 0] + (py - tri[f, 0, 1]) * normals[f, 1]
+                   + (pz - tri[f, 0, 2]) * normals[f, 2]) > bound:
+                continue
+            qx, qy, qz = _closest(px, py, pz, tri, f)
+            dd = math.sqrt((qx - px) ** 2 + (qy - py) ** 2 + (qz - pz) ** 2)
+            if dd < best:
+                best, fb, nx, ny, nz = dd, f, qx, qy, qz
+        off = (px - nx) * normals[fb, 0] + (py - ny) * normals[fb, 1] + (pz - nz) * normals[fb, 2]
+        d_out[i] = best
+        s_out[i] = (1.0 if off > 0 else (-1.0 if off < 0 else 0.0)) * best
+    return d_out, s_out

@@ -107,3 +107,29 @@ def test_local_planes_equals_the_plane_and_edge_test_written_in_numpy():
     np.testing.assert_array_equal(got, want)
     no_edges = local_planes(xyz, xyz, j.astype(np.int64), d, 0.01, False, np.radians(120))
     assert no_edges.sum() > got.sum() and not (got & ~no_edges).any()
+
+
+def test_nearest_of_candidates_equals_the_nearest_of_every_candidate_face():
+    from ms3d_model.kernels import nearest_of_candidates
+
+    rng = np.random.default_rng(8)
+    tri = rng.normal(size=(40, 3, 3))
+    tri[0] = [[0, 0, 0], [1, 0, 0], [0, 1, 0]]
+    p = np.r_[rng.normal(size=(300, 3)) * 2, [[0.2, 0.2, 0.0]]]  # the last one lies on face 0
+    centres = tri.mean(axis=1)
+    cross = np.cross(tri[:, 1] - tri[:, 0], tri[:, 2] - tri[:, 0])
+    normals = cross / np.linalg.norm(cross, axis=1, keepdims=True)
+    radius = np.linalg.norm(tri - centres[:, None], axis=2).max(axis=1)
+    dc = np.linalg.norm(p[:, None] - centres[None], axis=2)
+    cand = np.argsort(dc, axis=1, kind="stable")
+    cand_d = np.take_along_axis(dc, cand, axis=1)
+    cand, cand_d = np.c_[cand, np.full(len(p), len(tri))], np.c_[cand_d, np.full(len(p), np.inf)]  # a "none"
+    d, signed = nearest_of_candidates(p, tri, normals, radius, cand.astype(np.int64), cand_d)
+    every = np.stack([np.linalg.norm(closest_points_on_triangles(p, tri, np.full(len(p), f, np.int64)) - p, axis=1)
+                      for f in range(len(tri))], axis=1)
+    np.testing.assert_allclose(d, every.min(axis=1), rtol=0, atol=1e-12)
+    best = every.argmin(axis=1)
+    foot = closest_points_on_triangles(p, tri, best.astype(np.int64))
+    want = np.sign(((p - foot) * normals[best]).sum(1)) * every.min(axis=1)
+    np.testing.assert_allclose(signed, want, atol=1e-12)
+    assert signed[-1] == 0.0 and (signed[:-1] != 0).all() and (signed < 0).any() and (signed > 0).any()
