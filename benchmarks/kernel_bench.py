@@ -23,9 +23,9 @@ from scipy.spatial import cKDTree
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
-from ms3d_model.cues import closest_point_on_triangles  # noqa: E402
-from tasks.repair.coarsen import MAX_GAP, flat_points, one_per_voxel  # noqa: E402
-from tasks.repair.fuse import pca_normals, thin_points  # noqa: E402
+from ms3d_model.cues import closest_point_on_triangles
+from tasks.repair.coarsen import MAX_GAP, flat_points, one_per_voxel
+from tasks.repair.fuse import pca_normals, thin_points
 
 
 def wall(n: int, seed: int = 0) -> np.ndarray:
@@ -105,7 +105,10 @@ def closest_numpy(p: np.ndarray, tri: np.ndarray) -> np.ndarray:
     """Ericson's closest point, vectorised with np.where (the code before the kernel; no degenerate faces)."""
     a, b, c = tri[:, 0], tri[:, 1], tri[:, 2]
     ab, ac = b - a, c - a
-    dot = lambda u, v: np.einsum("ij,ij->i", u, v)  # noqa: E731
+
+    def dot(u, v):
+        return np.einsum("ij,ij->i", u, v)
+
     d1, d2 = dot(ab, p - a), dot(ac, p - a)
     d3, d4 = dot(ab, p - b), dot(ac, p - b)
     d5, d6 = dot(ab, p - c), dot(ac, p - c)
