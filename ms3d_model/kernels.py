@@ -72,6 +72,31 @@ def eig3(a: np.ndarray, w: np.ndarray, v: np.ndarray) -> None:
 
 
 @njit(cache=True, nogil=True)
+def _fit(buf: np.ndarray, cnt: int, a: np.ndarray, w: np.ndarray, v: np.ndarray) -> None:
+    """Eigen-decomposition (:func:`eig3` into w, v) of the covariance (divided by cnt) of the points
+    buf[:cnt] (buf: (k, 3) float64, cnt >= 1); a: (3, 3) scratch."""
+    mx = my = mz = 0.0
+    for t in range(cnt):
+        mx += buf[t, 0]
+        my += buf[t, 1]
+        mz += buf[t, 2]
+    mx, my, mz = mx / cnt, my / cnt, mz / cnt
+    sxx = sxy = sxz = syy = syz = szz = 0.0
+    for t in range(cnt):
+        dx, dy, dz = buf[t, 0] - mx, buf[t, 1] - my, buf[t, 2] - mz
+        sxx += dx * dx
+        sxy += dx * dy
+        sxz += dx * dz
+        syy += dy * dy
+        syz += dy * dz
+        szz += dz * dz
+    a[0, 0], a[0, 1], a[0, 2] = sxx / cnt, sxy / cnt, sxz / cnt
+    a[1, 0], a[1, 1], a[1, 2] = sxy / cnt, syy / cnt, syz / cnt
+    a[2, 0], a[2, 1], a[2, 2] = sxz / cnt, syz / cnt, szz / cnt
+    eig3(a, w, v)
+
+
+@njit(cache=True, nogil=True)
 def knn_pca(xyz: np.ndarray, idx: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     """PCA of each point's neighbourhood: xyz (n, 3) float64, idx (n, k) int64 rows of xyz (the point's k
     nearest, itself included). Returns ((n, 3) float64 least-variance unit direction, (n,) float64 surface
@@ -79,29 +104,11 @@ def knn_pca(xyz: np.ndarray, idx: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     n, k = idx.shape
     normals = np.empty((n, 3))
     variation = np.empty(n)
-    a, w, v = np.empty((3, 3)), np.empty(3), np.empty((3, 3))
+    a, w, v, buf = np.empty((3, 3)), np.empty(3), np.empty((3, 3)), np.empty((k, 3))
     for i in range(n):
-        mx = my = mz = 0.0
         for j in range(k):
-            r = idx[i, j]
-            mx += xyz[r, 0]
-            my += xyz[r, 1]
-            mz += xyz[r, 2]
-        mx, my, mz = mx / k, my / k, mz / k
-        sxx = sxy = sxz = syy = syz = szz = 0.0
-        for j in range(k):
-            r = idx[i, j]
-            dx, dy, dz = xyz[r, 0] - mx, xyz[r, 1] - my, xyz[r, 2] - mz
-            sxx += dx * dx
-            sxy += dx * dy
-            sxz += dx * dz
-            syy += dy * dy
-            syz += dy * dz
-            szz += dz * dz
-        a[0, 0], a[0, 1], a[0, 2] = sxx / k, sxy / k, sxz / k
-        a[1, 0], a[1, 1], a[1, 2] = sxy / k, syy / k, syz / k
-        a[2, 0], a[2, 1], a[2, 2] = sxz / k, syz / k, szz / k
-        eig3(a, w, v)
+            buf[j, 0], buf[j, 1], buf[j, 2] = xyz[idx[i, j], 0], xyz[idx[i, j], 1], xyz[idx[i, j], 2]
+        _fit(buf, k, a, w, v)
         normals[i, 0], normals[i, 1], normals[i, 2] = v[0, 0], v[1, 0], v[2, 0]
         variation[i] = w[0] / max(w[0] + w[1] + w[2], 1e-18)
     return normals, variation
@@ -134,25 +141,7 @@ def local_planes(q: np.ndarray, ref: np.ndarray, j: np.ndarray, d: np.ndarray, t
                 cnt += 1
         if cnt < 6:
             continue
-        mx = my = mz = 0.0
-        for t in range(cnt):
-            mx += rel[t, 0]
-            my += rel[t, 1]
-            mz += rel[t, 2]
-        mx, my, mz = mx / cnt, my / cnt, mz / cnt
-        sxx = sxy = sxz = syy = syz = szz = 0.0
-        for t in range(cnt):
-            dx, dy, dz = rel[t, 0] - mx, rel[t, 1] - my, rel[t, 2] - mz
-            sxx += dx * dx
-            sxy += dx * dy
-            sxz += dx * dz
-            syy += dy * dy
-            syz += dy * dz
-            szz += dz * dz
-        a[0, 0], a[0, 1], a[0, 2] = sxx / cnt, sxy / cnt, sxz / cnt
-        a[1, 0], a[1, 1], a[1, 2] = sxy / cnt, syy / cnt, syz / cnt
-        a[2, 0], a[2, 1], a[2, 2] = sxz / cnt, syz / cnt, szz / cnt
-        eig3(a, w, v)
+        _fit(rel, cnt, a, w, v)
         if math.sqrt(max(w[0], 0.0)) > tolerance_m:
             continue
         if edges:
