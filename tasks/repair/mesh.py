@@ -28,10 +28,9 @@ import numpy as np
 from scipy.spatial import Delaunay, cKDTree
 
 from storage.vertex_ids import local_ids
-from tasks.geometry.triangles import face_normals
 from tasks.repair.chart import Chart, boundary_edges, edges_of, undirected_key
 from tasks.repair.conformal import constrained_triangles
-from tasks.repair.standing import standing_points
+from tasks.repair.standing import standing_in_charts
 
 METHODS = ("delaunay", "poisson")
 
@@ -295,7 +294,8 @@ def rebuild_charts(charts: list[Chart], vertex_ids: np.ndarray, pts: np.ndarray,
     base = 0
     owner, located = _locate_in_charts(charts, pts)
     if pts_normal is not None and stand_off_m > 0 and len(pts):
-        owner = np.where(_standing(charts, located, owner, pts, pts_normal, pts_source, stand_off_m), -1, owner)
+        owner = np.where(standing_in_charts(charts, located, owner, pts, pts_normal, pts_source, stand_off_m),
+                         -1, owner)
         stats["standing"] = int((owner < 0).sum())
     for ci, ch in enumerate(charts):
         mine = np.flatnonzero(owner == ci)  # each point goes to the chart nearest to it
@@ -342,23 +342,6 @@ def _locate_in_charts(charts: list[Chart], pts: np.ndarray) -> tuple[np.ndarray,
     owner = np.clip(np.searchsorted(f_base, fid, side="right") - 1, 0, len(charts) - 1)
     local = np.where((fid >= 0) & (fid < len(faces)), fid - f_base[owner], -1)
     return owner, [(local, bary, dist)] * len(charts)
-
-
-def _standing(charts: list[Chart], located: list[tuple], owner: np.ndarray, pts: np.ndarray, pts_n: np.ndarray,
-              src: np.ndarray, stand_off_m: float) -> np.ndarray:
-    """(k,) bool: MLS points (source 1) standing on their owner chart (:func:`tasks.repair.standing.standing_points`)."""
-    out = np.zeros(len(pts), bool)
-    for ci, ch in enumerate(charts):
-        mine = np.flatnonzero((owner == ci) & (src == 1))
-        fid, bary, _ = (a[mine] for a in located[ci])
-        ok = fid >= 0
-        mine, fid, bary = mine[ok], fid[ok], bary[ok]
-        if not len(mine):
-            continue
-        tri = ch.faces[fid]
-        foot = np.einsum("kc,kcd->kd", bary, ch.xyz[tri])
-        out[mine] = standing_points(pts[mine], pts_n[mine], foot, face_normals(ch.xyz, tri), min_offset_m=stand_off_m)
-    return out
 
 
 # ------------------------------------------------------------------------------------- stitching checks

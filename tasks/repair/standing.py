@@ -22,6 +22,8 @@ from __future__ import annotations
 
 import numpy as np
 
+from tasks.geometry.triangles import face_normals
+
 
 def standing_points(pts: np.ndarray, pts_n: np.ndarray, foot: np.ndarray, foot_n: np.ndarray, *,
                     min_offset_m: float, min_up_z: float = 0.8, max_abs_cos: float = 0.5) -> np.ndarray:
@@ -46,4 +48,21 @@ def standing_points(pts: np.ndarray, pts_n: np.ndarray, foot: np.ndarray, foot_n
     return (foot_n[:, 2] >= min_up_z) & (off > min_offset_m) & (facing < max_abs_cos)
 
 
-__all__ = ["standing_points"]
+__all__ = ["standing_in_charts", "standing_points"]
+
+
+def standing_in_charts(charts: list, located: list[tuple], owner: np.ndarray, pts: np.ndarray, pts_n: np.ndarray,
+                       src: np.ndarray, stand_off_m: float) -> np.ndarray:
+    """(k,) bool: MLS points (source 1) standing on their owner chart (:func:`standing_points`)."""
+    out = np.zeros(len(pts), bool)
+    for ci, ch in enumerate(charts):
+        mine = np.flatnonzero((owner == ci) & (src == 1))
+        fid, bary, _ = (a[mine] for a in located[ci])
+        ok = fid >= 0
+        mine, fid, bary = mine[ok], fid[ok], bary[ok]
+        if not len(mine):
+            continue
+        tri = ch.faces[fid]
+        foot = np.einsum("kc,kcd->kd", bary, ch.xyz[tri])
+        out[mine] = standing_points(pts[mine], pts_n[mine], foot, face_normals(ch.xyz, tri), min_offset_m=stand_off_m)
+    return out
