@@ -12,8 +12,9 @@ counts as open too (rare: only along tile borders).
 
 Vectorised over pairs: a batch's points and faces are concatenated with a pair index, one k-d tree per kind
 serves every pair (the pair index lifted onto a fourth axis, so no neighbour crosses pairs), and per-pair
-means, sums, maxima and percentiles are segment reductions (``np.bincount``, ``reduceat``, one sort). The
-only loop over pairs draws the seeded subsample of a pair above ``MAX_CUE_POINTS`` points. The numbers
+means, sums, maxima and percentiles are segment reductions (``np.bincount``, ``reduceat``), and the per-pair
+sorts, covariances and seeded subsamples (of a pair above ``MAX_CUE_POINTS`` points) are compiled loops over
+the pairs' runs (:mod:`ms3d_model.cue_kernels`). The numbers
 equal the per-pair loop this replaced (tests/ms3d_model/test_cues.py keeps it as the reference), except
 that a zero-area face now gives distances to its longest side instead of NaN.
 """
@@ -24,7 +25,7 @@ import numpy as np
 from scipy.spatial import cKDTree
 
 from .features import edge_neighbours, pair_seed, vertex_ids_from_coords
-from .hashing import order_free_subset
+from .cue_kernels import run_covariances, run_starts, subset_runs
 from .kernels import closest_points_on_triangles, nearest_of_candidates
 from .segments import median_of_sorted, percentile_of_sorted, segment_max, segment_mean, sorted_segments
 
@@ -125,15 +126,21 @@ def _group_seeds(n_points, keys, seed):
     return [pair_seed(seed, int(k)) if n > MAX_CUE_POINTS else 0 for n, k in zip(n_points, keys)]
 
 
-def _cue_points(points: list, seeds: list, cap: int = MAX_CUE_POINTS) -> tuple[np.ndarray, np.ndarray]:
+def _cue_points(p_all: np.ndarray, counts: np.ndarray, seeds: list, cap: int = MAX_CUE_POINTS
+                ) -> tuple[np.ndarray, np.ndarray]:
     """At most ``cap`` points per pair (a seeded subsample above it; ``MAX_CUE_POINTS`` for the point -> mesh
-    distances, ``MAX_SHAPE_POINTS`` for the whole-point-set cues): (q, 3) float64 and their (q,) pair index."""
-    sub = []
-    for p, s in zip(points, seeds):
-        if len(p) > cap:  # chosen by the points' coordinates, not their rows: any input order, same cues
-            p = p[order_free_subset(p, cap, s)]
-        sub.append(p)
-    return np.concatenate(sub), np.repeat(np.arange(len(sub)), [len(p) for p in sub])
+    distances, ``MAX_SHAPE_POINTS`` for the whole-point-set cues): (q, 3) float64 and their (q,) pair index.
+
+    p_all: (n, 3) float64, the pairs' points as contiguous runs of ``counts`` (B,) rows. The subset is
+    ``order_free_subset`` of each pair (chosen by the points' coordinates, not their rows: any input order,
+    same cues), batched in one compiled pass."""
+    b = len(counts)
+    if counts.max() <= cap:
+        return p_all, np.repeat(np.arange(b), counts)
+    start = run_starts(counts)
+    seeds64 = np.array([int(s) % 2**64 for s in seeds], np.uint64)
+    rows = subset_runs(np.ascontiguousarray(p_all, np.float64).view(np.uint64), seeds64, start, cap)
+    return p_all[rows], np.repeat(np.arange(b), np.minimum(counts, cap))
 
 
 def _lifted(xyz: np.ndarray, group: np.ndarray) -> np.ndarray:
@@ -163,17 +170,10 @@ def _point_to_mesh(p, gp, t, gf, normals, centres, k_max) -> tuple[np.ndarray, n
     return d, signed
 
 
-def _point_normals(p_all, ga, counts, mesh_n) -> tuple[np.ndarray, np.ndarray]:
+def _point_normals(p_all, counts, mesh_n) -> tuple[np.ndarray, np.ndarray]:
     """(B, 3) least-variance direction of each pair's points and (B,) planarity (smallest eigenvalue over
-    the sum; 0 and the mesh normal below 3 points)."""
-    b = len(counts)
-    mean = np.stack([np.bincount(ga, p_all[:, i], minlength=b) for i in range(3)], 1) / counts[:, None]
-    x = p_all - mean[ga]
-    cov = np.empty((b, 3, 3))
-    for i in range(3):
-        for j in range(i, 3):
-            cov[:, i, j] = cov[:, j, i] = np.bincount(ga, x[:, i] * x[:, j], minlength=b)
-    cov /= np.maximum(counts - 1, 1)[:, None, None]
+    the sum; 0 and the mesh normal below 3 points). p_all: (n, 3) float64 in contiguous runs of counts (B,)."""
+    _, cov = run_covariances(p_all, run_starts(counts))  # compiled; the sums bincount gave, in its order
     ev, evec = np.linalg.eigh(cov)
     ok = counts >= 3
     pt_n = np.where(ok[:, None], evec[:, :, 0], mesh_n)
@@ -200,12 +200,12 @@ def _cues(points: list, tris: list, open_edges: list | None, seeds: list) -> np.
     centres = t.mean(axis=1)
     total_area = np.bincount(gf, area, minlength=b)
 
-    p, gp = _cue_points(points, seeds)
+    p, gp = _cue_points(p_all, n, seeds)
     n_cue = np.bincount(gp, minlength=b)
     d, signed = _point_to_mesh(p, gp, t, gf, normals, centres, 8)
 
     # mesh -> points, and the shape of the point set: on at most MAX_SHAPE_POINTS points per pair
-    p_sh, gs = (p_all, ga) if n.max() <= MAX_SHAPE_POINTS else _cue_points(points, seeds, MAX_SHAPE_POINTS)
+    p_sh, gs = (p_all, ga) if n.max() <= MAX_SHAPE_POINTS else _cue_points(p_all, n, seeds, MAX_SHAPE_POINTS)
     n_sh = np.bincount(gs, minlength=b)
     dm, _ = _tree(_lifted(p_sh, gs)).query(_lifted(centres, gf), k=1, distance_upper_bound=_PAIR_GAP_M / 2)
     w = np.where((total_area > 0)[gf], area / np.where(total_area > 0, total_area, 1.0)[gf], 1.0 / m[gf])
@@ -221,7 +221,7 @@ def _cues(points: list, tris: list, open_edges: list | None, seeds: list) -> np.
     mean_n = np.stack([np.bincount(gf, normals[:, i] * area, minlength=b) for i in range(3)], 1)
     mean_len = np.linalg.norm(mean_n, axis=1)
     mesh_n = np.where((mean_len > 0)[:, None], mean_n / np.where(mean_len > 0, mean_len, 1.0)[:, None], [0.0, 0.0, 1.0])
-    pt_n, planarity = _point_normals(p_sh, gs, n_sh, mesh_n)
+    pt_n, planarity = _point_normals(p_sh, n_sh, mesh_n)
     along_p = _dot(p_sh, mesh_n[gs])
     along_m = (t * mesh_n[gf][:, None]).sum(2).ravel()
     gv = np.repeat(gf, 3)

@@ -11,9 +11,9 @@ def sorted_segments(values: np.ndarray, group: np.ndarray, n_groups: int) -> tup
     """Values sorted within their groups: (sorted (n,) float64, start (G,) int64, count (G,) int64).
 
     values: (n,) float64; group: (n,) int64 in [0, G). One argsort of ``value + group * span`` (span above
-    the values' range keeps the groups apart); the key's rounding can only swap values closer than
-    ~1e-16 x G x span, and the sorted array holds the original values. With a NaN or inf among the values,
-    a (slower, exact) lexsort.
+    the values' range keeps the groups apart; numpy's vectorised quicksort, ~3x its stable sort here); the
+    key's rounding can only swap values closer than ~1e-16 x G x span, and the sorted array holds the
+    original values. With a NaN or inf among the values, a (slower, exact) lexsort.
     """
     v = np.asarray(values, np.float64)
     lo, hi = (float(v.min()), float(v.max())) if len(v) else (0.0, 0.0)

@@ -25,6 +25,7 @@ from functools import lru_cache
 
 import numpy as np
 
+from tasks.export.kernels import accumulate_face_normals
 from tasks.export.vertex_split import split_by_feature
 
 GLB_MAGIC, CHUNK_JSON, CHUNK_BIN = 0x46546C67, 0x4E4F534A, 0x004E4942
@@ -91,12 +92,8 @@ class GltfMesh:
 
 def vertex_normals(positions: np.ndarray, faces: np.ndarray) -> np.ndarray:
     """(n, 3) float32 unit area-weighted vertex normals; (0, 1, 0) (up) where undefined."""
-    p = positions.astype(np.float64)
-    fn = np.cross(p[faces[:, 1]] - p[faces[:, 0]], p[faces[:, 2]] - p[faces[:, 0]])
-    acc = np.zeros((len(p), 3))
-    corners = faces.reshape(-1)
-    for d in range(3):
-        acc[:, d] = np.bincount(corners, weights=np.repeat(fn[:, d], 3), minlength=len(p))
+    p = np.ascontiguousarray(positions, np.float64)
+    acc = accumulate_face_normals(p, np.ascontiguousarray(faces, np.int64))  # compiled, bincount's sums
     norm = np.linalg.norm(acc, axis=1)
     ok = norm > 1e-20
     out = np.tile(np.array([0.0, 1.0, 0.0]), (len(p), 1))
@@ -104,12 +101,19 @@ def vertex_normals(positions: np.ndarray, faces: np.ndarray) -> np.ndarray:
     return out.astype(np.float32)
 
 
+def _srgb_table() -> np.ndarray:
+    c = np.arange(256, dtype=np.float64) / 255.0
+    lin = np.where(c <= 0.04045, c / 12.92, ((c + 0.055) / 1.055) ** 2.4)
+    return np.clip(np.round(lin * 255.0), 0, 255).astype(np.uint8)
+
+
+_SRGB_TO_LINEAR = _srgb_table()  # (256,) uint8: the IEC 61966-2-1 decoding of every 8-bit value
+
+
 def srgb_to_linear_u8(rgb: np.ndarray) -> np.ndarray:
     """(n, 3) uint8 sRGB -> (n, 4) uint8 linear RGBA (alpha 255), as glTF's COLOR_0 wants."""
-    c = rgb.astype(np.float64) / 255.0
-    lin = np.where(c <= 0.04045, c / 12.92, ((c + 0.055) / 1.055) ** 2.4)
     out = np.full((len(rgb), 4), 255, np.uint8)
-    out[:, :3] = np.clip(np.round(lin * 255.0), 0, 255).astype(np.uint8)
+    out[:, :3] = _SRGB_TO_LINEAR[np.asarray(rgb, np.uint8)]
     return out
 
 

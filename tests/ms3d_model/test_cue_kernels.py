@@ -1,0 +1,47 @@
+"""The classify cues' compiled per-pair loops against the numpy code they replaced (built here): the
+batched subset equals ``order_free_subset`` pair by pair, the covariances equal the ``np.bincount`` sums."""
+
+import numpy as np
+
+from ms3d_model.cue_kernels import run_covariances, run_starts, subset_runs
+from ms3d_model.hashing import order_free_subset
+
+
+def _runs(rng, sizes):
+    pts = [rng.normal(scale=5.0, size=(n, 3)) for n in sizes]
+    return pts, np.concatenate(pts), np.array(sizes, np.int64)
+
+
+def test_subset_runs_equals_order_free_subset_of_every_pair():
+    rng = np.random.default_rng(4)
+    pts, p_all, counts = _runs(rng, [5, 3000, 1024, 1025, 40000, 1, 2500])
+    pts[1][100:140] = pts[1][7]  # identical points: interchangeable rows, the same coordinates picked
+    p_all = np.concatenate(pts)
+    seeds = [11, 2**63 + 5, 0, 3, 77, 9, 2**64 - 1]
+    start = run_starts(counts)
+    rows = subset_runs(p_all.view(np.uint64), np.array(seeds, np.uint64), start, 1024)
+    got = p_all[rows]
+    ref = np.concatenate([p[order_free_subset(p, 1024, s)] if len(p) > 1024 else p for p, s in zip(pts, seeds)])
+    assert got.shape == ref.shape == (5 + 1024 + 1024 + 1024 + 1024 + 1 + 1024, 3)
+    np.testing.assert_array_equal(got, ref)
+    # a pair's subset does not depend on its rows' order, nor on the other pairs
+    perm = rng.permutation(40000)
+    alone = subset_runs(pts[4][perm].view(np.uint64), np.array([77], np.uint64), run_starts([40000]), 1024)
+    np.testing.assert_array_equal(pts[4][perm][alone], ref[3077:4101])
+
+
+def test_run_covariances_equal_the_bincount_sums():
+    rng = np.random.default_rng(5)
+    _, p, counts = _runs(rng, [1, 2, 3, 500, 17])
+    g = np.repeat(np.arange(len(counts)), counts)
+    mean = np.stack([np.bincount(g, p[:, i]) for i in range(3)], 1) / counts[:, None]
+    x = p - mean[g]
+    cov = np.empty((len(counts), 3, 3))
+    for i in range(3):
+        for j in range(i, 3):
+            cov[:, i, j] = cov[:, j, i] = np.bincount(g, x[:, i] * x[:, j])
+    cov /= np.maximum(counts - 1, 1)[:, None, None]
+    m, c = run_covariances(p, run_starts(counts))
+    np.testing.assert_array_equal(m, mean)
+    np.testing.assert_array_equal(c, cov)
+    assert c[0].max() == 0.0 and c[3].trace() > 10.0  # one point: no spread; 500 normal points: ~75
