@@ -63,7 +63,6 @@ MAX_CUE_POINTS = 1024
 # density 1.0), the demo preset at its training density none (seed 7: 12,860 at most), so the shipped models'
 # cues are unchanged there.
 MAX_SHAPE_POINTS = 16384
-_PAIR_GAP_M = 1.0e6  # pairs sit this far apart on the k-d trees' fourth axis (a campus spans < 10 km)
 
 
 def closest_point_on_triangles(p: np.ndarray, tri: np.ndarray) -> np.ndarray:
@@ -143,18 +142,31 @@ def _cue_points(p_all: np.ndarray, counts: np.ndarray, seeds: list, cap: int = M
     return p_all[rows], np.repeat(np.arange(b), np.minimum(counts, cap))
 
 
-def _lifted(xyz: np.ndarray, group: np.ndarray) -> np.ndarray:
-    """(n, 4): xyz with the pair index far away on a fourth axis, so one k-d tree serves every pair and a
-    neighbour is never found in another pair (distances within a pair are unchanged: the fourth term is 0)."""
-    return np.concatenate([xyz, (group * _PAIR_GAP_M)[:, None].astype(np.float64)], axis=1)
+def _pair_knn(data: np.ndarray, d_counts: np.ndarray, queries: np.ndarray, q_counts: np.ndarray, k: int
+             ) -> tuple[np.ndarray, np.ndarray]:
+    """The k nearest rows of ``data`` in the same pair for each row of ``queries`` (both (·, 3) float64, pairs
+    in contiguous runs of ``d_counts`` / ``q_counts`` (B,) rows): (q, k) float64 distances, nearest first,
+    and (q, k) int64 rows of ``data``; inf and ``len(data)`` past a pair's last row (as cKDTree pads).
+
+    One small 3D k-d tree per pair (sliding-midpoint splits: ~2x faster to build than median splits,
+    queries exact). One tree over every pair, the pair lifted onto a fourth axis, gives the same neighbours
+    (the fourth term of a distance within a pair is exactly 0) but costs ~1.5x: a deeper tree, and the
+    (n, 4) copies."""
+    dist = np.full((len(queries), k), np.inf)
+    rows = np.full((len(queries), k), len(data), np.int64)
+    d_start, q_start = run_starts(d_counts), run_starts(q_counts)
+    for g in range(len(d_counts)):
+        a, e, qa, qe = d_start[g], d_start[g + 1], q_start[g], q_start[g + 1]
+        if e == a or qe == qa:
+            continue
+        kk = min(k, e - a)
+        dd, ii = cKDTree(data[a:e], balanced_tree=False, compact_nodes=False).query(queries[qa:qe], k=kk)
+        dist[qa:qe, :kk] = dd.reshape(qe - qa, kk)
+        rows[qa:qe, :kk] = ii.reshape(qe - qa, kk) + a
+    return dist, rows
 
 
-def _tree(xyzg: np.ndarray) -> cKDTree:
-    # sliding-midpoint splits build ~2x faster than median splits; queries stay exact
-    return cKDTree(xyzg, balanced_tree=False, compact_nodes=False)
-
-
-def _point_to_mesh(p, gp, t, gf, normals, centres, k_max) -> tuple[np.ndarray, np.ndarray]:
+def _point_to_mesh(p, p_counts, t, f_counts, normals, centres, k_max) -> tuple[np.ndarray, np.ndarray]:
     """Unsigned and signed distances (q,) float64 of points p (q, 3) to their pair's faces: exact distance to
     the nearest of the (up to) k_max faces with the nearest centres.
 
@@ -162,9 +174,7 @@ def _point_to_mesh(p, gp, t, gf, normals, centres, k_max) -> tuple[np.ndarray, n
     bound (centre distance minus the face's radius, and the distance to its plane) is below it: the others
     cannot be nearer, so the result equals computing them all (a tie keeps the earlier candidate either way).
     """
-    k = min(k_max, int(np.bincount(gf).max()))
-    dc, fi = _tree(_lifted(centres, gf)).query(_lifted(p, gp), k=k, distance_upper_bound=_PAIR_GAP_M / 2)
-    fi, dc = np.asarray(fi).reshape(len(p), k), np.asarray(dc).reshape(len(p), k)
+    dc, fi = _pair_knn(centres, f_counts, p, p_counts, min(k_max, int(f_counts.max())))
     radius = np.linalg.norm(t - centres[:, None], axis=2).max(axis=1)
     d, signed = nearest_of_candidates(p, t, normals, radius, fi.astype(np.int64), dc)  # compiled: one pass
     return d, signed
@@ -202,12 +212,12 @@ def _cues(points: list, tris: list, open_edges: list | None, seeds: list) -> np.
 
     p, gp = _cue_points(p_all, n, seeds)
     n_cue = np.bincount(gp, minlength=b)
-    d, signed = _point_to_mesh(p, gp, t, gf, normals, centres, 8)
+    d, signed = _point_to_mesh(p, n_cue, t, m, normals, centres, 8)
 
     # mesh -> points, and the shape of the point set: on at most MAX_SHAPE_POINTS points per pair
     p_sh, gs = (p_all, ga) if n.max() <= MAX_SHAPE_POINTS else _cue_points(p_all, n, seeds, MAX_SHAPE_POINTS)
     n_sh = np.bincount(gs, minlength=b)
-    dm, _ = _tree(_lifted(p_sh, gs)).query(_lifted(centres, gf), k=1, distance_upper_bound=_PAIR_GAP_M / 2)
+    dm = _pair_knn(p_sh, n_sh, centres, m, 1)[0][:, 0]
     w = np.where((total_area > 0)[gf], area / np.where(total_area > 0, total_area, 1.0)[gf], 1.0 / m[gf])
 
     # boundaries: edges of the patch without a neighbour in the patch, and tile-level open edges

@@ -10,18 +10,27 @@ import numpy as np
 def sorted_segments(values: np.ndarray, group: np.ndarray, n_groups: int) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """Values sorted within their groups: (sorted (n,) float64, start (G,) int64, count (G,) int64).
 
-    values: (n,) float64; group: (n,) int64 in [0, G). One argsort of ``value + group * span`` (span above
-    the values' range keeps the groups apart; numpy's vectorised quicksort, ~3x its stable sort here); the
-    key's rounding can only swap values closer than ~1e-16 x G x span, and the sorted array holds the
-    original values. With a NaN or inf among the values, a (slower, exact) lexsort.
+    values: (n,) float64; group: (n,) int64 in [0, G). Groups in contiguous ascending runs of 8 values or
+    more on average (a cue batch's pairs): each run sorted on its own by ``np.sort``, exactly (~7x faster
+    than one stable argsort of the batch). Otherwise one argsort of ``value + group * span`` (span above
+    the values' range keeps the groups apart; the key's rounding can only swap values closer than
+    ~1e-16 x G x span, and the sorted array holds the original values), or with a NaN or inf among the
+    values, a (slower, exact) lexsort. NaN sort last in their group either way.
     """
     v = np.asarray(values, np.float64)
+    group = np.asarray(group)
+    count = np.bincount(group, minlength=n_groups)
+    start = np.concatenate([[0], np.cumsum(count)[:-1]])
+    if len(v) >= 8 * n_groups and bool((group[1:] >= group[:-1]).all()):
+        out = np.empty_like(v)
+        for a, b in zip(start.tolist(), (start + count).tolist()):
+            out[a:b] = np.sort(v[a:b])
+        return out, start, count
     lo, hi = (float(v.min()), float(v.max())) if len(v) else (0.0, 0.0)
     span = 2.0 * (hi - lo) + 1.0
     finite = np.isfinite(span)
     order = np.argsort((v - lo) + group * span, kind="stable") if finite else np.lexsort((v, group))
-    count = np.bincount(group, minlength=n_groups)
-    return v[order], np.concatenate([[0], np.cumsum(count)[:-1]]), count
+    return v[order], start, count
 
 
 def percentile_of_sorted(seg: tuple, q: float) -> np.ndarray:
