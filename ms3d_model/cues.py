@@ -25,7 +25,7 @@ import numpy as np
 from scipy.spatial import cKDTree
 
 from .features import edge_neighbours, pair_seed, vertex_ids_from_coords
-from .cue_kernels import run_covariances, run_starts, subset_runs
+from .cue_kernels import nearest_distance_runs, run_covariances, run_starts, subset_runs
 from .kernels import closest_points_on_triangles, nearest_of_candidates
 from .segments import median_of_sorted, percentile_of_sorted, segment_max, segment_mean, sorted_segments
 
@@ -217,7 +217,7 @@ def _cues(points: list, tris: list, open_edges: list | None, seeds: list) -> np.
     # mesh -> points, and the shape of the point set: on at most MAX_SHAPE_POINTS points per pair
     p_sh, gs = (p_all, ga) if n.max() <= MAX_SHAPE_POINTS else _cue_points(p_all, n, seeds, MAX_SHAPE_POINTS)
     n_sh = np.bincount(gs, minlength=b)
-    dm = _pair_knn(p_sh, n_sh, centres, m, 1)[0][:, 0]
+    dm = nearest_distance_runs(p_sh, run_starts(n_sh), centres, run_starts(m))  # compiled grid search
     w = np.where((total_area > 0)[gf], area / np.where(total_area > 0, total_area, 1.0)[gf], 1.0 / m[gf])
 
     # boundaries: edges of the patch without a neighbour in the patch, and tile-level open edges

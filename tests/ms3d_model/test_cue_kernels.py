@@ -45,3 +45,31 @@ def test_run_covariances_equal_the_bincount_sums():
     np.testing.assert_array_equal(m, mean)
     np.testing.assert_array_equal(c, cov)
     assert c[0].max() == 0.0 and c[3].trace() > 10.0  # one point: no spread; 500 normal points: ~75
+
+
+def test_nearest_distance_runs_equals_a_kd_tree_per_run_on_awkward_point_sets():
+    from scipy.spatial import cKDTree
+
+    from ms3d_model.cue_kernels import nearest_distance_runs
+
+    rng = np.random.default_rng(6)
+    P, Q = [], []
+    for kind in range(5):
+        n = 3000
+        p = [np.c_[rng.uniform(0, 5, (n, 2)), 0.01 * rng.normal(size=n)],  # a noisy plane
+             np.c_[rng.uniform(0, 5, n), np.zeros(n), np.zeros(n)],  # a line
+             np.repeat(rng.normal(size=(1, 3)), n, 0),  # one point, repeated
+             rng.normal(size=(n, 3)) * [10, 0.1, 3],  # a thin blob
+             rng.normal(size=(1, 3))][kind] + rng.uniform(0, 100, 3)  # a single point
+        q = p[rng.integers(0, len(p), 200)] + rng.normal(scale=[0.3, 0.3, 2.0], size=(200, 3))
+        q[:5] += 40.0  # far from every point: past the ring search
+        q[5:10] = p[:5]  # on a point: distance 0
+        P.append(p)
+        Q.append(q)
+    P.append(np.zeros((0, 3)))  # a run without points: inf
+    Q.append(rng.normal(size=(3, 3)))
+    got = nearest_distance_runs(np.concatenate(P), run_starts([len(p) for p in P]), np.concatenate(Q),
+                                run_starts([len(q) for q in Q]))
+    ref = np.concatenate([cKDTree(p).query(q)[0] for p, q in zip(P[:-1], Q[:-1])] + [np.full(3, np.inf)])
+    np.testing.assert_array_equal(got, ref)
+    assert (got[5:10] == 0).all() and got[:5].min() > 30
