@@ -25,7 +25,8 @@ import numpy as np
 from scipy.spatial import cKDTree
 
 from .features import edge_neighbours, pair_seed, vertex_ids_from_coords
-from .cue_kernels import nearest_distance_runs, run_covariances, run_starts, subset_runs
+from .cue_kernels import run_covariances, run_starts, subset_runs
+from .grid_search import nearest_distance_runs
 from .kernels import closest_points_on_triangles, nearest_of_candidates
 from .segments import median_of_sorted, percentile_of_sorted, segment_max, segment_mean, sorted_segments
 
@@ -125,21 +126,25 @@ def _group_seeds(n_points, keys, seed):
     return [pair_seed(seed, int(k)) if n > MAX_CUE_POINTS else 0 for n, k in zip(n_points, keys)]
 
 
-def _cue_points(p_all: np.ndarray, counts: np.ndarray, seeds: list, cap: int = MAX_CUE_POINTS
-                ) -> tuple[np.ndarray, np.ndarray]:
-    """At most ``cap`` points per pair (a seeded subsample above it; ``MAX_CUE_POINTS`` for the point -> mesh
-    distances, ``MAX_SHAPE_POINTS`` for the whole-point-set cues): (q, 3) float64 and their (q,) pair index.
+def _cue_points(p_all: np.ndarray, counts: np.ndarray, seeds: list) -> tuple[np.ndarray, ...]:
+    """The pairs' points for the point -> mesh distances (at most ``MAX_CUE_POINTS`` per pair) and for the
+    whole-point-set cues (at most ``MAX_SHAPE_POINTS``): (q, 3) float64, their (q,) pair index, then the same
+    for the shape set. A pair above a cap gives a seeded subsample.
 
     p_all: (n, 3) float64, the pairs' points as contiguous runs of ``counts`` (B,) rows. The subset is
     ``order_free_subset`` of each pair (chosen by the points' coordinates, not their rows: any input order,
-    same cues), batched in one compiled pass."""
+    same cues), both sizes in one compiled pass."""
     b = len(counts)
-    if counts.max() <= cap:
-        return p_all, np.repeat(np.arange(b), counts)
-    start = run_starts(counts)
+    g_all = np.repeat(np.arange(b), counts)
+    if counts.max() <= MAX_CUE_POINTS:
+        return p_all, g_all, p_all, g_all
     seeds64 = np.array([int(s) % 2**64 for s in seeds], np.uint64)
-    rows = subset_runs(np.ascontiguousarray(p_all, np.float64).view(np.uint64), seeds64, start, cap)
-    return p_all[rows], np.repeat(np.arange(b), np.minimum(counts, cap))
+    cue, shape = subset_runs(np.ascontiguousarray(p_all, np.float64).view(np.uint64), seeds64, run_starts(counts),
+                             MAX_CUE_POINTS, MAX_SHAPE_POINTS)
+    if counts.max() <= MAX_SHAPE_POINTS:
+        return p_all[cue], np.repeat(np.arange(b), np.minimum(counts, MAX_CUE_POINTS)), p_all, g_all
+    return (p_all[cue], np.repeat(np.arange(b), np.minimum(counts, MAX_CUE_POINTS)),
+            p_all[shape], np.repeat(np.arange(b), np.minimum(counts, MAX_SHAPE_POINTS)))
 
 
 def _pair_knn(data: np.ndarray, d_counts: np.ndarray, queries: np.ndarray, q_counts: np.ndarray, k: int
@@ -210,12 +215,11 @@ def _cues(points: list, tris: list, open_edges: list | None, seeds: list) -> np.
     centres = t.mean(axis=1)
     total_area = np.bincount(gf, area, minlength=b)
 
-    p, gp = _cue_points(p_all, n, seeds)
+    p, gp, p_sh, gs = _cue_points(p_all, n, seeds)
     n_cue = np.bincount(gp, minlength=b)
     d, signed = _point_to_mesh(p, n_cue, t, m, normals, centres, 8)
 
     # mesh -> points, and the shape of the point set: on at most MAX_SHAPE_POINTS points per pair
-    p_sh, gs = (p_all, ga) if n.max() <= MAX_SHAPE_POINTS else _cue_points(p_all, n, seeds, MAX_SHAPE_POINTS)
     n_sh = np.bincount(gs, minlength=b)
     dm = nearest_distance_runs(p_sh, run_starts(n_sh), centres, run_starts(m))  # compiled grid search
     w = np.where((total_area > 0)[gf], area / np.where(total_area > 0, total_area, 1.0)[gf], 1.0 / m[gf])

@@ -25,7 +25,6 @@ from functools import lru_cache
 
 import numpy as np
 
-from tasks.export.kernels import accumulate_face_normals
 from tasks.export.vertex_split import split_by_feature
 
 GLB_MAGIC, CHUNK_JSON, CHUNK_BIN = 0x46546C67, 0x4E4F534A, 0x004E4942
@@ -92,8 +91,12 @@ class GltfMesh:
 
 def vertex_normals(positions: np.ndarray, faces: np.ndarray) -> np.ndarray:
     """(n, 3) float32 unit area-weighted vertex normals; (0, 1, 0) (up) where undefined."""
-    p = np.ascontiguousarray(positions, np.float64)
-    acc = accumulate_face_normals(p, np.ascontiguousarray(faces, np.int64))  # compiled, bincount's sums
+    p = positions.astype(np.float64)
+    fn = np.cross(p[faces[:, 1]] - p[faces[:, 0]], p[faces[:, 2]] - p[faces[:, 0]])
+    acc = np.zeros((len(p), 3))
+    corners = faces.reshape(-1)
+    for d in range(3):
+        acc[:, d] = np.bincount(corners, weights=np.repeat(fn[:, d], 3), minlength=len(p))
     norm = np.linalg.norm(acc, axis=1)
     ok = norm > 1e-20
     out = np.tile(np.array([0.0, 1.0, 0.0]), (len(p), 1))

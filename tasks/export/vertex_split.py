@@ -5,8 +5,6 @@ from __future__ import annotations
 
 import numpy as np
 
-from tasks.export.kernels import single_feature_vertices
-
 
 def split_by_feature(faces: np.ndarray, feature: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """Compact the vertices of ``faces`` so that no vertex is shared by faces of different features.
@@ -41,8 +39,15 @@ def split_by_feature(faces: np.ndarray, feature: np.ndarray) -> tuple[np.ndarray
 def _single_feature_split(faces: np.ndarray, feature: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray] | None:
     """:func:`split_by_feature` in linear time when no vertex is shared by faces of different features (the
     common case: merged tiles split their vertices at texture seams); None otherwise."""
-    if int(faces.max()) + 1 > 4 * faces.size:  # a table sized by the vertex ids would cost more than a sort
+    corners = faces.reshape(-1)
+    if int(corners.max()) + 1 > 4 * corners.size:  # a table sized by the vertex ids would cost more than a sort
         return None
-    ok, new_faces, src, fid = single_feature_vertices(np.ascontiguousarray(faces, np.int64),
-                                                      np.ascontiguousarray(feature, np.int64), int(faces.max()) + 1)
-    return (new_faces, src, fid) if ok else None
+    corner_feature = np.repeat(feature, 3)
+    of_vertex = np.full(int(corners.max()) + 1, -1, np.int64)
+    of_vertex[corners] = corner_feature
+    if (of_vertex[corners] != corner_feature).any():
+        return None
+    used = of_vertex >= 0
+    new_id = np.cumsum(used) - 1
+    src = np.flatnonzero(used)
+    return new_id[faces], src, of_vertex[src]

@@ -12,22 +12,22 @@ def _runs(rng, sizes):
     return pts, np.concatenate(pts), np.array(sizes, np.int64)
 
 
-def test_subset_runs_equals_order_free_subset_of_every_pair():
+def test_subset_runs_equals_order_free_subset_of_every_pair_at_both_sizes():
     rng = np.random.default_rng(4)
-    pts, p_all, counts = _runs(rng, [5, 3000, 1024, 1025, 40000, 1, 2500])
+    pts, p_all, counts = _runs(rng, [5, 3000, 1024, 1025, 40000, 1, 2500, 3001])
     pts[1][100:140] = pts[1][7]  # identical points: interchangeable rows, the same coordinates picked
     p_all = np.concatenate(pts)
-    seeds = [11, 2**63 + 5, 0, 3, 77, 9, 2**64 - 1]
+    seeds = [11, 2**63 + 5, 0, 3, 77, 9, 2**64 - 1, 5]
     start = run_starts(counts)
-    rows = subset_runs(p_all.view(np.uint64), np.array(seeds, np.uint64), start, 1024)
-    got = p_all[rows]
-    ref = np.concatenate([p[order_free_subset(p, 1024, s)] if len(p) > 1024 else p for p, s in zip(pts, seeds)])
-    assert got.shape == ref.shape == (5 + 1024 + 1024 + 1024 + 1024 + 1 + 1024, 3)
-    np.testing.assert_array_equal(got, ref)
+    small, large = subset_runs(p_all.view(np.uint64), np.array(seeds, np.uint64), start, 1024, 3000)
+    for rows, cap in ((small, 1024), (large, 3000)):
+        ref = np.concatenate([p[order_free_subset(p, cap, s)] if len(p) > cap else p for p, s in zip(pts, seeds)])
+        assert len(rows) == sum(min(len(p), cap) for p in pts)
+        np.testing.assert_array_equal(p_all[rows], ref)
     # a pair's subset does not depend on its rows' order, nor on the other pairs
     perm = rng.permutation(40000)
-    alone = subset_runs(pts[4][perm].view(np.uint64), np.array([77], np.uint64), run_starts([40000]), 1024)
-    np.testing.assert_array_equal(pts[4][perm][alone], ref[3077:4101])
+    alone, _ = subset_runs(pts[4][perm].view(np.uint64), np.array([77], np.uint64), run_starts([40000]), 1024, 3000)
+    np.testing.assert_array_equal(pts[4][perm][alone], pts[4][order_free_subset(pts[4], 1024, 77)])
 
 
 def test_run_covariances_equal_the_bincount_sums():
@@ -50,7 +50,7 @@ def test_run_covariances_equal_the_bincount_sums():
 def test_nearest_distance_runs_equals_a_kd_tree_per_run_on_awkward_point_sets():
     from scipy.spatial import cKDTree
 
-    from ms3d_model.cue_kernels import nearest_distance_runs
+    from ms3d_model.grid_search import nearest_distance_runs
 
     rng = np.random.default_rng(6)
     P, Q = [], []
