@@ -15,13 +15,15 @@ from __future__ import annotations
 
 import argparse
 import sys
-import time
 from pathlib import Path
 
 import numpy as np
 from scipy.spatial import cKDTree
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
+sys.path.insert(0, str(Path(__file__).resolve().parent))
+
+from kernel_bench import run_cases
 
 from ms3d_model.cue_kernels import run_covariances, run_starts, subset_runs
 from ms3d_model.cues import _pair_knn
@@ -89,15 +91,6 @@ def nearest_numpy(p, n, cen, m):
 
 # --------------------------------------------------------------------- the bench
 
-def best(fn, repeat: int) -> tuple[float, object]:
-    out, times = None, []
-    for _ in range(repeat):
-        t = time.perf_counter()
-        out = fn()
-        times.append(time.perf_counter() - t)
-    return min(times), out
-
-
 def main(argv=None) -> list[dict]:
     ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     ap.add_argument("--pairs", type=int, default=300)
@@ -128,16 +121,7 @@ def main(argv=None) -> list[dict]:
         ("mesh -> point distance", f"{len(p):,} points", lambda: nearest_numpy(p, n, cen, m),
          lambda: nearest_distance_runs(p, run_starts(n), cen, run_starts(m)), lambda o, w: np.array_equal(o, w)),
     ]
-    print(f"{'kernel':<32}{'input':>20}{'numpy s':>10}{'ms3d s':>10}{'speed-up':>10}  same result")
-    out = []
-    for name, size, old, new, same in cases:
-        t_old, o = best(old, a.repeat)
-        t_new, w = best(new, a.repeat)
-        ok = bool(same(o, w))
-        print(f"{name:<32}{size:>20}{t_old:>10.3f}{t_new:>10.3f}{t_old / t_new:>9.1f}x  {ok}")
-        out.append({"kernel": name, "numpy_s": t_old, "ms3d_s": t_new, "same": ok})
-    return out
-
+    return run_cases(cases, a.repeat)
 
 if __name__ == "__main__":
     main()

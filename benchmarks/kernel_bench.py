@@ -174,6 +174,20 @@ def best(fn, repeat: int) -> tuple[float, object]:
     return min(times), out
 
 
+def run_cases(cases: list, repeat: int) -> list[dict]:
+    """Time each (name, size, numpy fn, ms3d fn, same(numpy out, ms3d out)) case, best of ``repeat``, print
+    the side-by-side table and return its rows."""
+    print(f"{'kernel':<34}{'input':>20}{'numpy s':>10}{'ms3d s':>10}{'speed-up':>10}  same result")
+    rows_out = []
+    for name, size, old, new, same in cases:
+        t_old, o = best(old, repeat)
+        t_new, n = best(new, repeat)
+        ok = bool(same(o, n))
+        print(f"{name:<34}{size:>20}{t_old:>10.3f}{t_new:>10.3f}{t_old / t_new:>9.1f}x  {ok}")
+        rows_out.append({"kernel": name, "numpy_s": t_old, "ms3d_s": t_new, "same": ok})
+    return rows_out
+
+
 def main(argv=None) -> list[dict]:
     ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     ap.add_argument("--points", type=int, default=500_000)
@@ -186,7 +200,7 @@ def main(argv=None) -> list[dict]:
     p = rng.uniform(0, 2, size=(1024 * 900, 3))
     rows = rng.integers(0, len(tri), len(p))
     side = int(np.sqrt(len(xyz)))
-    r, c = np.meshgrid(np.arange(0, side - 1, 2), np.arange(0, side - 1, 2), indexing="ij")
+    r, c = np.meshgrid(np.arange(0, side - 2, 2), np.arange(0, side - 2, 2), indexing="ij")
     a0 = (r * side + c).ravel()
     wall_tri = np.stack([xyz[a0], xyz[a0 + 2], xyz[a0 + 2 * side]], axis=1)  # 10 cm triangles over the wall
     cent = wall_tri.mean(axis=1)
@@ -213,16 +227,7 @@ def main(argv=None) -> list[dict]:
          lambda: nearest_of_candidates(dense[:900_000], wall_tri, nrm, rad, fi.astype(np.int64), dc),
          lambda o, n: np.abs(o[0] - n[0]).max() < 1e-12 and np.abs(o[1] - n[1]).max() < 1e-12),
     ]
-    print(f"{'kernel':<34}{'input':>20}{'numpy s':>10}{'ms3d s':>10}{'speed-up':>10}  same result")
-    rows_out = []
-    for name, size, old, new, same in cases:
-        t_old, o = best(old, a.repeat)
-        t_new, n = best(new, a.repeat)
-        ok = bool(same(o, n))
-        print(f"{name:<34}{size:>20}{t_old:>10.3f}{t_new:>10.3f}{t_old / t_new:>9.1f}x  {ok}")
-        rows_out.append({"kernel": name, "numpy_s": t_old, "ms3d_s": t_new, "same": ok})
-    return rows_out
-
+    return run_cases(cases, a.repeat)
 
 if __name__ == "__main__":
     main()

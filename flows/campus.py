@@ -49,8 +49,8 @@ from flows.tasks import (
 from storage.errors import InputError
 from storage.housekeeping import drop_unplanned_records, sweep_temporary_files, work_dir_lock
 from storage.manifest import consolidate
-from storage.staging import prune_staging
 from storage.patch_store import FACES_FILE, POINTS_FILE
+from storage.staging import prune_staging
 from storage.workdir import WorkDir, write_campus
 from tasks.batches import balanced_batches, fixed_batches
 from tasks.config import CampusConfig

@@ -24,8 +24,8 @@ from __future__ import annotations
 import numpy as np
 from scipy.spatial import cKDTree
 
-from .features import edge_neighbours, pair_seed, vertex_ids_from_coords
 from .cue_kernels import run_covariances, run_starts, subset_runs
+from .features import edge_neighbours, pair_seed, vertex_ids_from_coords
 from .grid_search import nearest_distance_runs
 from .kernels import closest_points_on_triangles, nearest_of_candidates
 from .segments import median_of_sorted, percentile_of_sorted, segment_max, segment_mean, sorted_segments

@@ -79,7 +79,7 @@ def _cell_min(p, rows, start, cell, qx, qy, qz, best):
         i = rows[r]
         dx, dy, dz = qx - p[i, 0], qy - p[i, 1], qz - p[i, 2]
         d2 = dx * dx + dy * dy + dz * dz
-        if d2 < best:
+        if d2 < best:  # noqa: PLR1730 - explicit: a NaN distance never wins
             best = d2
     return best
 
@@ -101,7 +101,7 @@ def nearest_distance_runs(p: np.ndarray, p_start: np.ndarray, q: np.ndarray, q_s
             qx, qy, qz = q[j, 0], q[j, 1], q[j, 2]
             ci = np.empty(3, np.int64)
             for c in range(3):
-                ci[c] = min(max(int(math.floor((q[j, c] - lo[c]) / h)), 0), dims[c] - 1)
+                ci[c] = min(max(int(math.floor((q[j, c] - lo[c]) / h)), 0), dims[c] - 1)  # noqa: RUF046
             best = np.inf
             r = 0
             while True:
@@ -109,7 +109,7 @@ def nearest_distance_runs(p: np.ndarray, p_start: np.ndarray, q: np.ndarray, q_s
                     for i in range(a, e):
                         dx, dy, dz = qx - p[i, 0], qy - p[i, 1], qz - p[i, 2]
                         d2 = dx * dx + dy * dy + dz * dz
-                        if d2 < best:
+                        if d2 < best:  # noqa: PLR1730 - explicit: a NaN distance never wins
                             best = d2
                     break
                 for ix in range(max(ci[0] - r, 0), min(ci[0] + r, dims[0] - 1) + 1):
