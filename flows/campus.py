@@ -180,7 +180,7 @@ def _inputs(run: _Run) -> dict:
             "incomplete": incomplete, "registration": registration}
 
 
-def largest_first(wd, tiles: list[str]) -> list[str]:
+def largest_first(wd: WorkDir, tiles: list[str]) -> list[str]:
     """``tiles`` by the size of their patch stores, largest first (ties in key order): a stage's longest units
     start first and the short ones fill the end, instead of one long unit running alone on the last worker
     (measured: 8 s of one idle core at the end of classify on the real-density campus). A store that cannot

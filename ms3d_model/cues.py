@@ -10,11 +10,12 @@ network has to clear.
 mesh boundary: a hole), as opposed to the patch's own cut; a face whose neighbour lies in the next tile
 counts as open too (rare: only along tile borders).
 
-Vectorised over pairs: a batch's points and faces are concatenated with a pair index, one k-d tree per kind
-serves every pair (the pair index lifted onto a fourth axis, so no neighbour crosses pairs), and per-pair
-means, sums, maxima and percentiles are segment reductions (``np.bincount``, ``reduceat``), and the per-pair
-sorts, covariances and seeded subsamples (of a pair above ``MAX_CUE_POINTS`` points) are compiled loops over
-the pairs' runs (:mod:`ms3d_model.cue_kernels`). The numbers
+Vectorised over pairs: a batch's points and faces are concatenated as contiguous runs, one per pair; the
+nearest searches stay within a pair (a small k-d tree per pair for the point -> face candidates, a grid per
+pair for the mesh -> point distances, :mod:`ms3d_model.grid_search`); per-pair means, sums and maxima are
+segment reductions (``np.bincount``, ``reduceat``), and the per-pair sorts, covariances and seeded subsamples
+(of a pair above ``MAX_CUE_POINTS`` points) are compiled loops over the runs (:mod:`ms3d_model.cue_kernels`).
+The numbers
 equal the per-pair loop this replaced (tests/ms3d_model/test_cues.py keeps it as the reference), except
 that a zero-area face now gives distances to its longest side instead of NaN.
 """
@@ -155,8 +156,8 @@ def _pair_knn(data: np.ndarray, d_counts: np.ndarray, queries: np.ndarray, q_cou
 
     One small 3D k-d tree per pair (sliding-midpoint splits: ~2x faster to build than median splits,
     queries exact). One tree over every pair, the pair lifted onto a fourth axis, gives the same neighbours
-    (the fourth term of a distance within a pair is exactly 0) but costs ~1.5x: a deeper tree, and the
-    (n, 4) copies."""
+    (the fourth term of a distance within a pair is exactly 0) at ~1.2x the time: a deeper tree, and the
+    (n, 4) copies (``benchmarks/cue_kernel_bench.py``)."""
     dist = np.full((len(queries), k), np.inf)
     rows = np.full((len(queries), k), len(data), np.int64)
     d_start, q_start = run_starts(d_counts), run_starts(q_counts)
