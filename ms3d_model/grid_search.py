@@ -3,7 +3,7 @@
 The rows of a cue batch come as contiguous runs, one per pair (pair 0's rows, then pair 1's, ...), and a
 neighbour must come from the query's own run. A grid per run is built in linear time (a counting sort of
 the rows by cell) and searched in rings of cells around the query's cell, until no cell outside the rings
-can hold a nearer row (their distance bound exceeds the k-th best, with 1e-9 relative slack for the cells'
+can hold a nearer row (their distance bound exceeds the best so far, with 1e-9 relative slack for the cells'
 rounding). A query far from its run's rows (more than ``MAX_RINGS`` rings) compares every row.
 
 :func:`nearest_distance_runs` gives the distance to the nearest row: the classify mesh -> point distances,
