@@ -258,8 +258,12 @@ def _outputs(run: _Run) -> tuple[dict, dict]:
     def map_jobs(jobs: list) -> list[dict]:  # one level of the quadtree at a time; records in job order
         with dask.annotate(priority=EXPORT_PRIORITY):  # the export's levels are the chain the run waits on
             mapped = ex.map(export_nodes_task, node_batches(jobs, run.n_workers), "export")
-        start_renders()  # after the leaves: on a worker's queue, a task of lower priority runs after them
-        return node_records(mapped.results(), len(jobs))
+        done = mapped.results()
+        # once the leaves are built: the upper levels and the driver's points overlay leave a core idle. Submitted
+        # beside the leaves, the renders took the first worker whose own queue ran dry while the other still had
+        # leaves queued (a queued task does not move for a priority): the leaves' level ended ~10 s later
+        start_renders()
+        return node_records(done, len(jobs))
 
     qplan = quality_plan(local_view(cfg, "truth"), wd) if cfg.report.enabled and cfg.report.quality else None
     parts = quality_parts(qplan, run.n_workers)

@@ -216,20 +216,21 @@ def _knn_edges(xyz: np.ndarray, k: int) -> tuple[np.ndarray, np.ndarray, np.ndar
 
 def graph_cut_fuse(mesh_xyz: np.ndarray, mesh_n: np.ndarray, mls_xyz: np.ndarray, mls_n: np.ndarray,
                    params: FusionParams = FusionParams(), forced: np.ndarray | None = None,
-                   locked: np.ndarray | None = None) -> FusionResult:
+                   locked: np.ndarray | None = None, mls_tree: cKDTree | None = None) -> FusionResult:
     """Decide which mesh vertices the MLS replaces and which MLS points join them (§5.1).
 
     mesh_xyz, mesh_n: (nv, 3) float vertex positions and unit normals (outward);
     mls_xyz, mls_n: (np, 3) float MLS points and unit normals (oriented like the mesh's);
     forced: optional (nv,) bool vertices that must be replaced (typed repair: protrusion, recess);
-    locked: optional (nv,) bool vertices that must stay (e.g. the region's border ring).
+    locked: optional (nv,) bool vertices that must stay (e.g. the region's border ring);
+    mls_tree: the k-d tree of mls_xyz when the caller has it (else built here).
     Returns a :class:`FusionResult`.
     """
     p = params
     mv, mp = np.asarray(mesh_xyz, np.float64), np.asarray(mls_xyz, np.float64)
     nv, npt = len(mv), len(mp)
     tau, w = p.similarity_threshold, p.unary_weight
-    mls_tree = cKDTree(mp) if npt else None
+    mls_tree = (mls_tree if mls_tree is not None else cKDTree(mp)) if npt else None
     mesh_tree = cKDTree(mv) if nv else None
     s_v = best_similarity(mv, mesh_n, mp, mls_n, mls_tree, p) if npt else np.zeros(nv)
     s_p = best_similarity(mp, mls_n, mv, mesh_n, mesh_tree, p) if nv else np.zeros(npt)

@@ -90,12 +90,12 @@ class RegionGeometry:
 
 
 def _thinned_mls(data: RegionInput, fc, zone_v: np.ndarray, vn: np.ndarray
-                 ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+                 ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray, cKDTree | None]:
     """The region's MLS points without the dropped classes, thinned to ``fc.mls_spacing_m`` and to
     ``fc.detail_spacing_m`` where their surface is not flat (:func:`tasks.repair.coarsen.thin_with_detail`;
     neither when ``fc.thin`` is off), and the context points to ``fc.mls_spacing_m``; PCA normals oriented
     like the mesh. Returns (mls (p, 3), mls normals (p, 3), mls + context points (p + q, 3), their normals
-    (p + q, 3)), float64."""
+    (p + q, 3), float64; the k-d tree of mls + context, None when empty: every later query of them shares it)."""
     keep = ~np.isin(data.mls_class, np.asarray(fc.drop_classes, np.uint8))
     mls, ctx = data.mls_xyz[keep], data.ctx_xyz if len(data.ctx_xyz) else np.zeros((0, 3))
     if fc.thin:
@@ -103,12 +103,13 @@ def _thinned_mls(data: RegionInput, fc, zone_v: np.ndarray, vn: np.ndarray
                                    fc.detail_tolerance_m)]
         ctx = ctx[thin_points(ctx, fc.mls_spacing_m)]
     both = np.concatenate([mls, ctx])
+    tree = cKDTree(both) if len(both) else None
     if len(both) >= 3:
-        nrm, _ = pca_normals(both, fc.normal_k)
+        nrm, _ = pca_normals(both, fc.normal_k, tree)
         nrm = orient_like(nrm, both, data.xyz[zone_v] if len(zone_v) else data.xyz, vn[zone_v] if len(zone_v) else vn)
     else:
         nrm = np.zeros((len(both), 3))
-    return mls, nrm[: len(mls)], both, nrm
+    return mls, nrm[: len(mls)], both, nrm, tree
 
 
 def _hole_area_m2(data: RegionInput, zone_v: np.ndarray, mls: np.ndarray, mls_n: np.ndarray, spacing_m: float) -> float:
@@ -124,7 +125,7 @@ def _hole_area_m2(data: RegionInput, zone_v: np.ndarray, mls: np.ndarray, mls_n:
 
 
 def _conflicts(data: RegionInput, zone_v: np.ndarray, vn: np.ndarray, mls: np.ndarray, mls_n: np.ndarray, tc,
-               params: FusionParams, stats: dict) -> np.ndarray | None:
+               params: FusionParams, stats: dict, mls_tree: cKDTree) -> np.ndarray | None:
     """(v,) bool zone vertices the MLS contradicts (a dissimilar MLS point within ``tc.conflict_radius_m``,
     or, with ``tc.front_m``, the vertex lies more than that in front of the MLS surface); None when the
     typed repair does not look for conflicts. Adds the counts to ``stats``."""
@@ -133,13 +134,13 @@ def _conflicts(data: RegionInput, zone_v: np.ndarray, vn: np.ndarray, mls: np.nd
     from tasks.repair.fuse import best_similarity
 
     near = in_view(data.xyz[zone_v], vn[zone_v], mls, radius_m=tc.conflict_radius_m, cone_deg=tc.conflict_cone_deg,
-                   pts_n=mls_n, min_cos=tc.conflict_min_cos)
-    sim = best_similarity(data.xyz[zone_v], vn[zone_v], mls, mls_n, cKDTree(mls), params)
+                   pts_n=mls_n, min_cos=tc.conflict_min_cos, tree=mls_tree)
+    sim = best_similarity(data.xyz[zone_v], vn[zone_v], mls, mls_n, mls_tree, params)
     conflict = near & (sim < params.similarity_threshold)
     stats["conflict"] = int(conflict.sum())
     if tc.front_m > 0:
-        far = ~np.isfinite(cKDTree(mls).query(data.xyz[zone_v], distance_upper_bound=tc.conflict_radius_m)[0])
-        d2, j2 = cKDTree(mls).query(data.xyz[zone_v][far], distance_upper_bound=tc.front_reach_m)
+        far = ~np.isfinite(mls_tree.query(data.xyz[zone_v], distance_upper_bound=tc.conflict_radius_m)[0])
+        d2, j2 = mls_tree.query(data.xyz[zone_v][far], distance_upper_bound=tc.front_reach_m)
         ok = np.isfinite(d2)
         jj = np.where(ok, j2, 0)
         off = np.einsum("ij,ij->i", data.xyz[zone_v][far] - mls[jj], mls_n[jj])
@@ -151,7 +152,8 @@ def _conflicts(data: RegionInput, zone_v: np.ndarray, vn: np.ndarray, mls: np.nd
 
 
 def in_view(xyz: np.ndarray, normals: np.ndarray, pts: np.ndarray, *, radius_m: float, cone_deg: float,
-            k: int = 16, pts_n: np.ndarray | None = None, min_cos: float = 0.0) -> np.ndarray:
+            k: int = 16, pts_n: np.ndarray | None = None, min_cos: float = 0.0, tree: cKDTree | None = None
+            ) -> np.ndarray:
     """(v,) bool: vertices (v, 3) with one of their ``k`` nearest points (p, 3) within ``radius_m`` inside
     the double cone of half-angle ``cone_deg`` around the vertex normal (v, 3): in front of or behind the
     vertex, where the scan says something about it. A scanned wall top beside an unseen roof edge is not
@@ -160,10 +162,10 @@ def in_view(xyz: np.ndarray, normals: np.ndarray, pts: np.ndarray, *, radius_m: 
     vertex is beyond the scan's edge, and a point farther down the wall that happens to fall in the cone
     says nothing of it (measured with k = 16 on the tiny campus: docs/repair.md). With ``pts_n`` (p, 3),
     the point must also face like the vertex (|cos| >= ``min_cos``): a parallel surface displaced, not a
-    wall meeting the roof at its edge."""
+    wall meeting the roof at its edge. tree: the k-d tree of ``pts`` when the caller has it."""
     if not (len(xyz) and len(pts)):
         return np.zeros(len(xyz), bool)
-    d, j = cKDTree(pts).query(xyz, k=min(k, len(pts)), distance_upper_bound=radius_m)
+    d, j = (tree if tree is not None else cKDTree(pts)).query(xyz, k=min(k, len(pts)), distance_upper_bound=radius_m)
     d, j = d.reshape(len(xyz), -1), j.reshape(len(xyz), -1)
     ok = np.isfinite(d)
     if cone_deg >= 90:
@@ -254,16 +256,16 @@ def repair_region_geometry(data: RegionInput, cfg) -> RegionGeometry:
     thinned = _thinned_mls(data, fc, np.unique(data.zone_faces), vn)
     keep = np.zeros(len(data.zone_faces), bool)
     if mc.keep_unseen_m > 0 and len(data.zone_faces):
-        _, _, both, nrm = thinned
+        _, _, both, nrm, both_tree = thinned
         oh = overhead_faces(data.xyz, data.zone_faces, both, min_height_m=mc.overhead_min_height_m)
         top = oh & top_faces(data.xyz, data.zone_faces)
         oh_v, top_v = np.zeros(len(data.xyz), bool), np.zeros(len(data.xyz), bool)
         oh_v[data.zone_faces[oh].ravel()] = True
         top_v[data.zone_faces[top].ravel()] = True
         covered = covered_along_normal(data.xyz, vn, both, nrm, depth_m=fc.point_depth_m,
-                                       lateral_m=1.5 * fc.mls_spacing_m, overhead=oh_v, top=top_v)
+                                       lateral_m=1.5 * fc.mls_spacing_m, overhead=oh_v, top=top_v, tree=both_tree)
         keep = unseen_faces(data.xyz, data.zone_faces, both, covered, clear_m=mc.keep_unseen_m, step_m=mc.fill_step_m,
-                            overhead=oh, mls_n=nrm, top=top)
+                            overhead=oh, mls_n=nrm, top=top, tree=both_tree)
         keep = tidy_keep(data.xyz, data.zone_faces, keep, oh, mc.keep_min_area_m2)
         if keep.all() and not (keep & oh).any():  # all unseen: the typed plan leaves it
             keep = np.zeros(len(keep), bool)
@@ -287,27 +289,27 @@ def _repair(data: RegionInput, cfg, vn: np.ndarray, thinned: tuple) -> RegionGeo
     mz = len(data.zone_faces)
     zone_v = np.unique(data.zone_faces)
     locked = np.isin(zone_v, border_edges(data.zone_faces, data.context_faces, len(data.xyz)).ravel())
-    mls, mls_n, both, nrm = thinned
+    mls, mls_n, both, nrm, tree = thinned
     stats: dict = {"mls_points": len(data.mls_xyz), "mls_thinned": len(mls)}
     if mc.retained_point_m > 0 and len(mls) and len(data.context_faces) and mz:
         off = on_retained(mls, data.xyz, data.zone_faces, data.context_faces, mc.retained_point_m)
         stats["on_retained"] = int(off.sum())  # the retained surface explains them: not rebuilt into a chart
         mls, mls_n = mls[~off], mls_n[~off]
+    mls_tree = cKDTree(mls) if len(mls) else None  # the fused MLS points' tree: conflicts and the graph cut
     t1 = time.perf_counter()
     # evidence (typed repair) from the MLS surface over zone + context
-    tree = cKDTree(both) if len(both) else None
     covered, offset = coverage_offsets(data.xyz[zone_v], both, nrm, tree, fc.point_depth_m, 1.5 * fc.mls_spacing_m)
     zone_area = float(triangle_areas(data.xyz, data.zone_faces).sum())
     topo = zone_charts(data.xyz, data.zone_faces, data.context_faces, data.near_zone, mc.max_hole_loop_m)
     ev = classify_evidence(covered, offset, offset_m=tc.offset_m,
                            hole_area_m2=_hole_area_m2(data, zone_v, mls, mls_n, fc.mls_spacing_m),
                            open_loop_m=topo.hole_length_m, zone_area_m2=zone_area, min_coverage=tc.min_coverage)
-    conflict = _conflicts(data, zone_v, vn, mls, mls_n, tc, params, stats)
+    conflict = _conflicts(data, zone_v, vn, mls, mls_n, tc, params, stats, mls_tree)
     plan = repair_plan(ev, covered, offset, typed=tc.enabled, offset_m=tc.offset_m, conflict=conflict,
                        uncovered=tc.uncovered)
     free = _free_part(data, mls, mc, fc, stats)
     if plan.mesh_only:
-        mls, mls_n = mls[:0], mls_n[:0]
+        mls, mls_n, mls_tree = mls[:0], mls_n[:0], None
     stats |= {"plan": plan.reason, "charts": len(topo.charts), "non_disc_faces": len(topo.rejected)}
     t2 = time.perf_counter()
     if not plan.rebuild or not topo.charts:
@@ -316,7 +318,8 @@ def _repair(data: RegionInput, cfg, vn: np.ndarray, thinned: tuple) -> RegionGeo
         if mesh.n_faces:
             _finish_stats(stats, data, mesh, np.zeros(mz, bool), zone_area)
         return RegionGeometry(mesh, np.zeros(mz, bool), ev, np.zeros((0, 3)), np.zeros(0, np.int8), stats)
-    fr = graph_cut_fuse(data.xyz[zone_v], vn[zone_v], mls, mls_n, params, forced=plan.forced & ~locked, locked=locked)
+    fr = graph_cut_fuse(data.xyz[zone_v], vn[zone_v], mls, mls_n, params, forced=plan.forced & ~locked, locked=locked,
+                        mls_tree=mls_tree)
     stats["fusion"] = {"vertices": len(zone_v), "replaced": int(fr.replaced.sum()),
                        "accepted": int(fr.accepted.sum()), "rejected": int((~fr.accepted).sum()),
                        "forced": int((plan.forced & ~locked).sum()), "energy": fr.energy}
@@ -342,7 +345,8 @@ def _repair(data: RegionInput, cfg, vn: np.ndarray, thinned: tuple) -> RegionGeo
                           pts_normal=pn, stand_off_m=mc.stand_off_m)
     replaced = np.ones(mz, bool)
     replaced[topo.rejected] = False
-    stats["unsupported_share"] = unsupported_share(mesh.xyz, mesh.faces, both, nrm, data.xyz, data.zone_faces)
+    stats["unsupported_share"] = unsupported_share(mesh.xyz, mesh.faces, both, nrm, data.xyz, data.zone_faces,
+                                                   tree=tree)
     if stats["unsupported_share"] > mc.max_unsupported_share:  # invented geometry: the input mesh stays
         stats["plan"] = f"fallback: {stats['unsupported_share']:.0%} of the rebuilt surface unsupported"
         mesh, replaced = empty_mesh(), np.zeros(mz, bool)

@@ -96,8 +96,8 @@ def _near_evidence(tree: cKDTree, mls: np.ndarray, mls_n: np.ndarray | None, q: 
 
 def unseen_faces(xyz: np.ndarray, faces: np.ndarray, mls: np.ndarray, covered_vertex: np.ndarray, *,
                  clear_m: float, step_m: float, overhead: np.ndarray | None = None,
-                 under_tol_m: float = 0.05, mls_n: np.ndarray | None = None, top: np.ndarray | None = None
-                 ) -> np.ndarray:
+                 under_tol_m: float = 0.05, mls_n: np.ndarray | None = None, top: np.ndarray | None = None,
+                 tree: cKDTree | None = None) -> np.ndarray:
     """(m,) bool: faces (m, 3) int64 into xyz (n, 3) with no MLS point (p, 3) within ``clear_m`` of their
     vertices, centroid or surface samples (``step_m`` apart), and none of whose vertices is covered
     (covered_vertex: (n,) bool, the MLS surface lies along the vertex normal). clear_m <= 0: none.
@@ -105,6 +105,7 @@ def unseen_faces(xyz: np.ndarray, faces: np.ndarray, mls: np.ndarray, covered_ve
     face's plane do not count, nor, given the points' normals mls_n (p, 3), points facing sideways beside it
     (``covered_vertex``: pass it computed likewise). top: (m,) bool overhead faces whose winding normal
     points up (a roof's top, never seen from below): only points more than ``under_tol_m`` above count.
+    tree: the k-d tree of ``mls`` when the caller has it.
 
     >>> xyz = np.array([[0, 0, 0], [1, 0, 0], [0, 1, 0], [10, 0, 0], [11, 0, 0], [10, 1, 0]], float)
     >>> f = np.array([[0, 1, 2], [3, 4, 5]])
@@ -119,7 +120,7 @@ def unseen_faces(xyz: np.ndarray, faces: np.ndarray, mls: np.ndarray, covered_ve
     if not len(mls):
         return keep
     oh = np.zeros(m, bool) if overhead is None else np.asarray(overhead, bool)
-    tree = cKDTree(mls)
+    tree = tree if tree is not None else cKDTree(mls)
     tri = xyz[faces]
     up = np.cross(tri[:, 1] - tri[:, 0], tri[:, 2] - tri[:, 0])
     up *= np.where(up[:, 2] < 0, -1.0, 1.0)[:, None] / np.maximum(np.linalg.norm(up, axis=1), 1e-300)[:, None]
@@ -147,7 +148,8 @@ def unseen_faces(xyz: np.ndarray, faces: np.ndarray, mls: np.ndarray, covered_ve
 
 def covered_along_normal(xyz: np.ndarray, normals: np.ndarray, pts: np.ndarray, pts_n: np.ndarray, *,
                          depth_m: float, lateral_m: float, min_cos: float = 0.5, overhead: np.ndarray | None = None,
-                         under_tol_m: float = 0.05, top: np.ndarray | None = None) -> np.ndarray:
+                         under_tol_m: float = 0.05, top: np.ndarray | None = None, tree: cKDTree | None = None
+                         ) -> np.ndarray:
     """(n,) bool: vertices (n, 3) whose nearest MLS point (p, 3) lies within ``depth_m`` with the foot of
     the perpendicular on the scanned surface (lateral offset <= ``lateral_m`` in the point's tangent plane)
     and the point's normal (p, 3) within 60° of the vertex normal (n, 3) (|cos| >= ``min_cos``): the MLS
@@ -155,10 +157,10 @@ def covered_along_normal(xyz: np.ndarray, normals: np.ndarray, pts: np.ndarray, 
     covered (the wall faces the street, the roof the sky); a facade 1 m off its scan is. overhead: (n,) bool
     vertices (of :func:`overhead_faces`) that a point more than ``under_tol_m`` below does not cover (a
     soffit under a roof's top); top: (n,) bool overhead vertices of a roof's top (:func:`top_faces`) that
-    only a point more than ``under_tol_m`` above covers."""
+    only a point more than ``under_tol_m`` above covers. tree: the k-d tree of ``pts`` when the caller has it."""
     if not (len(pts) and len(xyz)):
         return np.zeros(len(xyz), bool)
-    d, j = cKDTree(pts).query(xyz, distance_upper_bound=depth_m)
+    d, j = (tree if tree is not None else cKDTree(pts)).query(xyz, distance_upper_bound=depth_m)
     ok = np.isfinite(d)
     jj = np.where(ok, j, 0)
     delta = xyz - pts[jj]

@@ -24,10 +24,10 @@ from tasks.geometry.sampling import sample_surface
 
 def unsupported_share(xyz: np.ndarray, faces: np.ndarray, mls: np.ndarray, mls_n: np.ndarray,
                       zone_xyz: np.ndarray, zone_faces: np.ndarray, *, reach_m: float = 0.6,
-                      offset_m: float = 0.1, step_m: float = 0.2) -> float:
+                      offset_m: float = 0.1, step_m: float = 0.2, tree: cKDTree | None = None) -> float:
     """Area share in [0, 1] of the rebuilt surface (xyz (n, 3), faces (m, 3)) that neither the MLS
     points (p, 3) with unit normals (p, 3) nor the input zone surface (zone_xyz, zone_faces) support.
-    0 for an empty surface.
+    0 for an empty surface. tree: the k-d tree of ``mls`` when the caller has it.
 
     >>> sq = np.array([[0, 0, 0], [2, 0, 0], [2, 2, 0], [0, 2, 0]], float)
     >>> f = np.array([[0, 1, 2], [0, 2, 3]])
@@ -49,7 +49,7 @@ def unsupported_share(xyz: np.ndarray, faces: np.ndarray, mls: np.ndarray, mls_n
         return 0.0
     ok = np.zeros(len(pts), bool)
     if len(mls):
-        d, j = cKDTree(mls).query(pts, distance_upper_bound=reach_m)
+        d, j = (tree if tree is not None else cKDTree(mls)).query(pts, distance_upper_bound=reach_m)
         hit = np.isfinite(d)
         jj = np.where(hit, j, 0)
         off = np.abs(np.einsum("ij,ij->i", pts - mls[jj], mls_n[jj]))
