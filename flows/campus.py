@@ -249,7 +249,10 @@ def _outputs(run: _Run) -> tuple[dict, dict]:
 
     side: dict = {}
 
-    def start_renders() -> None:  # the report's figures, drawn beside the export's upper levels
+    # the report's figures, drawn beside the export's upper levels (one node each, a core idle). Submitted beside
+    # the leaves, they took the first worker whose own queue ran dry while the other still had leaves queued (a
+    # queued task does not move for a priority): the leaves' level ended ~10 s later on the 384 M-point campus
+    def start_renders() -> None:
         if "renders" not in side:
             with dask.annotate(priority=-EXPORT_PRIORITY):
                 side["renders"] = ex.submit(region_renders_task, cj) \
@@ -258,18 +261,17 @@ def _outputs(run: _Run) -> tuple[dict, dict]:
     def map_jobs(jobs: list) -> list[dict]:  # one level of the quadtree at a time; records in job order
         with dask.annotate(priority=EXPORT_PRIORITY):  # the export's levels are the chain the run waits on
             mapped = ex.map(export_nodes_task, node_batches(jobs, run.n_workers), "export")
+        if side.get("leaves_built"):  # queued behind the level above the leaves: a worker takes them when it
+            start_renders()           # has no node left, beside the upper levels and the driver's points overlay
         done = mapped.results()
-        # once the leaves are built: the upper levels and the driver's points overlay leave a core idle. Submitted
-        # beside the leaves, the renders took the first worker whose own queue ran dry while the other still had
-        # leaves queued (a queued task does not move for a priority): the leaves' level ended ~10 s later
-        start_renders()
+        side["leaves_built"] = True
         return node_records(done, len(jobs))
 
     qplan = quality_plan(local_view(cfg, "truth"), wd) if cfg.report.enabled and cfg.report.quality else None
     parts = quality_parts(qplan, run.n_workers)
     shares = [ex.submit(quality_task, cj, qplan, part) for part in parts]
     exported = run_export_stage(cfg, wd, map_jobs=map_jobs)
-    start_renders()  # when the export built no node
+    start_renders()  # when the export built no node, or one level only
     renders = side["renders"]
     if shares:  # the model against the truth, measured beside the export
         got = run.note("quality", [s.result() for s in shares], per_unit=False)
