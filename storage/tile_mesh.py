@@ -149,12 +149,34 @@ def read_tile_mesh(tile_dir: str | Path) -> TileMesh:
     for t in textures:
         if not is_url(t) and not Path(t).is_file():
             raise InputError(meta, f"texture image {t} not found")
-    try:
-        with np.load(npz, allow_pickle=False) as z:
-            arrays = {k: z[k] for k in _ARRAYS if k in z.files}
-    except (OSError, ValueError, KeyError, EOFError, zipfile.BadZipFile) as e:
-        raise InputError(npz, f"unreadable ({type(e).__name__}: {e})") from None
+    arrays = _load_arrays(npz, _ARRAYS)
     try:
         return TileMesh(tile=doc["tile"], textures=textures, **arrays)
     except (TypeError, ValueError) as e:
         raise InputError(npz, str(e)) from None
+
+
+def read_tile_arrays(tile_dir: str | Path, names: tuple[str, ...]) -> dict[str, np.ndarray]:
+    """Only the named arrays of a tile mesh (see :class:`TileMesh`; e.g. ("vertices", "faces", "source",
+    "region") for a picture of it), without the others or the texture checks of :func:`read_tile_mesh`.
+    Raises InputError naming the file for a missing or unreadable mesh, or a missing or inconsistent array."""
+    npz, _ = tile_mesh_paths(Path(tile_dir).absolute())
+    if not npz.exists():
+        raise InputError(npz.parent, "no merged mesh (merged.npz + merged.json): run the merge stage first")
+    arrays = _load_arrays(npz, names)
+    missing = [k for k in names if k not in arrays]
+    if missing:
+        raise InputError(npz, f"no {', '.join(missing)} array")
+    if "faces" in arrays and "vertices" in arrays and len(arrays["faces"]) \
+            and (arrays["faces"].min() < 0 or arrays["faces"].max() >= len(arrays["vertices"])):
+        raise InputError(npz, f"face indices out of range for {len(arrays['vertices'])} vertices")
+    return arrays
+
+
+def _load_arrays(npz: Path, names: tuple[str, ...]) -> dict[str, np.ndarray]:
+    """The arrays of ``names`` that ``npz`` holds (an .npz reads each array on its own)."""
+    try:
+        with np.load(npz, allow_pickle=False) as z:
+            return {k: z[k] for k in names if k in z.files}
+    except (OSError, ValueError, KeyError, EOFError, zipfile.BadZipFile) as e:
+        raise InputError(npz, f"unreadable ({type(e).__name__}: {e})") from None

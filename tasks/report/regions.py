@@ -16,24 +16,28 @@ from storage.errors import InputError
 from storage.grid import PatchGrid
 from storage.ids import TileId
 from storage.patch_store import PatchStore
-from storage.tile_mesh import SOURCE_REBUILT, read_tile_mesh
+from storage.tile_mesh import SOURCE_REBUILT, read_tile_arrays
 from tasks.report.figures import BAD_COLOUR, MESH_COLOUR, REBUILT_COLOUR, render_png, view_basis
 from tasks.report.html import Section, table
 
 MAX_REGION_RENDERS = 12
 REGION_MARGIN_M = 1.5
+_DRAWN = ("vertices", "faces", "source", "region")  # what the renders read of a merged tile
 
 
 def _region_boxes(tiles_dir: Path, tiles: list[str]) -> dict[int, dict]:
     """Per rebuilt region: bbox of its faces (campus-local), face count, normals sample, tiles."""
     out: dict[int, dict] = {}
     for k in tiles:
-        tm = read_tile_mesh(tiles_dir / k)
-        rebuilt = np.flatnonzero(tm.source == SOURCE_REBUILT)
+        tm = read_tile_arrays(tiles_dir / k, _DRAWN)
+        rebuilt = np.flatnonzero(tm["source"] == SOURCE_REBUILT)
         if not len(rebuilt):
             continue
-        for r in np.unique(tm.region[rebuilt]):
-            tri = tm.vertices[tm.faces[rebuilt[tm.region[rebuilt] == r]]].astype(np.float64)
+        order = np.argsort(tm["region"][rebuilt], kind="stable")  # each region's faces in face order
+        by_region = rebuilt[order]
+        regions, starts = np.unique(tm["region"][by_region], return_index=True)
+        for r, a, b in zip(regions.tolist(), starts.tolist(), [*starts[1:].tolist(), len(by_region)]):
+            tri = tm["vertices"][tm["faces"][by_region[a:b]]].astype(np.float64)
             n = np.cross(tri[:, 1] - tri[:, 0], tri[:, 2] - tri[:, 0])
             rec = out.setdefault(int(r), {"lo": np.full(3, np.inf), "hi": np.full(3, -np.inf), "faces": 0,
                                           "normal": np.zeros(3), "tiles": []})  # fmt: skip
@@ -69,9 +73,9 @@ def regions_section(tiles_dir: Path, tiles: list[str], grid: PatchGrid, origin: 
         if key not in kept:
             while len(kept) >= 2:
                 kept.pop(next(iter(kept)))
-            tm = read_tile_mesh(tiles_dir / key)
-            tri = tm.vertices[tm.faces]
-            kept[key] = (tri, tm.source == SOURCE_REBUILT, tri.mean(axis=1))
+            tm = read_tile_arrays(tiles_dir / key, _DRAWN)
+            tri = tm["vertices"][tm["faces"]]
+            kept[key] = (tri, tm["source"] == SOURCE_REBUILT, (tri[:, 0] + tri[:, 1] + tri[:, 2]) / np.float32(3))
         return kept[key]
 
     for r in shown:

@@ -7,7 +7,7 @@ import pytest
 from PIL import Image
 
 from storage.errors import InputError
-from storage.tile_mesh import TileMesh, read_tile_mesh, write_tile_mesh
+from storage.tile_mesh import TileMesh, read_tile_arrays, read_tile_mesh, write_tile_mesh
 
 
 def _mesh(texture: str) -> TileMesh:
@@ -58,3 +58,27 @@ def test_missing_texture_or_corrupt_file_names_the_file(tmp_path):
         read_tile_mesh(tmp_path / "tiles" / "0_0")
     with pytest.raises(InputError, match="run the merge stage"):
         read_tile_mesh(tmp_path / "tiles" / "9_9")
+
+
+def test_named_arrays_equal_the_full_read_and_bad_files_name_the_file(tmp_path):
+    tex = tmp_path / "a.png"
+    Image.new("RGB", (4, 4)).save(tex)
+    tile_dir = tmp_path / "tiles" / "0_0"
+    mesh = _mesh(str(tex))
+    write_tile_mesh(tile_dir, mesh)
+    got = read_tile_arrays(tile_dir, ("vertices", "faces", "region"))
+    assert sorted(got) == ["faces", "region", "vertices"]
+    for name, arr in got.items():
+        assert arr.dtype == getattr(mesh, name).dtype and np.array_equal(arr, getattr(mesh, name)), name
+    tex.unlink()  # the named arrays need no texture
+    assert np.array_equal(read_tile_arrays(tile_dir, ("source",))["source"], mesh.source)
+    with pytest.raises(InputError, match="no normals array"):
+        read_tile_arrays(tile_dir, ("vertices", "normals"))
+    np.savez(tile_dir / "merged.npz", vertices=mesh.vertices, faces=np.array([[0, 1, 7]], np.int32))
+    with pytest.raises(InputError, match="merged.npz: face indices out of range"):
+        read_tile_arrays(tile_dir, ("vertices", "faces"))
+    (tile_dir / "merged.npz").write_bytes(b"garbage")
+    with pytest.raises(InputError, match="merged.npz"):
+        read_tile_arrays(tile_dir, ("vertices",))
+    with pytest.raises(InputError, match="run the merge stage"):
+        read_tile_arrays(tmp_path / "tiles" / "9_9", ("vertices",))
