@@ -170,6 +170,10 @@ def read_tile_arrays(tile_dir: str | Path, names: tuple[str, ...]) -> dict[str, 
     if "faces" in arrays and "vertices" in arrays and len(arrays["faces"]) \
             and (arrays["faces"].min() < 0 or arrays["faces"].max() >= len(arrays["vertices"])):
         raise InputError(npz, f"face indices out of range for {len(arrays['vertices'])} vertices")
+    m = len(arrays["faces"]) if "faces" in arrays else None
+    for k in ("face_texture", "grade", "source", "region"):  # one value per face
+        if k in arrays and m is not None and len(arrays[k]) != m:
+            raise InputError(npz, f"{k} has {len(arrays[k])} values for {m} faces")
     return arrays
 
 

@@ -77,6 +77,9 @@ def test_named_arrays_equal_the_full_read_and_bad_files_name_the_file(tmp_path):
     np.savez(tile_dir / "merged.npz", vertices=mesh.vertices, faces=np.array([[0, 1, 7]], np.int32))
     with pytest.raises(InputError, match="merged.npz: face indices out of range"):
         read_tile_arrays(tile_dir, ("vertices", "faces"))
+    np.savez(tile_dir / "merged.npz", vertices=mesh.vertices, faces=mesh.faces, region=np.zeros(5, np.int32))
+    with pytest.raises(InputError, match="region has 5 values for 2 faces"):
+        read_tile_arrays(tile_dir, ("faces", "region"))
     (tile_dir / "merged.npz").write_bytes(b"garbage")
     with pytest.raises(InputError, match="merged.npz"):
         read_tile_arrays(tile_dir, ("vertices",))
