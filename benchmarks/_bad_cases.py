@@ -95,7 +95,7 @@ def _mesh_10km_off(root: Path) -> None:
 
 
 def _no_overlap(root: Path) -> None:
-    from storage.pointcloud_io import read_points, write_points
+    from storage.formats.points import read_points, write_points
 
     for p in (root / "mls").glob("*.laz"):
         pc = read_points(p)
@@ -134,8 +134,8 @@ def _degenerate_faces(root: Path) -> None:
 
 def _broken_cameras(root: Path) -> None:
     """A COLMAP text model whose images.txt was cut mid-line (a copy interrupted)."""
-    from storage.camera_formats import write_colmap
-    from storage.cameras import Camera
+    from storage.formats.camera_files import write_colmap
+    from storage.formats.cameras import Camera
 
     cam = Camera("IMG_0001.JPG", np.array([[1000.0, 0, 511.5], [0, 1000.0, 383.5], [0, 0, 1]]), np.eye(3),
                  np.zeros(3), 1024, 768, np.array([-0.1, 0.01, 0.0, 0.0, 0.0]))

@@ -63,7 +63,7 @@ def job_laspy_read(files: list[str]) -> dict:
 
 
 def job_ms3d_read(files: list[str], chunk: int) -> dict:
-    from storage.pointcloud_io import iter_points
+    from storage.formats.points import iter_points
 
     n = 0
     with timed() as t:
@@ -75,7 +75,7 @@ def job_ms3d_read(files: list[str], chunk: int) -> dict:
 
 def job_ingest(units: list[dict], cfg: dict, wd: str, frame: dict, matrix) -> dict:
     from storage.frame import CampusFrame
-    from storage.workdir import WorkDir
+    from storage.workdir.layout import WorkDir
     from tasks.config import CampusConfig
     from tasks.ingest import IngestUnit, run_ingest_unit
 
@@ -91,7 +91,7 @@ def job_ingest(units: list[dict], cfg: dict, wd: str, frame: dict, matrix) -> di
 def job_partition_points(tiles: list[str], wd: str, out: str, cfg: dict, frame: dict) -> dict:
     """The partition stage's store writer on the point runs only (what the baseline does)."""
     from storage.frame import CampusFrame
-    from storage.patch_store import TileMeta
+    from storage.patches.schema import TileMeta
     from tasks.config import CampusConfig
     from tasks.partition import write_tile_store
 
@@ -149,11 +149,11 @@ def job_tile_rss(wd: str, tile: str, origin: list, budget_mb: int, force_stream:
 
     from storage.frame import CampusFrame
     from storage.ids import TileId
-    from storage.workdir import WorkDir
+    from storage.workdir.layout import WorkDir
     from tasks.config import CampusConfig
     from tasks.partition import run_partition_tile
 
-    for lazy in ("storage.patch_store", "tasks.partition.stream", "pyarrow.parquet"):
+    for lazy in ("storage.patches", "tasks.partition.stream", "pyarrow.parquet"):
         importlib.import_module(lazy)
     cfg = CampusConfig.model_validate({"work_dir": wd, "partition": {"memory_budget_mb": budget_mb}})
     w = WorkDir(wd)

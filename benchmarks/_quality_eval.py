@@ -40,8 +40,8 @@ def mls_seen(tv, tf, tc, work: Path, radius_m: float = 0.10) -> np.ndarray:
     """(m,) bool: facade faces whose centroid has a registered MLS point within radius_m."""
     from scipy.spatial import cKDTree
 
-    from storage.patch_store import PatchStore
-    from storage.workdir import WorkDir
+    from storage.patches.read import PatchStore
+    from storage.workdir.layout import WorkDir
     from tasks.repair.fuse import thin_points
 
     wd = WorkDir(work)

@@ -76,8 +76,8 @@ def write_synthetic_campus(out: Path, blocks: int, points_per_block: int, faces_
 
     Reused when ``out/inputs.json`` says it was written with the same parameters.
     """
-    from storage.mesh_io import write_ply
-    from storage.pointcloud_io import LasChunkWriter, PointChunk
+    from storage.formats.meshes import write_ply
+    from storage.formats.points import LasChunkWriter, PointChunk
 
     params = {"blocks": blocks, "points_per_block": points_per_block, "faces_per_block": faces_per_block,
               "seed": seed, "version": 2}
@@ -115,7 +115,7 @@ def write_big_tile_runs(staging: Path, n_points: int, run_points: int = 2_000_00
     """Sorted staging runs (as ingest writes them) of one 100 m tile holding ``n_points`` MLS-like points
     (walls and ground of a dense block), ``run_points`` per run; reused when already written. Returns the
     number of runs."""
-    from storage.columns import write_run
+    from storage.contracts.columns import write_run
     from storage.grid import PatchGrid
     from tasks.partition.kernels import partition_cells
 

@@ -86,7 +86,7 @@ def _simulated_enospc():
 
 def run_case(case: Case, base: Path) -> dict:
     from flows.cli import main
-    from storage.patch_store import PatchStore
+    from storage.patches.read import PatchStore
 
     root = base / case.name
     prepare(root)
@@ -103,7 +103,7 @@ def run_case(case: Case, base: Path) -> dict:
                 mounted = stack.enter_context(_tmpfs(disk, str(size)))
                 if mounted:
                     shutil.copytree(work, disk / "work")
-                from storage.pointcloud_io import read_points, write_points
+                from storage.formats.points import read_points, write_points
 
                 pc = read_points(root / "mls" / "east.laz")
                 pc.xyz = pc.xyz + [0.0, 0.0, 0.05]

@@ -77,14 +77,14 @@ def run_flow(config: Path, work: Path, workers: int = 2, extra: list[str] | None
 
 
 def n_points(inputs: Path) -> int:
-    from storage.pointcloud_io import read_header
+    from storage.formats.points import read_header
 
     return sum(read_header(p).point_count for p in (inputs / "mls").glob("*.la[sz]"))
 
 
 def tile_faces(work: Path) -> int:
     """Faces in the work dir's patch stores (the mesh side of every stage's rate)."""
-    from storage.patch_store import PatchStore
+    from storage.patches.read import PatchStore
 
     total = 0
     for d in sorted((work / "tiles").glob("*/")):

@@ -29,8 +29,8 @@ sys.path.insert(0, str(ROOT))
 
 
 def _largest_tile(work_dir: str):
-    from storage.patch_store import PatchStore
-    from storage.workdir import WorkDir
+    from storage.patches.read import PatchStore
+    from storage.workdir.layout import WorkDir
 
     wd = WorkDir(work_dir)
     tiles = wd.live_tiles()

@@ -32,8 +32,8 @@ import numpy as np
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
-from benchmarks._quality_eval import evaluate, mls_seen, subdivided_truth  # noqa: E402
-from benchmarks.quality_bench import assemble  # noqa: E402
+from benchmarks._quality_eval import evaluate, mls_seen, subdivided_truth
+from benchmarks.quality_bench import assemble
 
 RING = np.array([(a, b, c) for a in (-1, 0, 1) for b in (-1, 0, 1) for c in (-1, 0, 1)], np.int64)
 
@@ -60,8 +60,8 @@ def grading(src: Path, work: Path) -> dict:
     its samples."""
     from scipy.spatial import cKDTree
 
-    from storage.patch_store import PatchStore
-    from storage.workdir import WorkDir, campus_frame, read_campus
+    from storage.patches.read import PatchStore
+    from storage.workdir.layout import WorkDir, campus_frame, read_campus
     from tasks.config import CampusConfig
 
     wd = WorkDir(work)
@@ -196,7 +196,7 @@ def main(argv=None) -> dict:
             run_campus(msrc, mwork, pinned_truth(msrc) | {"repair.enabled": False, "classify.evidence": on})
             mvs["model + evidence" if on else "model alone"] = grading(msrc, mwork)
     print_tables(g, q, mvs)
-    strip = lambda d: {k: v for k, v in d.items() if not k.startswith("_")}  # noqa: E731
+    strip = lambda d: {k: v for k, v in d.items() if not k.startswith("_")}
     report = {"seed": a.seed, "grading": strip(g), "quality": q, "mvs": {k: strip(v) for k, v in (mvs or {}).items()}}
     (a.out / "coarse_bench.json").write_text(json.dumps(report, indent=1, default=float))
     return report

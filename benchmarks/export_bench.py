@@ -150,7 +150,7 @@ def make_merged(input_dir: Path, work: Path, tile_size_m: float, seed: int = 0) 
 def copy_merged(src: Path, work: Path, tile_size_m: float) -> tuple[Path, float]:
     """Copy a processed work dir's campus.json and merged tiles (texture paths made absolute, so the
     copies read the source's textures); returns (work dir, footprint km²)."""
-    from storage.tile_mesh import read_tile_mesh, write_tile_mesh
+    from storage.contracts.tile_mesh import read_tile_mesh, write_tile_mesh
 
     (work / "tiles").mkdir(parents=True)
     shutil.copy(src / "campus.json", work / "campus.json")
@@ -173,7 +173,7 @@ def replicate(src: Path, dst: Path, times: int, tile_size_m: float) -> Path:
     """A campus ``times`` as wide: src's tiles copied side by side along x (shifted keys and vertices)."""
     import numpy as np
 
-    from storage.tile_mesh import read_tile_mesh, write_tile_mesh
+    from storage.contracts.tile_mesh import read_tile_mesh, write_tile_mesh
 
     if dst.exists():
         shutil.rmtree(dst)

@@ -11,7 +11,7 @@ script as OUT/campus.yaml from the given config with ``work_dir`` set to WORK_DI
 1. grade every tile with the shipped checkpoint (``tasks.classify.run_classify_tile``, as the flow does);
 2. propose the ``--n-labels`` least-sure gradable patches (``flows.label_server.least_sure``, the viewer's
    rule: |p(bad) - threshold| smallest) and write their TRUTH labels to ``WORK_DIR/labels/*.csv`` as the
-   viewer does (``storage.user_labels.append_user_label``, one simulated click per second);
+   viewer does (``storage.workdir.user_labels.append_user_label``, one simulated click per second);
 3. fine-tune (``flows.finetune.finetune``: the code path of ``ms3d train --campus CONFIG --from default.pt``);
 4. re-grade every tile with ``classify.model`` = the fine-tuned checkpoint;
 5. with ``--synth`` (the synth campus's folder with truth/): F@5cm before/after through the repair of
@@ -43,8 +43,8 @@ sys.path.insert(0, str(Path(__file__).resolve().parent))
 def grade_campus(cfg, work: Path, model: str | None) -> tuple[dict, float]:
     """Grade every live tile with ``model`` (None: the shipped default). Returns ({tile key: (keys (u,) int64,
     score (u,) float32, grade (u,) int8, threshold float)}, wall seconds)."""
-    from storage.patch_reader import read_side_table
-    from storage.workdir import WorkDir
+    from storage.patches.read import read_side_table
+    from storage.workdir.layout import WorkDir
     from tasks.classify import run_classify_tile
 
     ccfg = cfg.classify.model_copy(update={"enabled": True, "model": model})
@@ -62,8 +62,8 @@ def grade_campus(cfg, work: Path, model: str | None) -> tuple[dict, float]:
 
 def truth_of(work: Path, grades: dict) -> dict:
     """{tile key: (u,) int8 truth label aligned with that tile's grade keys; -1 where unlabelled}."""
-    from storage.patch_reader import read_side_table
-    from storage.workdir import WorkDir
+    from storage.patches.read import read_side_table
+    from storage.workdir.layout import WorkDir
 
     wd, out = WorkDir(work), {}
     for t in wd.live_tiles():
@@ -95,7 +95,7 @@ def simulate_user(work: Path, flat: dict, n: int) -> tuple[np.ndarray, np.ndarra
     (``labels/`` is emptied first). Returns ((n,) int64 keys, (n,) int8 labels)."""
     from flows.label_server import least_sure
     from storage.grid import PatchGrid
-    from storage.user_labels import LABELS_DIR, append_user_label
+    from storage.workdir.user_labels import LABELS_DIR, append_user_label
 
     scores = np.where(flat["truth"] >= 0, flat["score"], np.nan)  # a user labels what they can judge
     pick = least_sure(flat["keys"], scores, flat["threshold"], n)
@@ -137,8 +137,9 @@ def quality_before_after(work: Path, synth: Path, out: Path, before: dict, after
     import quality_bench as qb
     from _quality_eval import evaluate, mls_seen, subdivided_truth
 
-    from storage.patch_store import PatchStore, write_side_table
-    from storage.workdir import WorkDir, campus_frame, read_campus
+    from storage.patches.read import PatchStore
+    from storage.patches.write import write_side_table
+    from storage.workdir.layout import WorkDir, campus_frame, read_campus
 
     origin = np.asarray(campus_frame(read_campus(WorkDir(work))).origin, np.float64)
     truth = subdivided_truth(synth, origin)

@@ -2,7 +2,7 @@
 fetches against its tile's file size, and what one unit's commit costs in requests, S3 against local disk.
 
 1. Patch reads by byte ranges: a tile store (built in code, or every tile of ``--work``, an existing work
-   dir) is uploaded; for a sample of its patches, :func:`storage.objstore_ranges.read_patch_rows` reads one
+   dir) is uploaded; for a sample of its patches, :func:`storage.patches.ranges.read_patch_rows` reads one
    patch's points; printed: points.parquet size, bytes fetched (median, max), their ratio, GETs per patch.
 2. Requests per unit: ``--units`` cycles of put_unit_outputs (``--files`` outputs of ``--kib`` KiB) +
    resolve + read_output of every output, then one sweep; printed: HTTP requests per unit as counted by
@@ -29,10 +29,11 @@ import numpy as np
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
 from storage.grid import PatchGrid
-from storage.objstore import open_store
-from storage.objstore_commit import put_unit_outputs, read_output, resolve, sweep_unrecorded
-from storage.objstore_ranges import read_patch_index, read_patch_rows
-from storage.patch_store import TileMeta, write_tile_tables
+from storage.objstore.commit import put_unit_outputs, read_output, resolve, sweep_unrecorded
+from storage.objstore.store import open_store
+from storage.patches.ranges import read_patch_index, read_patch_rows
+from storage.patches.schema import TileMeta
+from storage.patches.write import write_tile_tables
 from tasks.partition.kernels import build_tile_tables
 
 BUCKET = "ms3d-bench"

@@ -48,7 +48,7 @@ def _vm_hwm_mb() -> float:
 
 
 def _config(work: Path):
-    from storage.workdir import WorkDir, read_campus
+    from storage.workdir.layout import WorkDir, read_campus
     from tasks.config import CampusConfig
 
     doc = read_campus(WorkDir(work))
@@ -58,7 +58,7 @@ def _config(work: Path):
 def _merge_one(work: str, key: str) -> tuple[dict | None, float]:
     """Merge one tile (in a pool worker); returns its summary and the worker's peak RSS so far."""
     from storage.ids import TileId
-    from storage.workdir import WorkDir
+    from storage.workdir.layout import WorkDir
     from tasks.merge import run_merge_tile
 
     return run_merge_tile(TileId.from_key(key), _config(Path(work)), WorkDir(work)), _vm_hwm_mb()
@@ -67,7 +67,7 @@ def _merge_one(work: str, key: str) -> tuple[dict | None, float]:
 def _child_merge(work: str, processes: int = 1) -> dict:
     """Merge every live tile: one after the other in this process, or over a pool of ``processes``
     (largest tiles first, as Dask workers would take them)."""
-    from storage.workdir import WorkDir
+    from storage.workdir.layout import WorkDir
 
     wd = WorkDir(work)
     keys = sorted((t.key for t in wd.live_tiles()), key=lambda k: -(wd.root / "tiles" / k / "faces.parquet").stat().st_size)
@@ -138,8 +138,10 @@ def replicate_stores(src: Path, dst: Path, times: int) -> Path:
     re-partitioned at their new place (faces only; vertex ids offset per copy; labels carried over)."""
     import numpy as np
 
-    from storage.patch_store import FACE_DTYPES, PatchStore, TileMeta, write_side_table, write_tile_tables
-    from storage.workdir import WorkDir, campus_frame, read_campus
+    from storage.patches.read import PatchStore
+    from storage.patches.schema import FACE_DTYPES, TileMeta
+    from storage.patches.write import write_side_table, write_tile_tables
+    from storage.workdir.layout import WorkDir, campus_frame, read_campus
     from tasks.partition.kernels import build_tile_tables
 
     link_stores(src, dst)

@@ -2,7 +2,7 @@
 
 Prints, in one run, side by side with the naive baseline (laspy + pandas, as a user would write it):
 
-1. **Decode**: the ms3d LAZ reader (``storage.pointcloud_io.iter_points``: every field ms3d keeps, as numpy
+1. **Decode**: the ms3d LAZ reader (``storage.formats.points.iter_points``: every field ms3d keeps, as numpy
    arrays) against ``laspy.read`` + the same arrays, on the same files. Target >= 0.9x.
 2. **Ingest**: whole ingest units (decode, registration transform, world-anchored patch keys, routing to
    tiles as sorted runs, Parquet) per CPU second, and over 2 worker processes per wall second, beside
@@ -82,7 +82,7 @@ def _split(items: list, k: int) -> list[list]:
 def stage(cfg, work: Path) -> dict:
     """Scan the campus (registration off: MATRIX stands in for a registration) and plan its units."""
     from flows.campus import InlineExecutor, scan_inputs
-    from storage.workdir import WorkDir
+    from storage.workdir.layout import WorkDir
     from tasks.ingest import plan_units
 
     wd = WorkDir(cfg.work_dir)

@@ -72,7 +72,8 @@ class RssSampler:
 def make_sandbox(work: Path, out: Path, grades: dict[str, np.ndarray] | None) -> Path:
     """A work dir whose tiles are symlinks to ``work``'s store files, with ``grades`` (tile -> (u,)
     int8 aligned with patches.parquet) written as its grades.parquet; regions/ and manifest are its own."""
-    from storage.patch_store import PatchStore, write_side_table
+    from storage.patches.read import PatchStore
+    from storage.patches.write import write_side_table
 
     if out.exists():
         shutil.rmtree(out)
@@ -97,7 +98,7 @@ def make_sandbox(work: Path, out: Path, grades: dict[str, np.ndarray] | None) ->
 def grades_for(work: Path, mode: str, noise: float, seed: int = 0) -> tuple[dict[str, np.ndarray], str]:
     """Per-tile grades for a variant: "all" (every patch bad), "labels", or "model" (grades.parquet
     when present, else labels with ``noise`` of the patches flipped). Returns (grades, description)."""
-    from storage.patch_store import PatchStore
+    from storage.patches.read import PatchStore
 
     rng = np.random.default_rng(seed)
     out, what = {}, mode
@@ -126,7 +127,7 @@ def grades_for(work: Path, mode: str, noise: float, seed: int = 0) -> tuple[dict
 
 def run_repair(sandbox: Path, max_regions: int | None = None, log=print) -> list[dict]:
     """run_regions then run_region for every region, one after the other, with time and peak RSS."""
-    from storage.workdir import WorkDir, read_campus
+    from storage.workdir.layout import WorkDir, read_campus
     from tasks.config import CampusConfig
     from tasks.regions import run_regions
     from tasks.repair import run_region
@@ -163,10 +164,10 @@ def run_repair(sandbox: Path, max_regions: int | None = None, log=print) -> list
 def assemble(work: Path, with_regions: bool = True) -> tuple[np.ndarray, np.ndarray, dict]:
     """The campus mesh: every live tile's faces, minus the rows rebuilt regions replace, plus the
     rebuilt faces; welded by vertex id (new region vertices stay per region). Campus-local float64."""
+    from storage.contracts.region_mesh import region_meshes_for_tile
     from storage.ids import TileId
-    from storage.patch_store import PatchStore
-    from storage.region_mesh import region_meshes_for_tile
-    from storage.workdir import WorkDir
+    from storage.patches.read import PatchStore
+    from storage.workdir.layout import WorkDir
 
     wd = WorkDir(work)
     tris, vids, n_rep, n_new = [], [], 0, 0
@@ -215,8 +216,8 @@ def poisson_from_mls(work: Path, cams_centres: np.ndarray, spacing_m: float = 0.
     """(b): screened Poisson of the MLS alone, per tile (cropped back to the tile), campus-local."""
     import open3d as o3d
 
-    from storage.patch_store import PatchStore
-    from storage.workdir import WorkDir
+    from storage.patches.read import PatchStore
+    from storage.workdir.layout import WorkDir
     from tasks.repair.fuse import thin_points
 
     wd = WorkDir(work)
@@ -291,7 +292,7 @@ def main(argv=None) -> dict:
     a = ap.parse_args(argv)
     if a.report is not None:
         return print_report(a.report)
-    from storage.workdir import WorkDir, campus_frame, read_campus
+    from storage.workdir.layout import WorkDir, campus_frame, read_campus
 
     out = a.out or (a.work.parent / f"{a.work.name}-quality")
     out.mkdir(parents=True, exist_ok=True)

@@ -29,8 +29,8 @@ REPO = Path(__file__).resolve().parents[1]
 CHILD = r"""
 import json, sys, time
 sys.path.insert(0, sys.argv[1])
-from storage.region_plan import read_plan
-from storage.workdir import WorkDir
+from storage.contracts.region_plan import read_plan
+from storage.workdir.layout import WorkDir
 from tasks.config import CampusConfig
 from tasks.repair.stage import run_region
 cfg = CampusConfig.from_yaml(sys.argv[2], {"work_dir": sys.argv[3]})

@@ -26,7 +26,7 @@ def main(argv=None) -> dict:
     a = ap.parse_args(argv)
     src = a.input or ensure_demo()
     from flows.campus import InlineExecutor, scan_inputs
-    from storage.workdir import WorkDir
+    from storage.workdir.layout import WorkDir
     from tasks.config import CampusConfig
     from tasks.register.align import apply_similarity, compare_transforms
     from tasks.register.stage import run_register

@@ -1,7 +1,7 @@
 """Planning a nightly rerun: how long deciding what is done takes for a campus of many regions.
 
 Builds a synthetic work dir in a temporary folder: ``--tiles`` tile stores (empty table files: a store's
-identity is sizes and mtimes, :func:`storage.store_state.store_fingerprint`), a region plan of
+identity is sizes and mtimes, :func:`storage.patches.state.store_fingerprint`), a region plan of
 ``--regions`` regions of a few patches each over one or two tiles, and a done record with its outputs for
 every region, exactly as :func:`tasks.repair.run_region` records them. Then it times
 
@@ -31,16 +31,16 @@ import numpy as np
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
-from storage.manifest import ManifestRecord  # noqa: E402
-from storage.patch_store import FACES_FILE, PATCHES_FILE, POINTS_FILE  # noqa: E402
-from storage.region_plan import REGION_SCHEMA_VERSION, Region, plan_path, region_dir  # noqa: E402
-from storage.workdir import WorkDir  # noqa: E402
-from tasks.config import CampusConfig  # noqa: E402
-from tasks.repair import pending_regions, region_fingerprint, run_region  # noqa: E402
-from tasks.repair.stage import region_params  # noqa: E402
-from flows.planned import pending  # noqa: E402
-from storage.store_state import store_fingerprint  # noqa: E402
-from tasks.units import Done, run_unit, unit_params  # noqa: E402
+from flows.planned import pending
+from storage.contracts.region_plan import REGION_SCHEMA_VERSION, Region, plan_path, region_dir
+from storage.patches.schema import FACES_FILE, PATCHES_FILE, POINTS_FILE
+from storage.patches.state import store_fingerprint
+from storage.workdir.layout import WorkDir
+from storage.workdir.manifest import ManifestRecord
+from tasks.config import CampusConfig
+from tasks.repair import pending_regions, region_fingerprint, run_region
+from tasks.repair.stage import region_params
+from tasks.units import Done, run_unit, unit_params
 
 
 def build_work_dir(root: Path, n_regions: int, n_tiles: int, seed: int = 0) -> tuple[CampusConfig, list[str]]:

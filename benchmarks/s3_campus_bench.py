@@ -30,7 +30,7 @@ sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
 from benchmarks._common import ensure_demo, machine
 from benchmarks.objstore_bench import BUCKET, bench_patch_reads, start_server
-from storage.objstore import open_store
+from storage.objstore.store import open_store
 
 MS3D = [sys.executable, "-m", "flows.cli"]
 INPUT_KEYS = ("mesh", "points", "labels", "images", "cameras")

@@ -46,12 +46,12 @@ from flows.tasks import (
     report_task,
     scan_task,
 )
+from storage.contracts.staging import prune_staging
 from storage.errors import InputError
-from storage.housekeeping import drop_unplanned_records, sweep_temporary_files, work_dir_lock
-from storage.manifest import consolidate
-from storage.patch_store import FACES_FILE, POINTS_FILE
-from storage.staging import prune_staging
-from storage.workdir import WorkDir, write_campus
+from storage.patches.schema import FACES_FILE, POINTS_FILE
+from storage.workdir.housekeeping import drop_unplanned_records, sweep_temporary_files, work_dir_lock
+from storage.workdir.layout import WorkDir, write_campus
+from storage.workdir.manifest import consolidate
 from tasks.batches import balanced_batches, fixed_batches
 from tasks.config import CampusConfig
 
@@ -327,7 +327,7 @@ def make_task_runner(cfg: CampusConfig):
 def run_campus(cfg: CampusConfig, progress: bool = True) -> dict:
     """Run the campus flow with one embedded Prefect API (unless one is configured) and a Dask cluster."""
     from flows.runtime import embedded_prefect
-    from storage.housekeeping import check_work_dir_writable
+    from storage.workdir.housekeeping import check_work_dir_writable
 
     wd = work_dir_of(cfg)  # a work dir by URL: this process's mirror (flows.remote)
     check_work_dir_writable(wd)

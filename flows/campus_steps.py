@@ -19,9 +19,9 @@ from __future__ import annotations
 import json
 
 from storage.atomic import file_sha256
-from storage.manifest import all_records, combine_fingerprints
-from storage.store_state import store_fingerprint
-from storage.workdir import WorkDir
+from storage.patches.state import store_fingerprint
+from storage.workdir.layout import WorkDir
+from storage.workdir.manifest import all_records, combine_fingerprints
 
 __all__ = ["outliers_fingerprint", "outliers_outputs", "regions_fingerprint", "regions_params",
            "report_fingerprint", "report_params"]
@@ -42,7 +42,7 @@ def outliers_fingerprint(wd: WorkDir) -> str:
 def outliers_outputs(wd: WorkDir) -> list[str]:
     """The outlier fit's files (work-dir relative) that exist: each live tile's ``outliers`` side table and
     the two histograms."""
-    from storage.patch_store import side_table_path
+    from storage.patches.schema import side_table_path
 
     paths = [side_table_path(wd.tile_dir(t), "outliers") for t in wd.live_tiles()]
     paths += [wd.report_dir / f"patch_{n}_histogram.png" for n in ("points", "faces")]

@@ -25,6 +25,8 @@ import os
 import sys
 from pathlib import Path
 
+from storage.inputs.location import is_url
+
 
 def _cmd_synth(a) -> int:
     from synth.generate import generate
@@ -42,7 +44,7 @@ def _overrides(a) -> dict:
     if getattr(a, "workers", None):
         o["cluster.n_workers"] = a.workers
     if getattr(a, "work_dir", None):
-        o["work_dir"] = a.work_dir if a.work_dir.startswith(("s3://", "s3a://")) else str(Path(a.work_dir).absolute())
+        o["work_dir"] = a.work_dir if is_url(a.work_dir) else str(Path(a.work_dir).absolute())
     for kv in getattr(a, "set", None) or []:
         k, _, v = kv.partition("=")
         try:
@@ -120,7 +122,7 @@ def _cmd_demo(a) -> int:
 def _cmd_view(a) -> int:
     from flows.view import serve_viewer
     from storage.errors import InputError
-    from storage.workdir import WorkDir
+    from storage.workdir.layout import WorkDir
 
     wd = WorkDir(a.work_dir)
     if not (wd.root / "output" / "tileset.json").exists():
@@ -133,7 +135,7 @@ def _cmd_ui(a) -> int:
     import subprocess
 
     from flows.runtime import prefect_env
-    from storage.workdir import WorkDir
+    from storage.workdir.layout import WorkDir
 
     env = {**os.environ, **prefect_env(WorkDir(a.work_dir).prefect_dir)}
     env.pop("PREFECT_API_URL", None)

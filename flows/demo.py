@@ -20,7 +20,7 @@ def run_demo(out: Path, work: Path, seed: int = 7, preset: str = "demo") -> int:
     from flows.runtime import PrefectServer, embedded_prefect
     from flows.status import campus_status, format_status
     from flows.summary import format_summary
-    from storage.workdir import WorkDir
+    from storage.workdir.layout import WorkDir
     from synth.generate import generate
     from tasks.config import CampusConfig
 

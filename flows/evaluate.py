@@ -173,7 +173,7 @@ def _result_key(name: str, kind: str, results: dict) -> str:
 def _cue_seconds_per_pair(work_dir: str, n: int = 256) -> float:
     """Wall seconds per pair of the hand-made cues (from raw pairs of the campus's first non-empty tile)."""
     from ms3d_model.cues import batch_cues
-    from storage.workdir import WorkDir
+    from storage.workdir.layout import WorkDir
     from tasks.classify import read_tile_pairs
 
     for t in WorkDir(work_dir).live_tiles():

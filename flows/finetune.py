@@ -1,7 +1,7 @@
 """``ms3d train --campus CONFIG --from CHECKPOINT``: adapt the grader to a user's own labels.
 
 Reads the user's labels of the campus (``WORKDIR/labels/*.csv``, written by ``ms3d view WORKDIR --label``:
-:mod:`storage.user_labels`), featurises those patches' pairs from the campus's stores, holds out a seeded
+:mod:`storage.workdir.user_labels`), featurises those patches' pairs from the campus's stores, holds out a seeded
 share of them (``holdout``) for validation, and mixes the rest with synth training pairs (the ``--seeds``
 demo campuses and ``--work-dir`` labelled campuses, as ``ms3d train`` builds them: :func:`flows.train.load_pairs`).
 
@@ -57,8 +57,8 @@ def user_pairs(work_dir: str | Path, name: str, prof):
     of labelled patches dropped because they are not gradable pairs (no faces or no points)."""
     from ms3d_model.dataset import PairSet
     from storage.grid import PatchGrid
-    from storage.user_labels import read_user_labels
-    from storage.workdir import WorkDir
+    from storage.workdir.layout import WorkDir
+    from storage.workdir.user_labels import read_user_labels
     from tasks.classify import featurise_tile_pairs, read_tile_pairs
 
     keys, labels = read_user_labels(work_dir)

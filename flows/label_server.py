@@ -30,9 +30,9 @@ import numpy as np
 
 from storage.errors import InputError
 from storage.grid import PatchGrid
-from storage.patch_reader import read_side_table
-from storage.user_labels import append_user_label, parse_label_request, read_user_labels
-from storage.workdir import WorkDir, campus_frame, read_campus
+from storage.patches.read import read_side_table
+from storage.workdir.layout import WorkDir, campus_frame, read_campus
+from storage.workdir.user_labels import append_user_label, parse_label_request, read_user_labels
 
 MAX_PROPOSALS = 1000
 

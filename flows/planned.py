@@ -13,7 +13,7 @@ from __future__ import annotations
 import logging
 from collections.abc import Callable
 
-from storage.workdir import WorkDir
+from storage.workdir.layout import WorkDir
 from tasks.units import MustRun, planning
 
 log = logging.getLogger("ms3d.flow")

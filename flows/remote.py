@@ -1,7 +1,7 @@
 """The flow's side of object storage: inputs named by URL and a work dir on a bucket.
 
 **Work dir by URL** (``work_dir: s3://bucket/prefix``): every process works on its own local mirror of
-the recorded work dir (:mod:`storage.remote_workdir`). A task pulls before it runs and pushes what it
+the recorded work dir (:mod:`storage.objstore.mirror`). A task pulls before it runs and pushes what it
 changed when it returns (:func:`synced`); the driver holds the run lease (:func:`remote_run`), sweeps
 unrecorded leftovers, and pulls after each stage and pushes its own writes before the next
 (:class:`SyncExecutor`). Everything else is the local code, unchanged, on the mirror.
@@ -9,7 +9,7 @@ unrecorded leftovers, and pulls after each stage and pushes its own writes befor
 **Inputs by URL**: local views of the inputs that stages owned by others read through the config
 (texture cameras and images, the synth truth beside the labels).
 
-Stages that open input files by their recorded identity call :func:`storage.remote_inputs.local_input`
+Stages that open input files by their recorded identity call :func:`storage.inputs.remote.local_input`
 themselves; the texture step and the quality stage read ``cfg.inputs.images`` / ``cameras`` / ``labels``
 as folders, so their tasks get a config whose URLs are replaced by this process's staged copies
 (:func:`local_view`). Only those tasks use it: the labels stage keeps the URL (its fingerprint names the
@@ -26,7 +26,7 @@ import logging
 import os
 from pathlib import Path
 
-from storage.workdir import WorkDir
+from storage.workdir.layout import WorkDir
 from tasks.config import CampusConfig
 
 log = logging.getLogger("ms3d.flow")
@@ -39,22 +39,22 @@ SWEEP_GRACE_S = 600.0  # unrecorded objects younger than this may belong to a ta
 
 def is_remote(cfg_or_url) -> bool:
     """Whether a config's work dir (or a work-dir string) is an object-store URL."""
-    from storage.remote_inputs import is_url
+    from storage.inputs.location import is_url
 
     return is_url(getattr(cfg_or_url, "work_dir", cfg_or_url))
 
 
 def cache_dir() -> Path:
     """This process's cache folder (``$MS3D_CACHE`` or ``./.ms3d-cache``): input copies and work-dir mirrors."""
-    from storage.remote_inputs import cache_root
+    from storage.inputs.remote import cache_root
 
     return cache_root().parent
 
 
 def mirror_for(url: str):
-    """This process's :class:`storage.remote_workdir.Mirror` of the work dir ``url``."""
-    from storage.objstore import open_store
-    from storage.remote_workdir import mirror_of
+    """This process's :class:`storage.objstore.mirror.Mirror` of the work dir ``url``."""
+    from storage.objstore.mirror import mirror_of
+    from storage.objstore.store import open_store
 
     return mirror_of(open_store(url), cache_dir())
 
@@ -134,8 +134,8 @@ def synced(fn):
 def remote_run(cfg: CampusConfig):
     """The driver's hold on a work dir by URL: the run lease, a sweep of unrecorded leftovers older than
     SWEEP_GRACE_S, a pull; at exit (also on error) a push of the driver's writes. Yields the Mirror."""
-    from storage.objstore_commit import sweep_unrecorded
-    from storage.objstore_lock import DEFAULT_TTL_S, run_lock
+    from storage.objstore.commit import sweep_unrecorded
+    from storage.objstore.lock import DEFAULT_TTL_S, run_lock
 
     mirror = mirror_for(cfg.work_dir)
     ttl_s = float(os.environ.get("MS3D_LEASE_TTL_S", DEFAULT_TTL_S))  # how long a killed run blocks the next
@@ -223,7 +223,7 @@ class _Pulled:
 
 def uses_urls(cfg: CampusConfig) -> bool:
     """Whether any input of ``cfg`` is named by an object-store URL."""
-    from storage.remote_inputs import is_url
+    from storage.inputs.location import is_url
 
     i = cfg.inputs
     return any(is_url(p) for p in [*i.mesh, *i.points, i.labels, i.images, i.cameras])
@@ -233,7 +233,8 @@ def local_view(cfg: CampusConfig, what: str) -> CampusConfig:
     """``cfg`` with the inputs ``what`` needs staged locally: "texture" (images and cameras; without them
     configured, an ``images`` folder beside the first mesh URL) or "truth" (the labels file and the
     ``truth/`` folder beside its folder, where the synth campus keeps its truth mesh)."""
-    from storage.remote_inputs import input_exists, is_url, local_input
+    from storage.inputs.location import is_url
+    from storage.inputs.remote import input_exists, local_input
 
     i = cfg.inputs
     change: dict = {}
@@ -258,7 +259,7 @@ def local_view(cfg: CampusConfig, what: str) -> CampusConfig:
 def local_truth_plan(cfg: CampusConfig, plan: dict) -> dict:
     """A quality plan whose ``truth`` folder is this process's staged copy (the driver planned it with
     its own); ``plan`` unchanged when the labels are not a URL."""
-    from storage.remote_inputs import is_url
+    from storage.inputs.location import is_url
 
     if not is_url(cfg.inputs.labels):
         return plan

@@ -284,8 +284,8 @@ def stop_requested() -> int | None:
 
 def units_done(work_dir: Path) -> int:
     """How many (stage, unit) records of ``work_dir`` say done or empty: what the next run skips."""
-    from storage.manifest import all_records
-    from storage.workdir import WorkDir
+    from storage.workdir.layout import WorkDir
+    from storage.workdir.manifest import all_records
 
     with contextlib.suppress(Exception):  # a stop message must never fail
         return sum(r.status in ("done", "empty") for r in all_records(WorkDir(work_dir)))

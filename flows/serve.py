@@ -31,7 +31,7 @@ import tempfile
 from pathlib import Path
 
 from storage.errors import InputError
-from storage.workdir import WorkDir
+from storage.workdir.layout import WorkDir
 from tasks.config import CampusConfig
 
 
@@ -53,7 +53,7 @@ def serve_campus(config_path: Path, cfg: CampusConfig, cron: str, name: str | No
 
     from flows.campus import reprocess_from_config
     from flows.runtime import embedded_prefect, stopped_line
-    from storage.housekeeping import check_work_dir_writable
+    from storage.workdir.housekeeping import check_work_dir_writable
 
     check_cron(cron)
     wd = WorkDir(cfg.work_dir)

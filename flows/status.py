@@ -7,8 +7,8 @@ import json
 from pathlib import Path
 
 from storage.errors import InputError
-from storage.manifest import all_records
-from storage.workdir import WorkDir
+from storage.workdir.layout import WorkDir
+from storage.workdir.manifest import all_records
 
 
 def campus_status(work_dir: str) -> dict:

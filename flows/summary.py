@@ -2,8 +2,8 @@
 
 from __future__ import annotations
 
-from storage.manifest import all_records
-from storage.workdir import WorkDir
+from storage.workdir.layout import WorkDir
+from storage.workdir.manifest import all_records
 
 
 class CampusRunFailed(RuntimeError):
@@ -90,7 +90,7 @@ def grades_summary(wd: WorkDir) -> dict:
     """Patches by grade and unknown reason over the live stores (``tasks.report.census_of_stores``), with
     the thresholds of the config snapshot in ``campus.json`` (``partition.min_faces`` / ``min_points``,
     ``report.max_unknown_share``); {} when there is no store or no campus."""
-    from storage.workdir import read_campus
+    from storage.workdir.layout import read_campus
     from tasks.config.campus import ReportConfig
     from tasks.report import census_of_stores
 

@@ -20,8 +20,8 @@ from flows.remote import local_truth_plan, local_view, synced, work_dir_of
 from storage.errors import InputError
 from storage.frame import CampusFrame
 from storage.ids import TileId
-from storage.inputs import InputFile
-from storage.workdir import WorkDir
+from storage.inputs.identity import InputFile
+from storage.workdir.layout import WorkDir
 from tasks.config import CampusConfig
 from tasks.units import Done, MustRun, is_planning, record_step, run_unit, skipped_summary
 
@@ -130,7 +130,7 @@ def classify_task(tile_keys: list[str], cfg_json: dict) -> list[dict]:
 def regions_task(cfg_json: dict) -> dict:
     """Plan the bad regions of the campus: {"status", "regions": [keys], "weights": [bytes per key], ...}."""
     from flows.campus_steps import regions_fingerprint, regions_params
-    from storage.region_plan import plan_path, read_plan
+    from storage.contracts.region_plan import plan_path, read_plan
     from tasks.regions import region_weight, run_regions
 
     cfg, wd = config_of(cfg_json)
@@ -156,7 +156,7 @@ def regions_task(cfg_json: dict) -> dict:
 @synced
 def repair_task(region_keys: list[str], cfg_json: dict) -> list[dict]:
     """Repair a batch of regions (fuse -> mesh -> stitch -> texture), one summary each."""
-    from storage.region_plan import read_plan
+    from storage.contracts.region_plan import read_plan
     from tasks.repair import run_region
 
     cfg, wd = config_of(cfg_json)
@@ -218,7 +218,7 @@ def region_renders_task(cfg_json: dict) -> dict:
 def report_task(cfg_json: dict) -> dict:
     """Write the run report (``output/report.html``)."""
     from flows.campus_steps import report_fingerprint, report_params
-    from storage.manifest import is_done, params_hash
+    from storage.workdir.manifest import is_done, params_hash
     from tasks.report import run_report
 
     cfg, wd = config_of(cfg_json)

@@ -138,8 +138,8 @@ def dataset_key(campuses: dict[str, str], profile) -> str:
     import hashlib
 
     from ms3d_model.cues import CUE_NAMES
-    from storage.store_state import store_fingerprint
-    from storage.workdir import WorkDir
+    from storage.patches.state import store_fingerprint
+    from storage.workdir.layout import WorkDir
 
     spec = {"campuses": {name: {t.key: store_fingerprint(WorkDir(wd).tile_dir(t), ("labels",))
                                 for t in WorkDir(wd).live_tiles()} for name, wd in sorted(campuses.items())},
@@ -186,11 +186,10 @@ def fit_tree_model(prof, tr, va, out: Path) -> dict:
     """The gradient-boosting baseline on the training pairs' cues, saved as a TreeNet checkpoint."""
     import torch
 
+    from ms3d_model.context import clean_context_copies
     from ms3d_model.gbm import fit_gbm, tree_arrays, tree_depth
     from ms3d_model.net import build_net
     from ms3d_model.train import predict, save_checkpoint, validation_row
-
-    from ms3d_model.context import clean_context_copies
 
     t0, c0 = time.perf_counter(), time.process_time()
     cues, labels = clean_context_copies(tr.cues, tr.labels, prof.gbm_clean_context_share, prof.seed)

@@ -11,7 +11,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from .cues import CONTEXT_CUE_NAMES, CONTEXT_SOURCES, CUE_NAMES, PAIR_CUE_NAMES
+from .cues import CONTEXT_CUE_NAMES, CONTEXT_SOURCES, CUE_NAMES, PAIR_CUE_NAMES  # noqa: F401 - the doctests use it
 
 _SOURCE_COLS = np.array([PAIR_CUE_NAMES.index(n) for n in CONTEXT_SOURCES])
 _OFFSETS = np.array([(a, b, c) for a in (-1, 0, 1) for b in (-1, 0, 1) for c in (-1, 0, 1) if (a, b, c) != (0, 0, 0)])

@@ -12,7 +12,7 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from .errors import InputError
+from storage.errors import InputError
 
 MAX_LOCAL_EXTENT_M = 2000.0  # beyond this, float32 spacing exceeds ~0.12 mm
 

@@ -1,5 +1,5 @@
 """Value types naming the units of work: tiles and patches (a region is named by its key:
-:class:`storage.region_plan.Region`).
+:class:`storage.contracts.region_plan.Region`).
 
 They are frozen dataclasses with a ``key`` used in paths and manifest rows.
 """

@@ -10,7 +10,7 @@ Labels: the truth surface (what the MLS sees) is sampled every ~``sample_step_m`
 defect sample where it lies farther than ``depart_m`` from the block model: glass and reveals of
 windows and doors recessed more than ``depart_m`` ("recess"), balconies and ledges ("balcony"), the
 walls and ceiling of a ground-floor through-passage (:mod:`synth.passages`, "passage"; its floor is
-terrain, which the block model drops under its solid). One defect per (building, type), in the ``defects.json`` format :mod:`storage.labels` reads (``samples``
+terrain, which the block model drops under its solid). One defect per (building, type), in the ``defects.json`` format :mod:`storage.workdir.labels` reads (``samples``
 in the mesh frame; ``faces`` is empty: labels go by samples). Visibility from the road is not
 modelled: a sample the MLS cannot see still labels its patch.
 

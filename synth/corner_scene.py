@@ -15,8 +15,9 @@ import numpy as np
 
 from storage.frame import CampusFrame
 from storage.grid import PatchGrid
-from storage.patch_store import TileMeta, write_side_table, write_tile_tables
-from storage.workdir import WorkDir, write_campus
+from storage.patches.schema import TileMeta
+from storage.patches.write import write_side_table, write_tile_tables
+from storage.workdir.layout import WorkDir, write_campus
 from tasks.partition import build_tile_tables
 
 CENTRE = np.array([10.0, 10.0])

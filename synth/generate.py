@@ -32,8 +32,8 @@ import numpy as np
 import yaml
 
 from storage.atomic import file_sha256, write_bytes_atomic, write_json_atomic
-from storage.mesh_io import write_obj, write_ply
-from storage.pointcloud_io import LasChunkWriter, PointChunk
+from storage.formats.meshes import write_obj, write_ply
+from storage.formats.points import LasChunkWriter, PointChunk
 
 from .frames import apply, asprs_classes, random_registration, similarity, streams  # noqa: F401 (re-exported)
 from .presets import SynthPreset, get_preset

@@ -10,8 +10,8 @@ import numpy as np
 import trimesh
 import yaml
 
-from storage.mesh_io import write_obj
-from storage.pointcloud_io import PointChunk, write_points
+from storage.formats.meshes import write_obj
+from storage.formats.points import PointChunk, write_points
 
 ORIGIN = np.array([500_000.0, 4_000_000.0, 0.0])
 REGIONS = {"west": 0.0, "middle": 60.0, "east": 120.0}  # x of each region's first box (metres, local)

@@ -1,6 +1,6 @@
 """The synth mesh written as a ContextCapture-style tiled production, and the cameras as a COLMAP text model.
 
-Layout (``storage.production`` reads it)::
+Layout (``storage.formats.production`` reads it)::
 
     mesh/metadata.xml                                   SRS and SRSOrigin (written by synth.generate)
     mesh/Data/Tile_+000_+000/Tile_+000_+000.obj         one tile: OBJ + MTL + its own texture atlas
@@ -20,7 +20,7 @@ from pathlib import Path
 
 import numpy as np
 
-from storage.mesh_io import write_obj
+from storage.formats.meshes import write_obj
 
 FINEST_LEVEL = 18  # the level number of the finest LOD when a tile has several (ContextCapture-like)
 
@@ -155,8 +155,8 @@ def write_colmap_model(folder: Path, cameras: list[dict], frame_origin) -> Path:
     ``X_cam = R (X_world - frame_origin) + t`` (mesh frame); written as ``X_cam = R X_world + (t - R o)``.
     Returns ``folder``.
     """
-    from storage.camera_formats import write_colmap
-    from storage.cameras import Camera
+    from storage.formats.camera_files import write_colmap
+    from storage.formats.cameras import Camera
 
     o = np.asarray(frame_origin, np.float64)
     cams = []

@@ -12,10 +12,17 @@ from pathlib import Path
 
 import numpy as np
 
+from storage.contracts.tile_mesh import (
+    GRADE_BAD,
+    GRADE_GOOD,
+    GRADE_UNKNOWN,
+    SOURCE_REBUILT,
+    TileMesh,
+    write_tile_mesh,
+)
+from storage.formats.meshes import MeshData
 from storage.frame import CampusFrame
-from storage.mesh_io import MeshData
-from storage.tile_mesh import GRADE_BAD, GRADE_GOOD, GRADE_UNKNOWN, SOURCE_REBUILT, TileMesh, write_tile_mesh
-from storage.workdir import WorkDir, write_campus
+from storage.workdir.layout import WorkDir, write_campus
 from tasks.geometry.tiling import group_by_tile
 
 
@@ -97,8 +104,8 @@ def read_production(mesh_root: str | Path):
     """(MeshData in world metres, SRSOrigin (3,) tuple) of a synth mesh folder: every finest-LOD file of the
     production ``mesh_root`` (its tiles concatenated; seam vertices stay doubled), placed by its
     ``metadata.xml``."""
-    from storage.mesh_io import mesh_files, read_mesh
-    from storage.production import read_metadata
+    from storage.formats.meshes import mesh_files, read_mesh
+    from storage.formats.production import read_metadata
 
     origin = read_metadata(Path(mesh_root) / "metadata.xml").origin
     files = [str(p) for p in mesh_files(mesh_root)]  # the finest level of each tile

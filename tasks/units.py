@@ -21,7 +21,8 @@ from contextvars import ContextVar
 from dataclasses import dataclass, field
 
 from storage.errors import EmptyTileError, InputError
-from storage.manifest import (
+from storage.workdir.layout import WorkDir
+from storage.workdir.manifest import (
     ManifestRecord,
     is_done,
     params_hash,
@@ -29,7 +30,6 @@ from storage.manifest import (
     record_is_current,
     write_record,
 )
-from storage.workdir import WorkDir
 
 STAGE_VERSIONS = {
     "scan": 4,       # v4: mesh surface samples seeded alike for every file (not by source id); v3: stable source ids; mesh surface samples as float32 offsets from a corner
@@ -66,9 +66,8 @@ def os_error_message(e: OSError) -> str:
 def reset_peak_rss() -> None:
     """Reset this process's peak RSS (Linux: ``5 > /proc/self/clear_refs``), so that the peak read after a
     unit is that unit's, not the worker's lifetime peak. A no-op where unsupported."""
-    with contextlib.suppress(OSError):
-        with open("/proc/self/clear_refs", "w") as f:
-            f.write("5")
+    with contextlib.suppress(OSError), open("/proc/self/clear_refs", "w") as f:
+        f.write("5")
 
 
 def release_free_memory() -> None:
@@ -160,7 +159,7 @@ def pending_units(wd: WorkDir, stage: str, fingerprints: dict[str, str], params:
     fingerprints: {unit: input fingerprint}, computed by the stage exactly as its run function does;
     params: the stage's parameter dict (as given to :func:`run_unit`). Returns (units to run, in the
     order given; the :func:`skipped_summary` of every other unit). A unit runs unless its record is
-    current (:func:`storage.manifest.record_is_current`), so the plan skips exactly what
+    current (:func:`storage.workdir.manifest.record_is_current`), so the plan skips exactly what
     :func:`run_unit` would; run_unit still checks each unit it is given, so a wrong plan costs time,
     never correctness.
     """
@@ -176,7 +175,7 @@ def pending_units(wd: WorkDir, stage: str, fingerprints: dict[str, str], params:
     return run, skipped
 
 
-class MustRun(Exception):  # noqa: N818 - a planning signal, not an error
+class MustRun(Exception):
     """Raised by :func:`run_unit` inside :func:`planning` for a unit that is not current: it must run."""
 
     def __init__(self, stage: str, unit: str):

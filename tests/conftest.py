@@ -67,7 +67,7 @@ def tiny_work(tiny_campus, tmp_path_factory):
     """The tiny synth campus processed once per session (inline, classify off): (config, WorkDir).
     Read-only for tests."""
     from flows.campus import run_campus
-    from storage.workdir import WorkDir
+    from storage.workdir.layout import WorkDir
     from tasks.config import CampusConfig
 
     work = tmp_path_factory.mktemp("model-tiny") / "work"

@@ -5,7 +5,7 @@ Reads a tile's store (``tiles/{ix}_{iy}/points|faces|patches.parquet``) and the 
 (``labels/*.csv``, which win for the patches they name). Writes
 ``tiles/{ix}_{iy}/grades.parquet`` (score, grade per patch; -1 for patches that are not pairs, unless the
 geometric evidence of ``classify.evidence`` (:mod:`tasks.classify.evidence`) grades them bad). Invalidated
-by a re-partitioned tile (:func:`storage.store_state.store_fingerprint`), a new model (its sha256) or a new
+by a re-partitioned tile (:func:`storage.patches.state.store_fingerprint`), a new model (its sha256) or a new
 threshold / ``partition.min_faces`` / ``min_points`` / ``classify.evidence*``, or new user labels in the
 tile; with ``classify.enabled`` off the grades are removed.
 Also the pair readers training and evaluation use (:func:`read_tile_pairs`, :func:`campus_pair_set`).

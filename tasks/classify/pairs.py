@@ -22,8 +22,8 @@ from ms3d_model.cues import CUE_NAMES, batch_cues, open_edge_flags
 from ms3d_model.dataset import PairSet
 from ms3d_model.features import PairFeatures, featurise_pairs
 from storage.atomic import atomic_path
-from storage.patch_store import PatchStore
-from storage.store_state import store_fingerprint
+from storage.patches.read import PatchStore
+from storage.patches.state import store_fingerprint
 
 FACE_COLUMNS = [f"{a}{v}" for v in range(3) for a in "xyz"] + ["vid0", "vid1", "vid2"]
 CACHE_VERSION = 3  # 2: pairs above ms3d_model.cues.MAX_SHAPE_POINTS give other cues; 3: order-free subsets

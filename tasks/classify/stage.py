@@ -38,9 +38,12 @@ import numpy as np
 from ms3d_model.dataset import PairSet
 from storage.errors import InputError
 from storage.ids import TileId
-from storage.patch_store import PATCHES_FILE, PatchStore, side_table_path, write_side_table
-from storage.store_state import store_fingerprint
-from storage.workdir import STALE_FILE, WorkDir
+from storage.patches.read import PatchStore
+from storage.patches.schema import PATCHES_FILE, side_table_path
+from storage.patches.state import store_fingerprint
+from storage.patches.write import write_side_table
+from storage.workdir.layout import STALE_FILE, WorkDir
+from storage.workdir.user_labels import tile_user_labels
 from tasks.classify.evidence import (
     MAX_POINTS_PER_PATCH,
     Evidence,
@@ -56,7 +59,7 @@ from tasks.classify.pairs import (
     read_tile_pairs,
     tile_pair_set,
 )
-from tasks.classify.user import apply_user_labels, labels_digest, tile_user_labels
+from tasks.classify.user import apply_user_labels, labels_digest
 from tasks.units import Done, run_unit
 
 log = logging.getLogger("ms3d.classify")

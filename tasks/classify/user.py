@@ -2,45 +2,16 @@
 grader for the patches they name: a patch the user marked bad is repaired whatever its score, one marked
 good is left alone whatever the model or the geometric evidence say.
 
-The labels are read once per state of the labels folder (names, sizes and modification times) and split
-by tile, so a new label re-grades only its own tile (the classify record keeps a digest of the tile's
-labels) and repair then re-runs only the regions whose grades changed.
+A new label re-grades only its own tile (the classify record keeps a digest of the tile's labels, read by
+:func:`storage.workdir.user_labels.tile_user_labels`) and repair then re-runs only the regions whose grades
+changed.
 """
 
 from __future__ import annotations
 
 import hashlib
-from functools import lru_cache
-from pathlib import Path
 
 import numpy as np
-
-from storage.grid import PatchGrid
-from storage.user_labels import LABELS_DIR, read_user_labels
-
-
-def _folder_state(work_dir: Path) -> tuple:
-    d = work_dir / LABELS_DIR
-    if not d.is_dir():
-        return ()
-    return tuple((p.name, p.stat().st_size, p.stat().st_mtime_ns) for p in sorted(d.glob("*.csv")))
-
-
-@lru_cache(maxsize=4)
-def _labels(work_dir: str, state: tuple) -> tuple[np.ndarray, np.ndarray]:
-    return read_user_labels(work_dir) if state else (np.zeros(0, np.int64), np.zeros(0, np.int8))
-
-
-def tile_user_labels(work_dir: str | Path, grid: PatchGrid, tile: tuple[int, int]) -> tuple[np.ndarray, np.ndarray]:
-    """The user's labels of the patches in ``tile`` (ix, iy): ((u,) int64 packed keys ascending, (u,) int8 0/1).
-    Raises storage.errors.InputError naming the CSV when a labels file is malformed."""
-    work_dir = Path(work_dir)
-    keys, labels = _labels(str(work_dir), _folder_state(work_dir))
-    if not len(keys):
-        return keys, labels
-    t = grid.tile_of_keys(keys)
-    sel = (t[:, 0] == tile[0]) & (t[:, 1] == tile[1])
-    return keys[sel], labels[sel]
 
 
 def labels_digest(keys: np.ndarray, labels: np.ndarray) -> str | None:
@@ -71,4 +42,4 @@ def apply_user_labels(patch_keys: np.ndarray, grade: np.ndarray, keys: np.ndarra
     return user
 
 
-__all__ = ["apply_user_labels", "labels_digest", "tile_user_labels"]
+__all__ = ["apply_user_labels", "labels_digest"]

@@ -13,6 +13,7 @@ from pydantic import BaseModel, ConfigDict, Field, ValidationError, field_valida
 
 from storage.errors import InputError
 from storage.grid import PatchGrid
+from storage.inputs.location import is_url
 from tasks.config.classify import ClassifyConfig
 from tasks.config.repair import RepairConfig
 
@@ -171,13 +172,13 @@ class CampusConfig(_Model):
         base = path.parent
         inputs = data.get("inputs", {})
         for key in ("mesh", "points"):  # relative input paths are relative to the config file
-            inputs[key] = [str((base / p) if not (Path(p).is_absolute() or _is_url(p)) else p)
+            inputs[key] = [str((base / p) if not (Path(p).is_absolute() or is_url(p)) else p)
                            for p in inputs.get(key, [])]
         for key in ("labels", "images", "cameras"):
-            if inputs.get(key) and not (Path(inputs[key]).is_absolute() or _is_url(inputs[key])):
+            if inputs.get(key) and not (Path(inputs[key]).is_absolute() or is_url(inputs[key])):
                 inputs[key] = str(base / inputs[key])
         data["inputs"] = inputs
-        if "work_dir" in data and not (Path(data["work_dir"]).is_absolute() or _is_url(data["work_dir"])):
+        if "work_dir" in data and not (Path(data["work_dir"]).is_absolute() or is_url(data["work_dir"])):
             data["work_dir"] = str(base / data["work_dir"])
         for dotted, value in (overrides or {}).items():
             _set_dotted(data, dotted, value)
@@ -202,10 +203,6 @@ class CampusConfig(_Model):
                          if k.startswith(("outlier", "min_"))},
         }.get(stage, {})
 
-
-def _is_url(p) -> bool:
-    """An input or work dir named by object-store URL (kept as written, never joined to the config's folder)."""
-    return isinstance(p, str) and p.startswith(("s3://", "s3a://"))
 
 
 def format_validation_error(e: ValidationError) -> str:

@@ -183,8 +183,8 @@ def ecef_round_trip_error_m(work_dir: str | Path, tile: str) -> float:
     from pyproj import CRS, Transformer
     from scipy.spatial import cKDTree
 
+    from storage.contracts.tile_mesh import read_tile_mesh
     from storage.frame import CampusFrame
-    from storage.tile_mesh import read_tile_mesh
 
     root = Path(work_dir)
     frame = CampusFrame.from_json(json.loads((root / "campus.json").read_text())["frame"])

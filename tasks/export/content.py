@@ -9,8 +9,8 @@ from pathlib import Path
 
 import numpy as np
 
-from storage.remote_inputs import readable
-from storage.tile_mesh import TileMesh
+from storage.contracts.tile_mesh import TileMesh
+from storage.inputs.remote import readable
 from tasks.config import ExportConfig
 from tasks.export.georef import EnuProjector, enu_to_gltf
 from tasks.export.gltf import GltfImage, GltfMesh, split_by_feature

@@ -22,7 +22,7 @@ from storage.atomic import atomic_path
 @dataclass(frozen=True, eq=False)
 class LodMesh:
     """positions: (n, 3) float32 metres ENU (z up). faces: (m, 3) int32. colors: (n, 3) uint8 sRGB.
-    grade / source: (m,) int8, region: (m,) int32 (see storage.tile_mesh)."""
+    grade / source: (m,) int8, region: (m,) int32 (see storage.contracts.tile_mesh)."""
 
     positions: np.ndarray
     faces: np.ndarray

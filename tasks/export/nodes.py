@@ -17,7 +17,7 @@ from pathlib import Path
 import numpy as np
 
 from storage.atomic import atomic_path, file_sha256
-from storage.tile_mesh import read_tile_mesh, texture_fingerprint, texture_refs, tile_mesh_paths
+from storage.contracts.tile_mesh import read_tile_mesh, texture_fingerprint, texture_refs, tile_mesh_paths
 from tasks.config import ExportConfig
 from tasks.export.content import box_from_bounds, leaf_content, lod_gltf
 from tasks.export.georef import EnuProjector, GeoRef

@@ -24,8 +24,9 @@ from pathlib import Path
 import numpy as np
 
 from storage.atomic import write_bytes_atomic, write_json_atomic
-from storage.patch_store import PATCHES_FILE, POINTS_FILE, PatchStore
-from storage.store_state import patch_grades, store_fingerprint
+from storage.patches.read import PatchStore
+from storage.patches.schema import PATCHES_FILE, POINTS_FILE
+from storage.patches.state import patch_grades, store_fingerprint
 from tasks.export.content import box_from_bounds
 from tasks.export.georef import EnuProjector, GeoRef, enu_to_gltf
 from tasks.export.gltf import ARRAY_BUFFER, FLOAT, UBYTE, _Builder, _pack
@@ -103,7 +104,7 @@ def _digest(parts: list[str]) -> str:
 
 def _tile_points(tile_dir: Path, keep: int, seed: int, grades_mode: str) -> tuple[np.ndarray, np.ndarray]:
     """(xyz (k, 3) float32 campus-local, status (k,) int8) of a seeded subset of a tile's points, coloured by
-    the grades repair acted on (``repair.grades``: :func:`storage.store_state.patch_grades`). Columns are
+    the grades repair acted on (``repair.grades``: :func:`storage.patches.state.patch_grades`). Columns are
     read one at a time, so memory is one column of the tile plus the subset."""
     import pyarrow.parquet as pq
 

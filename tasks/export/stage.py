@@ -36,7 +36,7 @@ import numpy as np
 
 from storage.atomic import write_bytes_atomic, write_json_atomic
 from storage.errors import InputError
-from storage.workdir import WorkDir, campus_frame, read_campus
+from storage.workdir.layout import WorkDir, campus_frame, read_campus
 from tasks.batches import balanced_batches
 from tasks.config import ExportConfig
 from tasks.export.georef import GeoRef, make_georef
@@ -196,7 +196,7 @@ def run_export_stage(cfg, wd: WorkDir, map_jobs: Callable[[list[NodeJob]], list[
         out = run_export(wd.root, cfg.export, workers=1, map_jobs=map_jobs)  # no pool: a Dask worker may not fork
         built.extend(out["built"])
         if map_jobs is not None:
-            from storage.housekeeping import drop_unplanned_records
+            from storage.workdir.housekeeping import drop_unplanned_records
 
             drop_unplanned_records(wd, "export", set(out["built"]) | set(out["reused"]) | {"tileset", OVERVIEW.key})
         return {**{k: v for k, v in out.items() if k not in ("built", "reused")}, "nodes_built": len(out["built"])}

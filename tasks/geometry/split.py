@@ -16,7 +16,7 @@ no edge is longer than ``max_edge_m`` (or ``max_rounds``).
   arithmetic), so both faces create the same point in every round.
 - *Vertex ids*: a midpoint's id is a hash of its edge's two end-point ids (taken in sorted order), so the
   two faces sharing the edge give it the SAME id, and recursive midpoints follow. Ids of original
-  vertices are ``source << 32 | index`` >= 0 (``source`` < 2**31, :mod:`storage.inputs`) and -1 means
+  vertices are ``source << 32 | index`` >= 0 (``source`` < 2**31, :mod:`storage.inputs.identity`) and -1 means
   "no id", so new ids live in the reserved range ``[-2**62 - 1, -2]``: they cannot collide with an
   original id. Two different edges share a new id with probability ~ n**2 / 2**63 for n new vertices
   (about 1e-3 at 1e8 new vertices).

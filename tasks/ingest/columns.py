@@ -8,12 +8,12 @@ from dataclasses import replace
 
 import numpy as np
 
+from storage.contracts.staging import FACE_VERTEX_COLUMNS
 from storage.errors import InputError
+from storage.formats.meshes import MeshData
+from storage.formats.points import PointChunk
 from storage.frame import MAX_LOCAL_EXTENT_M, CampusFrame
-from storage.inputs import VERTEX_INDEX_BITS
-from storage.mesh_io import MeshData
-from storage.pointcloud_io import PointChunk
-from storage.staging import FACE_VERTEX_COLUMNS
+from storage.inputs.identity import VERTEX_INDEX_BITS
 from tasks.geometry.split import split_long_faces
 
 
@@ -97,7 +97,7 @@ def vertex_ids(source: int, faces: np.ndarray, canonical: np.ndarray, vertices: 
 
     An ordinary file: ``source << 32 | canonical vertex index`` (canonical: (n,) int64 from
     :func:`weld_vertex_index`, < 2**31). A tile of a production (``seam_key``: its
-    :func:`storage.production.production_key`; vertices: (n, 3) float64 world metres): the same, except
+    :func:`storage.formats.production.production_key`; vertices: (n, 3) float64 world metres): the same, except
     that vertices on an open edge of the tile, where its neighbours join, get :func:`seam_ids` of their
     world position, so the coincident border vertices of adjacent tiles share one id.
     """

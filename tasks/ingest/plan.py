@@ -9,10 +9,10 @@ from pathlib import Path
 
 import numpy as np
 
+from storage.contracts.staging import unit_key
 from storage.frame import CampusFrame
 from storage.grid import PatchGrid
-from storage.inputs import InputFile
-from storage.staging import unit_key
+from storage.inputs.identity import InputFile
 from tasks.batches import balanced_batches, fixed_batches
 from tasks.geometry.tiling import transform_bounds
 from tasks.scan import file_size

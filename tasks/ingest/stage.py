@@ -1,7 +1,7 @@
 """The ingest stage's I/O: route one unit's points or faces to staging files per ground tile.
 
 An ingest unit is one mesh file, or one range of ``tiling.chunk_points`` points of a cloud file
-(:mod:`tasks.ingest.plan`); its staging runs follow the contract of :mod:`storage.staging`. A unit that
+(:mod:`tasks.ingest.plan`); its staging runs follow the contract of :mod:`storage.contracts.staging`. A unit that
 fails removes what it had written, and a unit that is redone first removes its previous output.
 """
 
@@ -11,16 +11,16 @@ from pathlib import Path
 
 import numpy as np
 
-from storage.columns import write_run
+from storage.contracts.columns import write_run
+from storage.contracts.staging import remove_unit_runs, run_name
 from storage.errors import InputError
+from storage.formats.meshes import read_mesh
+from storage.formats.points import iter_points, iter_points_range
 from storage.frame import CampusFrame
 from storage.grid import PatchGrid
-from storage.manifest import combine_fingerprints
-from storage.mesh_io import read_mesh
-from storage.pointcloud_io import iter_points, iter_points_range
-from storage.remote_inputs import local_input, staged_ref
-from storage.staging import remove_unit_runs, run_name
-from storage.workdir import WorkDir
+from storage.inputs.remote import local_input, staged_ref
+from storage.workdir.layout import WorkDir
+from storage.workdir.manifest import combine_fingerprints
 from tasks.config import CampusConfig
 from tasks.geometry.cells import partition_cells
 from tasks.geometry.tiling import group_by_tile

@@ -10,11 +10,14 @@ import numpy as np
 
 from storage.atomic import file_sha256
 from storage.ids import TileId
-from storage.labels import bad_keys_from_csv, bad_keys_from_defects
-from storage.manifest import combine_fingerprints
-from storage.patch_store import PATCHES_FILE, PatchStore, side_table_path, write_side_table
-from storage.remote_inputs import is_url, local_input
-from storage.workdir import STALE_FILE, WorkDir
+from storage.inputs.location import is_url
+from storage.inputs.remote import local_input
+from storage.patches.read import PatchStore
+from storage.patches.schema import PATCHES_FILE, side_table_path
+from storage.patches.write import write_side_table
+from storage.workdir.labels import bad_keys_from_csv, bad_keys_from_defects
+from storage.workdir.layout import STALE_FILE, WorkDir
+from storage.workdir.manifest import combine_fingerprints
 from tasks.config import CampusConfig
 from tasks.units import Done, run_unit
 

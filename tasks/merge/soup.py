@@ -1,7 +1,7 @@
 """Face soups: faces as unshared corners with weld keys and attributes, welded into a TileMesh.
 
 The store's faces and each rebuilt region become a :class:`FaceSoup`; :func:`weld_soup` welds their
-concatenation by key (:mod:`tasks.merge.weld`) into the export's :class:`storage.tile_mesh.TileMesh`.
+concatenation by key (:mod:`tasks.merge.weld`) into the export's :class:`storage.contracts.tile_mesh.TileMesh`.
 """
 
 from __future__ import annotations
@@ -11,8 +11,8 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from storage.region_mesh import RegionMesh
-from storage.tile_mesh import GRADE_BAD, NO_REGION, SOURCE_MESH, SOURCE_REBUILT, TileMesh
+from storage.contracts.region_mesh import RegionMesh
+from storage.contracts.tile_mesh import GRADE_BAD, NO_REGION, SOURCE_MESH, SOURCE_REBUILT, TileMesh
 from storage.vertex_ids import MISSING, is_campus_id, local_ids
 from tasks.merge.weld import face_keep_mask, weld_corners, weld_keys
 
@@ -26,7 +26,7 @@ class FaceSoup:
     xyz: (m, 3, 3) float32 metres campus-local. keys: (m, 3) int64 weld key per corner (campus vertex
     id, or a region's own key < 0). uv: (m, 3, 2) float32 (0 where untextured). texture: (m,) int32
     index into the merge's texture list, -1 untextured. color: (m, 3, 3) uint8 per corner.
-    grade / source: (m,) int8; region: (m,) int32 (storage.tile_mesh conventions).
+    grade / source: (m,) int8; region: (m,) int32 (storage.contracts.tile_mesh conventions).
     """
 
     xyz: np.ndarray

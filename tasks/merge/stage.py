@@ -2,10 +2,10 @@
 
 Inputs of tile T (``tiles/{ix}_{iy}/``): the patch store's faces (corners inline, campus vertex ids,
 per-corner uv, texture index), the patch grades under ``repair.grades``
-(:func:`storage.store_state.patch_grades`, the rule the regions stage plans by, so merge marks bad
+(:func:`storage.patches.state.patch_grades`, the rule the regions stage plans by, so merge marks bad
 exactly what repair was asked to rebuild), and the rebuilt regions that reach into T
-(:func:`storage.region_mesh.region_meshes_for_tile`; none until repair runs). Output:
-``tiles/{ix}_{iy}/merged.npz`` + ``merged.json`` (:mod:`storage.tile_mesh`), the input of export. The
+(:func:`storage.contracts.region_mesh.region_meshes_for_tile`; none until repair runs). Output:
+``tiles/{ix}_{iy}/merged.npz`` + ``merged.json`` (:mod:`storage.contracts.tile_mesh`), the input of export. The
 pure merge is in :mod:`tasks.merge.tile`, soups and their weld in :mod:`tasks.merge.soup`.
 
 Rules:
@@ -28,7 +28,7 @@ Memory is bounded by the tile: the regions touching it are loaded only in a unit
 once their owned faces are taken, the retained soup once concatenated, so the weld holds one soup. The
 stage :func:`run_merge_tile` is resumable: its fingerprint is the tile's store, the grade table it reads
 (or "all"), the campus frame and the files of the rebuilt regions the plan lists for the tile
-(:func:`storage.region_mesh.region_files_for_tile`: a stat and two small reads each, no mesh loaded, so
+(:func:`storage.contracts.region_mesh.region_files_for_tile`: a stat and two small reads each, no mesh loaded, so
 deciding that a tile is up to date costs no array read); an unchanged result is not rewritten, so
 export's fingerprint of the tile (the file's bytes) does not change either.
 """
@@ -47,16 +47,17 @@ from pathlib import Path
 import numpy as np
 
 from storage.atomic import file_fingerprint
+from storage.contracts.region_mesh import RegionMesh, region_files_for_tile, region_meshes_for_tile
+from storage.contracts.tile_mesh import TileMesh, texture_refs, tile_mesh_paths, write_tile_mesh
 from storage.errors import InputError
 from storage.ids import TileId
-from storage.manifest import combine_fingerprints
-from storage.objstore import redact
-from storage.patch_store import FACES_FILE, PATCHES_FILE, PatchStore
-from storage.region_mesh import RegionMesh, region_files_for_tile, region_meshes_for_tile
-from storage.remote_inputs import input_exists
-from storage.store_state import grades_identity, patch_grades
-from storage.tile_mesh import TileMesh, texture_refs, tile_mesh_paths, write_tile_mesh
-from storage.workdir import STALE_FILE, WorkDir, campus_frame, read_campus
+from storage.inputs.remote import input_exists
+from storage.objstore.store import redact
+from storage.patches.read import PatchStore
+from storage.patches.schema import FACES_FILE, PATCHES_FILE
+from storage.patches.state import grades_identity, patch_grades
+from storage.workdir.layout import STALE_FILE, WorkDir, campus_frame, read_campus
+from storage.workdir.manifest import combine_fingerprints
 from tasks.merge.soup import FaceSoup, concat_soups
 from tasks.merge.tile import STORE_FACE_COLUMNS, rebuilt_parts, retained_soup, weld_tile
 from tasks.units import Done, run_unit
@@ -121,8 +122,8 @@ def _same_on_disk(tile_dir: Path, mesh: TileMesh) -> bool:
 
 def merge_fingerprint(tile_dir: Path, regions: Sequence[tuple[int, str]], frame_json: dict, grades_mode: str) -> str:
     """The identity of a tile's merge inputs: store files, the grades it reads under ``grades_mode``
-    (:func:`storage.store_state.grades_identity`), frame, and the rebuilt regions as (number, content
-    fingerprint) pairs (:func:`storage.region_mesh.region_files_for_tile`: the files, no array read)."""
+    (:func:`storage.patches.state.grades_identity`), frame, and the rebuilt regions as (number, content
+    fingerprint) pairs (:func:`storage.contracts.region_mesh.region_files_for_tile`: the files, no array read)."""
     store = [file_fingerprint(tile_dir / n) for n in (FACES_FILE, PATCHES_FILE)]
     regs = [f"{number}:{fp}" for number, fp in sorted(regions)]
     return combine_fingerprints([*store, grades_identity(tile_dir, grades_mode), repr(sorted(frame_json.items())),
@@ -174,8 +175,8 @@ def run_merge_tile(tile: TileId, cfg, wd: WorkDir, regions: Sequence[RegionMesh]
 
     cfg: the CampusConfig (its patch grid decides which tile owns a rebuilt face; ``repair.grades`` which
     grades the faces carry). regions: the rebuilt regions reaching into the tile; None (the stage's use):
-    read from the work dir, fingerprinted by their files (:func:`storage.region_mesh.region_files_for_tile`)
-    and loaded only when the unit runs (:func:`storage.region_mesh.region_meshes_for_tile`). Returns the
+    read from the work dir, fingerprinted by their files (:func:`storage.contracts.region_mesh.region_files_for_tile`)
+    and loaded only when the unit runs (:func:`storage.contracts.region_mesh.region_meshes_for_tile`). Returns the
     unit summary (status done / empty / failed, counts, ``grades_from``, ``rewritten``), or None when
     there is nothing to do: a tile without a store loses its merged mesh; a stale store (its input
     failed) keeps its last good one.

@@ -1,5 +1,5 @@
 """One tile's merge on arrays: which faces the tile owns, which store faces no region replaces, and the
-weld of both into one :class:`storage.tile_mesh.TileMesh`. No I/O here (:mod:`tasks.merge.stage` reads).
+weld of both into one :class:`storage.contracts.tile_mesh.TileMesh`. No I/O here (:mod:`tasks.merge.stage` reads).
 """
 
 from __future__ import annotations
@@ -9,11 +9,11 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
+from storage.contracts.region_mesh import RegionMesh
+from storage.contracts.tile_mesh import TileMesh
 from storage.errors import EmptyTileError, InputError
 from storage.grid import PatchGrid
 from storage.ids import TileId
-from storage.region_mesh import RegionMesh
-from storage.tile_mesh import TileMesh
 from tasks.merge.soup import FaceSoup, WeldStats, concat_soups, region_soup, store_soup, weld_soup
 
 STORE_FACE_COLUMNS = ([f"{a}{v}" for v in range(3) for a in "xyz"] + [f"vid{v}" for v in range(3)]

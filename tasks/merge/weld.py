@@ -5,7 +5,7 @@ key of a rebuilt region's own vertex) and its attributes (uv, texture, colour). 
 one vertex, splits a key into several vertices only where its corners disagree on texture, uv or
 colour (texture seams), drops degenerate faces (two corners on one key) and duplicate faces (the same
 three keys in any order or orientation; the first one in soup order is kept). Nothing here compares
-positions: faces that share an edge share the two keys (``storage.patch_store``: weld by id, not by
+positions: faces that share an edge share the two keys (``storage.patches``: weld by id, not by
 position), so the result is exact, and float noise can never open or close a seam.
 
 Everything is vectorised: one stable argsort of the keys, one of the packed face keys, and a lexsort

@@ -11,9 +11,10 @@ import time
 import numpy as np
 
 from storage.errors import InputError
-from storage.manifest import ManifestRecord, write_record
-from storage.patch_store import PatchStore, read_side_table, write_side_table
-from storage.workdir import WorkDir
+from storage.patches.read import PatchStore, read_side_table
+from storage.patches.write import write_side_table
+from storage.workdir.layout import WorkDir
+from storage.workdir.manifest import ManifestRecord, write_record
 from tasks.config import CampusConfig
 from tasks.outliers.fit import fit_count_outliers, save_histogram_png
 

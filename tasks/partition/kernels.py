@@ -20,8 +20,8 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from storage.contracts.staging import FACE_VERTEX_COLUMNS
 from storage.grid import PatchGrid
-from storage.staging import FACE_VERTEX_COLUMNS
 from tasks.geometry.cells import Partition, empty_partition, partition_cells
 
 

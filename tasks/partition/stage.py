@@ -1,7 +1,7 @@
 """The partition stage's I/O: a tile's staging runs -> its Parquet patch store (Liu et al. 2023, §3.2.1).
 
 Unit: a tile, fingerprinted by the names and fingerprints of the staging files that feed it
-(:func:`storage.staging.staging_fingerprint`), so it is redone exactly when that set changes. A tile with
+(:func:`storage.contracts.staging.staging_fingerprint`), so it is redone exactly when that set changes. A tile with
 no data left loses its store; a tile blocked by a bad input keeps its last good store marked stale
 (``stale.json``), which no later stage and no campus-wide statistic reads until the tile succeeds again.
 The pure partition is in :mod:`tasks.partition.kernels`, the bounded-memory merge in
@@ -19,22 +19,22 @@ from pathlib import Path
 import numpy as np
 
 from storage.atomic import write_json_atomic
-from storage.columns import RunReader
+from storage.contracts.columns import RunReader
+from storage.contracts.staging import is_point_run, staged_files, staging_fingerprint
 from storage.errors import EmptyTileError, InputError
 from storage.frame import CampusFrame
 from storage.ids import TileId
-from storage.manifest import combine_fingerprints
-from storage.patch_store import (
+from storage.patches.schema import (
     FACES_FILE,
     PATCHES_FILE,
     POINTS_FILE,
     SIDE_TABLES,
     TileMeta,
     side_table_path,
-    write_tile_tables,
 )
-from storage.staging import is_point_run, staged_files, staging_fingerprint
-from storage.workdir import STALE_FILE, WorkDir
+from storage.patches.write import write_tile_tables
+from storage.workdir.layout import STALE_FILE, WorkDir
+from storage.workdir.manifest import combine_fingerprints
 from tasks.config import CampusConfig
 from tasks.partition.kernels import SideSummary, merge_runs, patches_table, summarise_side
 from tasks.units import Done, run_unit
@@ -78,7 +78,7 @@ def write_tile_store(parts: list[Path], tile_dir: Path, meta: TileMeta, budget_b
                      force_stream: bool = False) -> dict:
     """Partition a tile's staging runs into its store: in memory when the estimate fits the budget left
     above this process's current RSS, else by the k-way merge of ``tasks.partition.stream`` (same files).
-    Runs merge in the order of their content digests (:func:`storage.columns.content_digest`), not of their
+    Runs merge in the order of their content digests (:func:`storage.contracts.columns.content_digest`), not of their
     names (which carry the inputs' source ids): the same inputs under other names or URLs give the same
     store, rows of one patch in the same order."""
     from tasks.partition.stream import IN_MEMORY_BYTES, STREAM_BYTES, stream_partition_tile

@@ -5,7 +5,7 @@ row groups of 32 k rows with min/max key statistics). A tile whose rows would no
 memory is merged here block by block: a block is a range of patch keys ``[lo, hi)`` chosen from the
 row-group statistics so that the row groups it touches fit the budget; its rows are read from every
 run (only the row groups overlapping the range), stably sorted by key, and appended to the store's
-tables, whose row groups are written as they complete (``storage.patch_store.TableWriter``). A block
+tables, whose row groups are written as they complete (``storage.patches.TableWriter``). A block
 never splits a patch (its bounds are keys), and the result is the same file, byte for byte, as the
 in-memory path (``tasks.partition.stage.write_tile_store``: ``merge_runs`` + ``write_tile_tables``): rows of one patch keep
 the order run by run, and the row groups fall at the same rows.
@@ -21,16 +21,9 @@ from pathlib import Path
 
 import numpy as np
 
-from storage.columns import RunReader
-from storage.patch_store import (
-    FACES_FILE,
-    PATCHES_FILE,
-    POINTS_FILE,
-    TableWriter,
-    TileMeta,
-    complete_columns,
-    write_patches_table,
-)
+from storage.contracts.columns import RunReader
+from storage.patches.schema import FACES_FILE, PATCHES_FILE, POINTS_FILE, TileMeta
+from storage.patches.write import TableWriter, complete_columns, write_patches_table
 from tasks.partition.kernels import SideSummary, merge_runs, patches_table, summarise_side
 
 KEY_MAX = np.iinfo(np.int64).max
@@ -41,7 +34,7 @@ STREAM_BYTES = {"points": 250, "faces": 600}  # one block of the merge
 
 @dataclass
 class Run:
-    """One staging run (``storage.columns.RunReader``: batch key statistics (g, 3) [min, max, rows]) and
+    """One staging run (``storage.contracts.columns.RunReader``: batch key statistics (g, 3) [min, max, rows]) and
     the offset of its texture indices in the tile's texture list (faces)."""
 
     reader: RunReader

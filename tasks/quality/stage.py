@@ -14,8 +14,8 @@ from pathlib import Path
 import numpy as np
 
 from storage.atomic import file_sha256, write_json_atomic
-from storage.tile_mesh import SOURCE_REBUILT, read_tile_mesh, tile_mesh_paths
-from storage.workdir import WorkDir, campus_frame, read_campus
+from storage.contracts.tile_mesh import SOURCE_REBUILT, read_tile_mesh, tile_mesh_paths
+from storage.workdir.layout import WorkDir, campus_frame, read_campus
 
 QUALITY_VERSION = 2  # 2: the input mesh row is measured on the ingested faces
 QUALITY_TILE_M = 25.0  # quality is evaluated tile by tile (memory): distances capped at the buffer
@@ -78,7 +78,7 @@ def ingested_surface(wd: WorkDir, tiles: list[str], shift: np.ndarray) -> tuple[
     its geometry (:mod:`tasks.geometry.sampling`), so a face the repair left alone gets the same samples in
     both rows and the two rows differ only where regions were rebuilt. Measured against the input file
     itself, re-triangulation and float32 alone moved per-class F@5cm by up to 2e-6 on campus 9103."""
-    from storage.patch_store import PatchStore
+    from storage.patches.read import PatchStore
     from tasks.geometry.groups import first_of_groups
 
     cols = [f"{a}{v}" for v in range(3) for a in "xyz"]

@@ -8,7 +8,7 @@ from pathlib import Path
 import numpy as np
 
 from storage.errors import InputError
-from storage.mesh_io import read_mesh
+from storage.formats.meshes import read_mesh
 from tasks.quality.metrics import evaluate_mesh, facade_mask
 from tasks.quality.stats import QualityReport
 

@@ -6,7 +6,7 @@ budget. Keys are global (:class:`storage.grid.PatchGrid`), so a region that span
 tile corner is one region, with no border special case: tiles only matter when a region is read.
 
 No I/O here: :mod:`tasks.regions.stage` reads the grades and writes the plan
-(:mod:`storage.region_plan`, which also holds the :class:`Region` record).
+(:mod:`storage.contracts.region_plan`, which also holds the :class:`Region` record).
 
 Region identity: ``Region.key`` is ``"r"`` + the hex of the smallest patch key of its rebuilt set
 (stable across runs: a region keeps its folder and manifest unit while it keeps its first patch);
@@ -27,8 +27,8 @@ import numpy as np
 from scipy.sparse import coo_matrix
 from scipy.sparse.csgraph import connected_components as _cc
 
+from storage.contracts.region_plan import Region
 from storage.grid import PatchGrid
-from storage.region_plan import Region
 
 # working set of a region per thinned MLS point / mesh face / raw MLS point (fusion graph, normals,
 # k-NN, charts, Delaunay): least squares over 79 demo regions' tracemalloc peaks (numpy and Python

@@ -1,7 +1,7 @@
 """The regions stage on the work dir: read every live tile's patches and grades, plan the regions, write
 ``regions/regions.json`` and drop what the plan no longer names.
 
-The grades are :func:`storage.store_state.patch_grades` under ``repair.grades``, the one rule the merge
+The grades are :func:`storage.patches.state.patch_grades` under ``repair.grades``, the one rule the merge
 applies too, so what repair rebuilds and what merge marks bad cannot disagree.
 """
 
@@ -12,11 +12,11 @@ import time
 
 import numpy as np
 
-from storage.housekeeping import drop_unplanned_records
-from storage.patch_store import PatchStore
-from storage.region_plan import REGIONS_DIR, Region, write_plan
-from storage.store_state import GRADE_BAD, patch_grades, store_fingerprint
-from storage.workdir import WorkDir
+from storage.contracts.region_plan import REGIONS_DIR, Region, write_plan
+from storage.patches.read import PatchStore
+from storage.patches.state import GRADE_BAD, patch_grades, store_fingerprint
+from storage.workdir.housekeeping import drop_unplanned_records
+from storage.workdir.layout import WorkDir
 from tasks.config import CampusConfig
 from tasks.regions.plan import patch_cost_bytes, plan_regions
 from tasks.units import record_step

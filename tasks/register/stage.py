@@ -29,14 +29,14 @@ import numpy as np
 
 from ms3d_model.hashing import order_free_subset
 from storage.atomic import write_json_atomic
+from storage.contracts.surface_samples import read_surface_samples, samples_path
 from storage.errors import InputError
+from storage.formats.points import iter_points, iter_points_range
 from storage.frame import CampusFrame
-from storage.inputs import InputFile
-from storage.manifest import combine_fingerprints
-from storage.pointcloud_io import iter_points, iter_points_range
-from storage.remote_inputs import local_input
-from storage.surface_samples import read_surface_samples, samples_path
-from storage.workdir import WorkDir
+from storage.inputs.identity import InputFile
+from storage.inputs.remote import local_input
+from storage.workdir.layout import WorkDir
+from storage.workdir.manifest import combine_fingerprints
 from tasks.config import CampusConfig
 from tasks.units import Done, run_unit
 

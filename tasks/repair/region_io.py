@@ -1,7 +1,7 @@
 """Reading a region's patches from the tile stores it lies in: the zone (patches to rebuild) and the context
 ring, with the references (tile, row, uv, texture) needed to write the result back.
 
-The on-disk format of a rebuilt region is :mod:`storage.region_mesh`; the plan, :mod:`storage.region_plan`.
+The on-disk format of a rebuilt region is :mod:`storage.contracts.region_mesh`; the plan, :mod:`storage.contracts.region_plan`.
 """
 
 from __future__ import annotations
@@ -13,10 +13,10 @@ from pathlib import Path
 
 import numpy as np
 
+from storage.contracts.region_plan import Region
 from storage.grid import PatchGrid
 from storage.ids import TileId
-from storage.patch_store import PatchStore
-from storage.region_plan import Region
+from storage.patches.read import PatchStore
 from storage.vertex_ids import MISSING, local_ids
 from tasks.regions import dilate
 from tasks.repair.geometry import RegionInput

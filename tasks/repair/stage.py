@@ -1,5 +1,5 @@
 """The repair stage on the work dir: repair one region of the plan (fuse -> mesh -> stitch -> texture) and
-write ``regions/{key}/`` (:mod:`storage.region_mesh`).
+write ``regions/{key}/`` (:mod:`storage.contracts.region_mesh`).
 
 :func:`run_region` (unit: a region) returns a small dict and never raises for a bad input (see
 ``tasks.units.run_unit``); it is redone when its plan entry, its tiles' stores, the cameras file or the
@@ -14,11 +14,14 @@ import time
 import numpy as np
 
 from storage.atomic import file_fingerprint
-from storage.ids import TileId
-from storage.manifest import combine_fingerprints
-from storage.patch_store import PATCHES_FILE
-from storage.region_mesh import ATLAS_FILE, REGION_FILE, clear_region, write_region_doc, write_region_mesh
-from storage.region_plan import (
+from storage.contracts.region_mesh import (
+    ATLAS_FILE,
+    REGION_FILE,
+    clear_region,
+    write_region_doc,
+    write_region_mesh,
+)
+from storage.contracts.region_plan import (
     REGION_SCHEMA_VERSION,
     REGIONS_DIR,
     Region,
@@ -26,8 +29,11 @@ from storage.region_plan import (
     read_plan,
     region_dir,
 )
-from storage.store_state import store_fingerprint
-from storage.workdir import WorkDir, campus_frame, read_campus
+from storage.ids import TileId
+from storage.patches.schema import PATCHES_FILE
+from storage.patches.state import store_fingerprint
+from storage.workdir.layout import WorkDir, campus_frame, read_campus
+from storage.workdir.manifest import combine_fingerprints
 from tasks.config import CampusConfig
 from tasks.repair.region_io import RegionRead, read_region
 from tasks.repair.texture_inputs import camera_paths, image_loader, load_cameras, occupancy, reduced_texture
@@ -51,7 +57,13 @@ def _occupied_voxels(cfg: CampusConfig, wd: WorkDir, origin: np.ndarray, lo: np.
 def _texture_region(mesh, rr: RegionRead, cfg: CampusConfig, wd: WorkDir, frame, cams_all: list
                     ) -> tuple[object, np.ndarray, dict]:
     """Atlas + per-face colours of a rebuilt mesh. Returns (atlas or None, (m, 3) uint8 colours, stats)."""
-    from tasks.repair.region_texture import cameras_near, fallback_colors, occluder_box, texture_region, voxels_between
+    from tasks.repair.region_texture import (
+        cameras_near,
+        fallback_colors,
+        occluder_box,
+        texture_region,
+        voxels_between,
+    )
 
     textures = rr.textures
     colors = fallback_colors(mesh, rr.input, rr.zone_attrs["uv"], rr.zone_attrs["texture"],

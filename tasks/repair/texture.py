@@ -17,7 +17,7 @@ al. 1992). Here the choice is automatic and seam-aware:
    original mesh texture (``face_color``) and have NaN uv.
 
 Frames: campus-local metres; cameras follow OpenCV (x right, y down, z forward; pixel (u, v) = column,
-row at pixel centres; radial-tangential lens distortion applied, ``storage.cameras``); atlas uv follow OBJ
+row at pixel centres; radial-tangential lens distortion applied, ``storage.formats.cameras``); atlas uv follow OBJ
 (origin bottom-left).
 """
 
@@ -25,12 +25,12 @@ from __future__ import annotations
 
 import numpy as np
 
-from storage.cameras import Camera
+from storage.formats.cameras import Camera
 from tasks.repair.atlas import NO_VIEW, Atlas, build_atlas
 from tasks.repair.chart import edges_of, undirected_key
 from tasks.repair.views import select_views, select_views_sparse  # noqa: F401  (select_views: re-exported)
 
-# A view is a storage.cameras.Camera: K, distortion (k1, k2, p1, p2, k3), R world(campus-local)-to-camera,
+# A view is a storage.formats.cameras.Camera: K, distortion (k1, k2, p1, p2, k3), R world(campus-local)-to-camera,
 # t, width, height, image path; its project() applies the OpenCV radial-tangential distortion.
 CameraView = Camera
 

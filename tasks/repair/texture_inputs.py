@@ -4,7 +4,7 @@ sees).
 
 The images and the camera file are a config input: ``repair.texture.images`` / ``repair.texture.cameras``
 (or ``inputs.images`` / ``inputs.cameras`` when the config has them); the camera file may be a cameras.json,
-a COLMAP text model (its folder or images.txt) or a ContextCapture BlocksExchange .xml (``storage.cameras``).
+a COLMAP text model (its folder or images.txt) or a ContextCapture BlocksExchange .xml (``storage.formats.cameras``).
 Without either, an ``images`` folder beside the first mesh input is used when it holds a cameras.json (the
 synth layout).
 """
@@ -19,11 +19,12 @@ from pathlib import Path
 import numpy as np
 
 from storage.atomic import atomic_path
-from storage.cameras import Camera, CameraSet, read_cameras
 from storage.errors import InputError
-from storage.patch_store import PatchStore
-from storage.remote_inputs import readable
-from storage.store_state import store_fingerprint
+from storage.formats.camera_files import read_cameras
+from storage.formats.cameras import Camera, CameraSet
+from storage.inputs.remote import readable
+from storage.patches.read import PatchStore
+from storage.patches.state import store_fingerprint
 from tasks.config import CampusConfig
 
 
@@ -83,7 +84,7 @@ def _resolve_images(cams: list[Camera], path: Path, folders: list[Path]) -> list
 def load_cameras(cfg: CampusConfig, doc: dict, frame) -> list[Camera]:
     """Every camera of the camera file in the campus frame ([] when there is none).
 
-    Formats (``storage.cameras.read_cameras``): cameras.json, a COLMAP text model, a BlocksExchange XML.
+    Formats (``storage.formats.camera_files.read_cameras``): cameras.json, a COLMAP text model, a BlocksExchange XML.
     cameras.json: {"frame": "MLS" | "mesh", "frame_origin": [x, y, z] world, "cameras": [...]} with
     X_cam = R (X_world - frame_origin) + t. COLMAP and BlocksExchange poses are world coordinates in the
     campus CRS in the mesh's frame (frame "mesh", frame_origin 0). MLS-frame poses go through the campus

@@ -10,7 +10,7 @@ The classify stage grades a patch only when it is a pair: at least ``partition.m
 - ``not_graded``: a pair, but no grade (classify has not run on the tile, or is disabled).
 
 :func:`unknown_reasons` and :func:`grade_census` are pure (arrays in); :func:`census_of_stores` reads the
-patches tables and the grades side tables (``storage.store_state.patch_grades``, mode "auto": classify's
+patches tables and the grades side tables (``storage.patches.state.patch_grades``, mode "auto": classify's
 grades, else the labels); :func:`grades_section` renders the census for ``report.html``.
 """
 
@@ -21,8 +21,8 @@ from pathlib import Path
 
 import numpy as np
 
-from storage.patch_store import PatchStore
-from storage.store_state import patch_grades
+from storage.patches.read import PatchStore
+from storage.patches.state import patch_grades
 from tasks.report.figures import score_histogram_png
 from tasks.report.html import Section, esc, table
 

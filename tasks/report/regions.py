@@ -12,11 +12,11 @@ from pathlib import Path
 
 import numpy as np
 
+from storage.contracts.tile_mesh import SOURCE_REBUILT, read_tile_arrays
 from storage.errors import InputError
 from storage.grid import PatchGrid
 from storage.ids import TileId
-from storage.patch_store import PatchStore
-from storage.tile_mesh import SOURCE_REBUILT, read_tile_arrays
+from storage.patches.read import PatchStore
 from tasks.report.figures import BAD_COLOUR, MESH_COLOUR, REBUILT_COLOUR, render_png, view_basis
 from tasks.report.html import Section, table
 

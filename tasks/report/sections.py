@@ -11,7 +11,7 @@ from pathlib import Path
 import numpy as np
 
 from storage.grid import PatchGrid
-from storage.patch_store import PatchStore
+from storage.patches.read import PatchStore
 from tasks.report.figures import class_map_png
 from tasks.report.html import Section, esc, table
 

@@ -32,8 +32,8 @@ from pathlib import Path
 
 from storage.atomic import write_bytes_atomic, write_json_atomic
 from storage.errors import InputError
-from storage.manifest import all_records, combine_fingerprints
-from storage.workdir import WorkDir, campus_frame, read_campus
+from storage.workdir.layout import WorkDir, campus_frame, read_campus
+from storage.workdir.manifest import all_records, combine_fingerprints
 from tasks.classify import grading_threshold
 from tasks.quality import ensure_quality, merged_tiles, truth_dir_of
 from tasks.report.grades import census_of_stores, grades_section

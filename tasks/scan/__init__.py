@@ -2,8 +2,8 @@
 
 - Reads: the configured mesh and point-cloud files (meshes whole, clouds only their headers).
 - Writes: one manifest record per file (unit ``{source:08x}``) carrying the file's
-  :class:`storage.inputs.InputFile` record (bounds, count, CRS, error), and for each readable mesh its
-  surface samples ``scan/{source:08x}.npz`` (``storage.surface_samples``), which registration aligns to.
+  :class:`storage.inputs.identity.InputFile` record (bounds, count, CRS, error), and for each readable mesh its
+  surface samples ``scan/{source:08x}.npz`` (``storage.contracts.surface_samples``), which registration aligns to.
 - Invalidated by: the file's content fingerprint (for a tile of a ContextCapture production, with its
   ``metadata.xml``: :mod:`tasks.scan.placement`), its path and kind, the scan parameters
   (``registration.target_spacing_m``, units, mesh offset) and ``STAGE_VERSIONS["scan"]``.

@@ -8,7 +8,7 @@ import numpy as np
 
 from storage.errors import InputError
 from storage.frame import CampusFrame
-from storage.inputs import InputFile
+from storage.inputs.identity import InputFile
 from tasks.config import CampusConfig
 
 ORIGIN_SNAP_M = 1000.0  # the origin moves only when the campus crosses a kilometre line

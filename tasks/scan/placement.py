@@ -1,7 +1,7 @@
 """Where a mesh file lies: its offset to world metres, its CRS, and whether its seams weld across files.
 
 An ordinary mesh file takes ``inputs.mesh_offset`` (and ``inputs.crs``). A file of a ContextCapture
-production (:mod:`storage.production`) takes the production's ``metadata.xml``: SRSOrigin is the offset
+production (:mod:`storage.formats.production`) takes the production's ``metadata.xml``: SRSOrigin is the offset
 and SRS the CRS, and its tile seams are welded (:func:`tasks.ingest.columns.vertex_ids`). The config
 and the metadata must agree:
 
@@ -25,7 +25,8 @@ from pathlib import Path
 import numpy as np
 
 from storage.errors import InputError
-from storage.production import Production, production_of, production_root
+from storage.formats.production import Production
+from storage.inputs.productions import production_of, production_root
 from tasks.config import CampusConfig
 
 log = logging.getLogger("ms3d.scan")
@@ -36,7 +37,7 @@ OFFSET_TOLERANCE_M = 1e-3
 @dataclass(frozen=True)
 class MeshPlacement:
     """offset: world metres added to the file's coordinates after ``inputs.units_scale``
-    (:func:`storage.mesh_io.read_mesh`); crs: from the production's metadata
+    (:func:`storage.formats.meshes.read_mesh`); crs: from the production's metadata
     (None for an ordinary file); seam_key: the production key whose seams weld (None: an ordinary
     file); metadata: path of the ``metadata.xml`` used ("" when none)."""
 

@@ -7,10 +7,10 @@ from __future__ import annotations
 
 from pathlib import Path
 
-from storage.cameras import read_cameras
 from storage.errors import InputError
-from storage.inputs import Discovery, InputFile, assign_source_ids, discover
-from storage.remote_inputs import input_is_file, local_input
+from storage.formats.camera_files import read_cameras
+from storage.inputs.identity import Discovery, InputFile, assign_source_ids, discover
+from storage.inputs.remote import input_is_file, local_input
 from tasks.batches import balanced_batches
 from tasks.config import CampusConfig
 from tasks.scan.placement import check_productions

@@ -25,14 +25,14 @@ from pathlib import Path
 
 import numpy as np
 
+from storage.contracts.surface_samples import samples_path, write_surface_samples
 from storage.errors import InputError
-from storage.inputs import InputFile, fingerprint
-from storage.manifest import combine_fingerprints
-from storage.mesh_io import read_mesh
-from storage.pointcloud_io import read_header
-from storage.remote_inputs import local_input
-from storage.surface_samples import samples_path, write_surface_samples
-from storage.workdir import WorkDir
+from storage.formats.meshes import read_mesh
+from storage.formats.points import read_header
+from storage.inputs.identity import InputFile, fingerprint
+from storage.inputs.remote import local_input
+from storage.workdir.layout import WorkDir
+from storage.workdir.manifest import combine_fingerprints
 from tasks.config import CampusConfig
 from tasks.scan.placement import MeshPlacement, mesh_placement
 from tasks.scan.salvage import salvage_cloud_bounds, salvage_mesh_bounds

@@ -29,8 +29,8 @@ def test_label_loop_bench_labels_least_sure_truth_and_scores_the_rest(tiny_work,
     import label_loop_bench as bench
 
     from storage.grid import PatchGrid
-    from storage.patch_reader import PatchStore
-    from storage.workdir import WorkDir
+    from storage.patches.read import PatchStore
+    from storage.workdir.layout import WorkDir
 
     cfg0, wd0 = tiny_work
     work = tmp_path / "work"

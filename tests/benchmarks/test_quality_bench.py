@@ -30,7 +30,7 @@ def test_assembly_keeps_region_local_ids_apart(tmp_path):
     """Two regions whose new vertices carry the same (region-local) negative ids must not be welded."""
     import json
 
-    from storage.workdir import read_campus
+    from storage.workdir.layout import read_campus
     from synth.corner_scene import write_campus_workdir
     from tasks.config import CampusConfig
     from tasks.regions import run_regions

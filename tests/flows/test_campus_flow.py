@@ -9,9 +9,9 @@ import pytest
 
 from flows.campus import CampusRunFailed, run_campus
 from flows.status import campus_status
-from storage.manifest import all_records
-from storage.patch_store import PatchStore
-from storage.workdir import WorkDir
+from storage.patches.read import PatchStore
+from storage.workdir.layout import WorkDir
+from storage.workdir.manifest import all_records
 from tasks.config import CampusConfig
 
 
@@ -40,7 +40,7 @@ def test_tiny_campus_on_dask_processes_then_resume(tiny_campus, tmp_path, prefec
     assert n_tasks >= 10
     assert _task_runs_on_server(prefect_api) - before == n_tasks
     # every MLS point is in exactly one patch of one tile
-    from storage.pointcloud_io import read_header
+    from storage.formats.points import read_header
 
     n_las = sum(read_header(p).point_count for p in (tiny_campus / "mls").glob("*.laz"))
     assert sum(PatchStore(wd.tile_dir(t)).n_points for t in wd.done_tiles()) == n_las

@@ -14,8 +14,8 @@ import json
 import numpy as np
 
 from flows.campus import InlineExecutor, reprocess
-from storage.mesh_io import read_mesh
-from storage.patch_store import PatchStore
+from storage.formats.meshes import read_mesh
+from storage.patches.read import PatchStore
 from synth.generate import WORLD_ORIGIN, generate
 from tasks.config import CampusConfig
 

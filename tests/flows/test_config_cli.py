@@ -75,11 +75,10 @@ def test_serve_and_view_errors_are_one_line(tmp_path, capsys):
 
 
 def test_a_second_run_on_a_busy_work_dir_is_refused(tmp_path):
-    from storage.workdir import WorkDir
-    from storage.housekeeping import work_dir_lock
+    from storage.workdir.housekeeping import work_dir_lock
+    from storage.workdir.layout import WorkDir
 
     wd = WorkDir(tmp_path / "w")
-    with work_dir_lock(wd):
-        with pytest.raises(InputError, match="in use by another ms3d run"):
-            with work_dir_lock(wd):
-                pass
+    with work_dir_lock(wd), pytest.raises(InputError, match="in use by another ms3d run"):
+        with work_dir_lock(wd):
+            pass

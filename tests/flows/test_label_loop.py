@@ -110,9 +110,9 @@ def graded_work(tiny_work, tiny_export, tmp_path):
     """A copy of the processed tiny campus with seeded random grades (threshold 0.4) and the tiny export's
     output/ (the same synth campus, so the same world and ECEF), georeferenced from this campus's frame.
     Returns (work dir, (u,) keys, (u,) scores)."""
-    from storage.patch_reader import PatchStore
-    from storage.patch_writer import write_side_table
-    from storage.workdir import WorkDir, campus_frame, read_campus
+    from storage.patches.read import PatchStore
+    from storage.patches.write import write_side_table
+    from storage.workdir.layout import WorkDir, campus_frame, read_campus
     from tasks.export import make_georef
 
     rng = np.random.default_rng(3)
@@ -205,9 +205,9 @@ def test_finetune_on_user_labels_writes_a_checkpoint_that_loads_and_regrades(tin
     import yaml
 
     from flows.finetune import FinetuneSpec, finetune
-    from storage.patch_reader import PatchStore
-    from storage.user_labels import append_user_label
-    from storage.workdir import WorkDir
+    from storage.patches.read import PatchStore
+    from storage.workdir.layout import WorkDir
+    from storage.workdir.user_labels import append_user_label
     from tasks.classify import DEFAULT_MODEL, run_classify_tile
     from tasks.classify.pairs import gradable_mask
 
@@ -263,7 +263,7 @@ def test_user_labels_latest_row_wins_and_a_bad_file_is_one_line(tmp_path):
     import datetime as dt
 
     from storage.errors import InputError
-    from storage.user_labels import append_user_label, read_user_labels
+    from storage.workdir.user_labels import append_user_label, read_user_labels
 
     t0 = dt.datetime(2026, 5, 1, 12, 0, tzinfo=dt.UTC)
     append_user_label(tmp_path, (1, 2, 3), 1, t0)

@@ -1,8 +1,8 @@
 """Classify's units start largest first, so that a long unit does not run alone at the end of the stage."""
 
 from flows.campus import largest_first
-from storage.patch_store import FACES_FILE, POINTS_FILE
-from storage.workdir import WorkDir
+from storage.patches.schema import FACES_FILE, POINTS_FILE
+from storage.workdir.layout import WorkDir
 
 
 def test_tiles_go_largest_store_first_ties_and_missing_stores_in_key_order(tmp_path):

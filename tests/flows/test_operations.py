@@ -21,8 +21,8 @@ import httpx
 import pytest
 
 from flows.campus import InlineExecutor, reprocess
-from storage.manifest import all_records
-from storage.workdir import WorkDir
+from storage.workdir.layout import WorkDir
+from storage.workdir.manifest import all_records
 from tasks.config import CampusConfig
 
 from .conftest import build_campus

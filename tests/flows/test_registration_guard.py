@@ -14,7 +14,7 @@ import pytest
 from flows.campus import InlineExecutor, reprocess
 from flows.summary import format_summary
 from storage.errors import InputError
-from storage.pointcloud_io import read_points, write_points
+from storage.formats.points import read_points, write_points
 from tasks.config import CampusConfig
 
 EARLY = {"classify.enabled": False, "repair.enabled": False, "report.enabled": False, "runner": "inline"}

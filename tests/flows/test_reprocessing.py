@@ -14,9 +14,9 @@ import pytest
 import yaml
 
 from flows.campus import CampusRunFailed, InlineExecutor, reprocess
-from storage.patch_store import PatchStore
-from storage.pointcloud_io import PointChunk, read_points, write_points
-from storage.workdir import WorkDir
+from storage.formats.points import PointChunk, read_points, write_points
+from storage.patches.read import PatchStore
+from storage.workdir.layout import WorkDir
 from tasks.config import CampusConfig
 
 from .conftest import ORIGIN, build_campus, region_mesh
@@ -183,7 +183,7 @@ def test_campus_growing_west_keeps_patch_ids(campus, tmp_path):
     middle = sorted(t for t in _stores(work) if _region_of(t) == "middle")
     before = {t: PatchStore(work / "tiles" / t).patches() for t in middle}
     # a new region 1.5 km to the west moves the campus origin by 2 km
-    from storage.mesh_io import write_obj
+    from storage.formats.meshes import write_obj
 
     m = region_mesh(-1500.0)
     write_obj(config.parent / "mesh" / "far-west.obj", np.asarray(m.vertices), np.asarray(m.faces))
@@ -226,7 +226,7 @@ def test_renamed_inputs_in_another_run_order_give_the_same_stores_and_grades(tin
     their content digests, so the transform, the points tables and the grades are the same bitwise (but for the
     source ids). Once they followed the runs: the ~200 pairs above the cues'
     point cap subsampled other points, and an S3 copy of a campus graded differently from the local one."""
-    from storage.inputs import assign_source_ids
+    from storage.inputs.identity import assign_source_ids
 
     def first_strip_first(campus: Path, names: tuple[str, str]) -> bool:
         paths = [str((campus / "mls" / n).resolve()) for n in names]

@@ -10,8 +10,8 @@ import hashlib
 import numpy as np
 
 from flows.campus import InlineExecutor, reprocess
-from storage.pointcloud_io import PointChunk, write_points
-from storage.workdir import WorkDir
+from storage.formats.points import PointChunk, write_points
+from storage.workdir.layout import WorkDir
 from synth.handmade import ORIGIN, region_mesh
 from tasks.config import CampusConfig
 

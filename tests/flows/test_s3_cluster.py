@@ -42,7 +42,8 @@ def s3_env(tmp_path, monkeypatch):
     import boto3
     from moto.server import ThreadedMotoServer
 
-    from storage import remote_inputs, remote_workdir
+    from storage.inputs.identity import remote as remote_inputs
+    from storage.objstore.store import mirror as remote_workdir
 
     server = ThreadedMotoServer(ip_address="127.0.0.1", port=0, verbose=False)
     server.start()
@@ -121,7 +122,7 @@ def test_no_shared_disk_cluster_survives_a_killed_worker_and_a_killed_run(tmp_pa
 
     from flows.campus import InlineExecutor, reprocess
     from flows.remote import mirror_for
-    from storage.objstore import open_store
+    from storage.objstore.store import open_store
     from tasks.config import CampusConfig
 
     from .test_s3_workdir import tables_by_content, upload

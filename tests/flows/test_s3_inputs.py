@@ -1,4 +1,4 @@
-"""Inputs named by URL (storage.remote_inputs, flows.remote) against moto's S3 server on 127.0.0.1:
+"""Inputs named by URL (storage.inputs.remote, flows.remote) against moto's S3 server on 127.0.0.1:
 fingerprints from ETag + size without a download, staging once per content, discovery of a folder URL,
 one clear line for a missing URL, and a config whose inputs are URLs kept as written."""
 
@@ -11,7 +11,7 @@ from pathlib import Path
 import pytest
 
 from storage.errors import InputError
-from storage.inputs import assign_source_ids, discover, fingerprint
+from storage.inputs.identity import assign_source_ids, discover, fingerprint
 
 BUCKET = "ms3d-inputs-test"
 KEY_ID = "AKIAMS3DINPUTSKEY001"
@@ -30,7 +30,7 @@ def s3(s3_server, monkeypatch, tmp_path):
     that returns the object's URL."""
     import boto3
 
-    from storage import remote_inputs
+    from storage.inputs.identity import remote as remote_inputs
 
     for k in ("AWS_PROFILE", "AWS_ENDPOINT_URL_S3", "AWS_SESSION_TOKEN"):
         monkeypatch.delenv(k, raising=False)
@@ -50,13 +50,13 @@ def s3(s3_server, monkeypatch, tmp_path):
 
 
 def _store_of(url):
-    from storage.remote_inputs import bucket_store
+    from storage.inputs.remote import bucket_store
 
     return bucket_store(url)[0]
 
 
 def test_fingerprint_is_etag_and_size_without_download(s3):
-    from storage.remote_inputs import local_input
+    from storage.inputs.remote import local_input
 
     url = s3("mls/a.laz", b"x" * 1000)
     store = _store_of(url)
@@ -70,7 +70,7 @@ def test_fingerprint_is_etag_and_size_without_download(s3):
 
 
 def test_staged_once_per_content_and_refreshed_when_the_object_changes(s3):
-    from storage.remote_inputs import local_input
+    from storage.inputs.remote import local_input
 
     url = s3("mesh/Data/Tile_+000_+000/Tile_+000_+000.obj", b"v 0 0 0\n")
     s3("mesh/Data/Tile_+000_+000/Tile_+000_+000.mtl", b"newmtl m\n")
@@ -105,7 +105,7 @@ def test_folder_url_is_discovered_like_a_local_folder(s3):
 
 
 def test_a_missing_url_is_one_line_naming_it_without_credentials(s3):
-    from storage.remote_inputs import local_input
+    from storage.inputs.remote import local_input
 
     url = s3("x/present.laz", b"1").replace("present", "absent")
     for call in (lambda: fingerprint(url), lambda: local_input(url), lambda: discover([url], [url])):

@@ -1,4 +1,4 @@
-"""A work dir on S3 used through per-process mirrors (storage.remote_workdir, flows.remote), against moto's
+"""A work dir on S3 used through per-process mirrors (storage.objstore.mirror, flows.remote), against moto's
 S3 server on 127.0.0.1: a commit is seen whole by another process's mirror (files, producer mtimes,
 deletions), a task killed between writing its objects and recording them leaves nothing trusted, and the
 hand-made campus run with inputs and work dir on S3 equals the local run by content and reruns as a no-op
@@ -33,7 +33,8 @@ def s3_server(moto_s3):
 @pytest.fixture
 def s3(s3_server, monkeypatch, tmp_path):
     """AWS environment on the local server, a fresh cache; yields the test's URL prefix."""
-    from storage import remote_inputs, remote_workdir
+    from storage.inputs.identity import remote as remote_inputs
+    from storage.objstore.store import mirror as remote_workdir
 
     for k in ("AWS_PROFILE", "AWS_ENDPOINT_URL_S3", "AWS_SESSION_TOKEN"):
         monkeypatch.delenv(k, raising=False)
@@ -47,7 +48,8 @@ def s3(s3_server, monkeypatch, tmp_path):
 
 def fresh_process(monkeypatch, cache: Path) -> None:
     """Look at the bucket as another process would: an empty cache and no mirror in memory."""
-    from storage import remote_inputs, remote_workdir
+    from storage.inputs.identity import remote as remote_inputs
+    from storage.objstore.store import mirror as remote_workdir
 
     monkeypatch.setenv("MS3D_CACHE", str(cache))
     monkeypatch.setattr(remote_inputs, "_STORES", {})
@@ -55,7 +57,7 @@ def fresh_process(monkeypatch, cache: Path) -> None:
 
 
 def upload(folder: Path, url: str) -> None:
-    from storage.objstore import open_store
+    from storage.objstore.store import open_store
 
     store = open_store(url)
     for p in sorted(folder.rglob("*")):
@@ -66,7 +68,7 @@ def upload(folder: Path, url: str) -> None:
 def _texture_names(t) -> list[str] | None:
     """A faces table's texture list as file names: its ``texture`` column indexes a per-tile list in the
     order of the staged runs (source ids), and holds the staging process's paths."""
-    from storage.patch_schema import META_KEY
+    from storage.patches.schema import META_KEY
 
     raw = (t.schema.metadata or {}).get(META_KEY)
     return [Path(p).name for p in json.loads(raw).get("textures", [])] if raw else None
@@ -105,7 +107,7 @@ def _first_difference(got: dict, want: dict, keys: list[str]) -> str:
 
 def _recorded_textures(work: Path) -> set[str]:
     """Every texture reference the work dir records: the faces tables' metadata and the merged tiles'."""
-    from storage.patch_schema import META_KEY
+    from storage.patches.schema import META_KEY
 
     refs = set()
     for f in (work / "tiles").glob("*/faces.parquet"):
@@ -122,8 +124,8 @@ def _region_files(work: Path) -> dict[str, list[str]]:
 
 
 def test_a_commit_is_seen_whole_by_another_mirror(s3, tmp_path):
-    from storage.objstore import open_store
-    from storage.remote_workdir import Mirror
+    from storage.objstore.mirror import Mirror
+    from storage.objstore.store import open_store
 
     store = open_store(s3 + "/work")
     a = Mirror(store, tmp_path / "a")
@@ -154,7 +156,7 @@ def test_a_task_killed_before_its_record_leaves_nothing_trusted(s3, tmp_path, mo
     from flows.planned import pending
     from flows.remote import mirror_for
     from flows.tasks import scan_task
-    from storage.objstore_commit import sweep_unrecorded
+    from storage.objstore.commit import sweep_unrecorded
     from tasks.config import CampusConfig
     from tasks.scan import scan_files
 
@@ -187,7 +189,7 @@ def test_a_task_killed_before_its_record_leaves_nothing_trusted(s3, tmp_path, mo
     other = mirror_for(cfg.work_dir)
     other.pull()
     assert not list(other.root.rglob("*.npz")) and not (other.root / "manifest.d").exists()
-    from storage.workdir import WorkDir
+    from storage.workdir.layout import WorkDir
 
     todo, done = pending(WorkDir(other.root), scan_task, mesh, "scan", cfg_json=cj)
     assert todo == mesh and not done  # nothing trusted: the unit runs again
@@ -227,7 +229,7 @@ def test_tiny_campus_on_s3_equals_local_and_reruns_as_noop(tiny_campus, s3, tmp_
     assert inputs and all(t in inputs or t.startswith("../../regions/") for t in refs), refs  # URL or work dir
     shutil.rmtree(tmp_path / "cache-a")  # the first process's copies are gone: another worker stages its own
     fresh_process(monkeypatch, tmp_path / "cache-b")
-    from storage.remote_inputs import readable
+    from storage.inputs.remote import readable
 
     assert Path(readable(inputs[0])).is_relative_to(tmp_path / "cache-b")
     again = reprocess(remote, InlineExecutor())  # another process, an empty mirror: nothing to redo
@@ -244,9 +246,9 @@ def test_tiny_campus_on_s3_equals_local_and_reruns_as_noop(tiny_campus, s3, tmp_
     assert os.environ["MS3D_CACHE"] == str(tmp_path / "cache-b")
 
 def test_compaction_keeps_the_state_and_frees_superseded_objects(s3, tmp_path):
-    from storage.objstore import open_store
-    from storage.objstore_commit import sweep_unrecorded
-    from storage.remote_workdir import Mirror
+    from storage.objstore.commit import sweep_unrecorded
+    from storage.objstore.mirror import Mirror
+    from storage.objstore.store import open_store
 
     store = open_store(s3 + "/work")
     a = Mirror(store, tmp_path / "a")
@@ -272,7 +274,7 @@ def test_a_run_that_lost_its_lease_starts_no_more_tasks(tmp_path):
     from types import SimpleNamespace
 
     from flows.remote import SyncExecutor
-    from storage.objstore_lock import LeaseLost
+    from storage.objstore.lock import LeaseLost
 
     calls = []
 
@@ -307,8 +309,8 @@ def test_tasks_pull_what_they_read(s3, tmp_path, monkeypatch):
     """classify pulls only its tiles' stores; repair pulls everything but the ingest runs and export's
     outputs; the files it leaves in the bucket are not taken for deletions when it pushes."""
     from flows.remote import mirror_for, synced
-    from storage.objstore import open_store
-    from storage.remote_workdir import Mirror
+    from storage.objstore.mirror import Mirror
+    from storage.objstore.store import open_store
 
     work = s3 + "/work"
     a = Mirror(open_store(work), tmp_path / "writer")

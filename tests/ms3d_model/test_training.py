@@ -12,7 +12,15 @@ import torch
 from torch import nn
 
 from ms3d_model.cues import N_CUES
-from ms3d_model.dataset import PairSet, PairTensors, area_split, largest_defect_extent_m, load_pair_set, save_pair_set, to_batch
+from ms3d_model.dataset import (
+    PairSet,
+    PairTensors,
+    area_split,
+    largest_defect_extent_m,
+    load_pair_set,
+    save_pair_set,
+    to_batch,
+)
 from ms3d_model.features import featurise_pairs
 from ms3d_model.metrics import best_epoch, choose_threshold
 from ms3d_model.objectives import FocalLoss, class_weights, make_criterion, make_optimiser
@@ -195,8 +203,8 @@ def test_the_paper_switch_builds_sgd_with_multistep():
 def test_the_classify_stage_grades_at_the_checkpoints_threshold(tiny_work, tmp_path):
     import shutil
 
-    from storage.patch_store import PatchStore
-    from storage.workdir import WorkDir
+    from storage.patches.read import PatchStore
+    from storage.workdir.layout import WorkDir
     from tasks.classify import run_classify_tile
 
     cfg, shared = tiny_work

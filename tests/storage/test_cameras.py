@@ -5,7 +5,8 @@ give one InputError naming the file."""
 import numpy as np
 import pytest
 
-from storage.camera_formats import (
+from storage.errors import InputError
+from storage.formats.camera_files import (
     quat_to_rot,
     read_blocks_exchange,
     read_colmap,
@@ -13,8 +14,8 @@ from storage.camera_formats import (
     write_blocks_exchange,
     write_colmap,
 )
-from storage.cameras import Camera, CameraSet, camera_format, read_cameras, write_cameras_json
-from storage.errors import InputError
+from storage.formats.camera_files import camera_format, read_cameras
+from storage.formats.cameras import Camera, CameraSet, write_cameras_json
 
 WORLD_CENTRE = np.array([589123.40, 2712345.60, 32.10])  # a UTM-sized position: float64 throughout
 

@@ -5,7 +5,7 @@ import pytest
 
 from storage.errors import InputError
 from storage.grid import PatchGrid
-from storage.labels import (
+from storage.workdir.labels import (
     bad_keys_from_csv,
     bad_keys_from_defects,
     bad_keys_from_faces,

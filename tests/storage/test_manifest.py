@@ -1,7 +1,14 @@
 import json
 
-from storage.manifest import ManifestRecord, all_records, consolidate, is_done, params_hash, write_record
-from storage.workdir import WorkDir
+from storage.workdir.layout import WorkDir
+from storage.workdir.manifest import (
+    ManifestRecord,
+    all_records,
+    consolidate,
+    is_done,
+    params_hash,
+    write_record,
+)
 
 
 def test_done_needs_matching_fingerprints_and_outputs(tmp_path):

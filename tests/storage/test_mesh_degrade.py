@@ -10,7 +10,7 @@ import numpy as np
 import pytest
 
 from storage.errors import InputError
-from storage.mesh_io import read_mesh, read_mesh_dir, write_obj, write_ply, y_up_to_z_up
+from storage.formats.meshes import read_mesh, read_mesh_dir, write_obj, write_ply, y_up_to_z_up
 
 SQUARE = "v 0 0 0 255 0 0\nv 1 0 0 0 255 0\nv 1 1 0 0 0 255\nv 0 1 0 9 9 9\n"
 

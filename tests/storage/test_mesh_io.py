@@ -1,4 +1,4 @@
-"""Round trips and bad-input errors of storage.mesh_io, on small meshes built here."""
+"""Round trips and bad-input errors of storage.formats.meshes, on small meshes built here."""
 
 from __future__ import annotations
 
@@ -6,7 +6,7 @@ import numpy as np
 import pytest
 
 from storage.errors import InputError
-from storage.mesh_io import (
+from storage.formats.meshes import (
     MeshData,
     count_nonmanifold_edges,
     iter_meshes,
@@ -257,7 +257,8 @@ def test_obj_face_layouts(tmp_path, face_lines):
     "v\t0 0 0\nv 1 0 0\nv 1 1 0\nv 0 1 0\nf 1 2 3 4\n",
 ])
 def test_obj_block_parser_agrees_with_the_line_parser(tmp_path, text):
-    from storage import obj_io, obj_statements
+    from storage.formats import obj as obj_io
+    from storage.formats import obj_statements
 
     p = tmp_path / "m.obj"
     p.write_text(text.replace("mtllib none.mtl\n", ""))
@@ -273,7 +274,7 @@ def test_obj_block_parser_agrees_with_the_line_parser(tmp_path, text):
 
 
 def test_obj_block_parser_on_a_written_mesh(tmp_path):
-    from storage import obj_statements
+    from storage.formats import obj_statements
 
     rng = np.random.default_rng(0)
     v = rng.random((500, 3)) * 100

@@ -1,4 +1,4 @@
-"""The object-store layer (storage.objstore*) against a real S3 HTTP server: moto's server mode on
+"""The object-store layer (storage.objstore.store*) against a real S3 HTTP server: moto's server mode on
 127.0.0.1, one per session, a fresh bucket prefix per test."""
 
 from __future__ import annotations
@@ -13,11 +13,13 @@ import pytest
 
 from storage.errors import InputError
 from storage.grid import PatchGrid
-from storage.objstore import PreconditionFailed, open_store, redact
-from storage.objstore_commit import put_unit_outputs, read_output, resolve, sweep_unrecorded
-from storage.objstore_lock import LOCK_KEY, Lease, LeaseLost, _Renewer, acquire_lease, run_lock
-from storage.objstore_ranges import open_ranged, read_patch_rows
-from storage.patch_store import PatchStore, TileMeta, write_tile_tables
+from storage.objstore.commit import put_unit_outputs, read_output, resolve, sweep_unrecorded
+from storage.objstore.lock import LOCK_KEY, Lease, LeaseLost, _Renewer, acquire_lease, run_lock
+from storage.objstore.store import PreconditionFailed, open_store, redact
+from storage.patches.ranges import open_ranged, read_patch_rows
+from storage.patches.read import PatchStore
+from storage.patches.schema import TileMeta
+from storage.patches.write import write_tile_tables
 from tasks.partition.kernels import build_tile_tables
 
 BUCKET = "ms3d-test"

@@ -1,4 +1,4 @@
-"""Credential redaction (storage.objstore_env) of what botocore logs when the credentials are NOT in the
+"""Credential redaction (storage.objstore.env) of what botocore logs when the credentials are NOT in the
 environment (IRSA, profile, instance role): the token and signature must go without redact() knowing them."""
 
 from __future__ import annotations
@@ -7,7 +7,7 @@ import logging
 
 import pytest
 
-from storage.objstore_env import SECRET_ENV, install_log_redaction, redact
+from storage.objstore.env import SECRET_ENV, install_log_redaction, redact
 
 KEY_ID = "ASIAMS3DROLEKEY00042"
 SECRET = "role-secret-never-in-env-9c1e"

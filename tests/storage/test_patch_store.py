@@ -7,16 +7,9 @@ import pytest
 from storage.errors import InputError
 from storage.grid import PatchGrid
 from storage.ids import PatchId
-from storage.patch_store import (
-    FACE_DTYPES,
-    PATCH_DTYPES,
-    POINT_DTYPES,
-    PatchStore,
-    TileMeta,
-    read_side_table,
-    write_side_table,
-    write_tile_tables,
-)
+from storage.patches.read import PatchStore, read_side_table
+from storage.patches.schema import FACE_DTYPES, PATCH_DTYPES, POINT_DTYPES, TileMeta
+from storage.patches.write import write_side_table, write_tile_tables
 from tasks.partition.kernels import build_tile_tables
 
 SIZE = (2.3, 1.0, 0.7)
@@ -227,8 +220,8 @@ def test_v2_face_columns_and_v1_refused(tmp_path):
         PatchStore(tmp_path)
 
 
-@pytest.mark.parametrize("module", ["storage.patch_reader", "storage.patch_writer", "storage.patch_schema",
-                                    "storage.patch_store"])
+@pytest.mark.parametrize("module", ["storage.patches.read", "storage.patches.write", "storage.patches.schema",
+                                    "storage.patches"])
 def test_each_patch_store_module_imports_on_its_own(module):
     import subprocess
     import sys

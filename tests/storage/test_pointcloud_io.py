@@ -1,4 +1,4 @@
-"""Round trips and bad-input errors of storage.pointcloud_io, on small clouds built here."""
+"""Round trips and bad-input errors of storage.formats.points, on small clouds built here."""
 
 from __future__ import annotations
 
@@ -6,7 +6,7 @@ import numpy as np
 import pytest
 
 from storage.errors import InputError
-from storage.pointcloud_io import (
+from storage.formats.points import (
     LasChunkWriter,
     PointChunk,
     iter_points,

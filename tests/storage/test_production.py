@@ -7,8 +7,14 @@ from pathlib import Path
 import pytest
 
 from storage.errors import InputError
-from storage.inputs import discover
-from storage.production import finest_lod, production_key, production_of, production_root, read_metadata
+from storage.formats.production import (
+    finest_lod,
+    production_key,
+    production_of,
+    production_root,
+    read_metadata,
+)
+from storage.inputs.identity import discover
 
 XML = ('<?xml version="1.0" encoding="utf-8"?><ModelMetadata version="1"><SRS>{srs}</SRS>{origin}'
        "<Texture><ColorSource>Visible</ColorSource></Texture></ModelMetadata>")
@@ -87,7 +93,7 @@ def test_discovery_of_a_production_folder_keeps_the_finest_level(tmp_path):
 
 def test_a_mesh_folder_reads_only_the_finest_level(tmp_path):
     """Readers of a whole mesh folder (the quality stage's input-mesh row) take what discovery takes."""
-    from storage.mesh_io import mesh_files
+    from storage.formats.meshes import mesh_files
 
     for name in ("Tile_+000_+000_L17.obj", "Tile_+000_+000_L18.obj"):
         d = tmp_path / "Data" / "Tile_+000_+000"

@@ -7,10 +7,15 @@ import json
 import numpy as np
 import pytest
 
+from storage.contracts.region_mesh import (
+    clear_region,
+    region_meshes_for_tile,
+    write_region_doc,
+    write_region_mesh,
+)
+from storage.contracts.region_plan import Region, read_plan, region_dir, write_plan
 from storage.grid import PatchGrid
 from storage.ids import TileId
-from storage.region_mesh import clear_region, region_meshes_for_tile, write_region_doc, write_region_mesh
-from storage.region_plan import Region, read_plan, region_dir, write_plan
 
 GRID = PatchGrid((1.0, 1.0, 1.0), 10.0)
 

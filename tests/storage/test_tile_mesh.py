@@ -6,8 +6,8 @@ import numpy as np
 import pytest
 from PIL import Image
 
+from storage.contracts.tile_mesh import TileMesh, read_tile_arrays, read_tile_mesh, write_tile_mesh
 from storage.errors import InputError
-from storage.tile_mesh import TileMesh, read_tile_arrays, read_tile_mesh, write_tile_mesh
 
 
 def _mesh(texture: str) -> TileMesh:

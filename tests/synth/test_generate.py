@@ -7,7 +7,7 @@ import json
 import numpy as np
 import pytest
 
-from storage.pointcloud_io import read_header, read_points
+from storage.formats.points import read_header, read_points
 from synth.generate import generate
 from synth.tile_meshes import read_production
 from tasks.quality.metrics import point_to_mesh_distance

@@ -9,10 +9,10 @@ import json
 import numpy as np
 import yaml
 
-from storage.cameras import read_cameras
-from storage.inputs import discover
-from storage.mesh_io import mesh_files, read_mesh
-from storage.production import finest_lod, production_key, production_of
+from storage.formats.camera_files import read_cameras
+from storage.formats.meshes import mesh_files, read_mesh
+from storage.formats.production import finest_lod, production_key, production_of
+from storage.inputs.identity import discover
 from synth.production import cluster_decimate, split_tiles, write_production
 from synth.scene import Mesh
 from tasks.ingest.columns import open_boundary_vertices, vertex_ids, weld_vertex_index

@@ -1,7 +1,7 @@
 """The planner of ``tasks.units``: one read of a stage's records decides exactly what run_unit would skip."""
 
-from storage.manifest import ManifestRecord, read_stage_records, write_record
-from storage.workdir import WorkDir
+from storage.workdir.layout import WorkDir
+from storage.workdir.manifest import ManifestRecord, read_stage_records, write_record
 from tasks.units import Done, pending_units, run_unit
 
 

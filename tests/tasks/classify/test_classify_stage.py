@@ -7,7 +7,7 @@ import torch
 
 from ms3d_model.profiles import PROFILES
 from ms3d_model.train import make_model, save_checkpoint
-from storage.patch_store import PatchStore
+from storage.patches.read import PatchStore
 
 
 def _checkpoint(path, seed=0):
@@ -65,7 +65,7 @@ def test_the_users_labels_win_and_regrade_only_their_tile(tiny_work, tmp_path):
     import shutil
 
     from storage.grid import PatchGrid
-    from storage.user_labels import LABELS_DIR, append_user_label
+    from storage.workdir.user_labels import LABELS_DIR, append_user_label
     from tasks.classify import run_classify_tile
 
     cfg, wd = tiny_work

@@ -8,8 +8,8 @@ import shutil
 import numpy as np
 import pytest
 
+from storage.contracts.tile_mesh import read_tile_mesh, write_tile_mesh
 from storage.errors import InputError
-from storage.tile_mesh import read_tile_mesh, write_tile_mesh
 from tasks.config import ExportConfig
 from tasks.export import run_export
 from tasks.export.check import check_mesh_features, check_tileset, node_tools, validate_glbs
@@ -226,8 +226,8 @@ def test_process_pool_gives_the_same_tileset(tiny_merged, tmp_path):
 
 
 def test_nodes_mapped_in_batches_give_the_same_tileset_and_record_each_node(tiny_merged, tiny_export, tmp_path):
-    from storage.manifest import read_record
-    from storage.workdir import WorkDir
+    from storage.workdir.layout import WorkDir
+    from storage.workdir.manifest import read_record
     from tasks.export import build_nodes, node_batches, node_records
 
     work = tmp_path / "work"

@@ -8,8 +8,9 @@ import numpy as np
 import pytest
 from scipy.spatial import cKDTree
 
-from storage.patch_store import PatchStore, write_side_table
-from storage.workdir import campus_frame, read_campus
+from storage.patches.read import PatchStore
+from storage.patches.write import write_side_table
+from storage.workdir.layout import campus_frame, read_campus
 from synth.corner_scene import write_campus_workdir
 from tasks.export.check import check_tileset, node_tools, validate_glbs
 from tasks.export.georef import EnuProjector, gltf_to_enu, make_georef

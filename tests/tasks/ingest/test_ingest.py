@@ -9,7 +9,7 @@ import trimesh
 
 from flows.campus import InlineExecutor, reprocess
 from storage.grid import PatchGrid
-from storage.patch_store import PatchStore
+from storage.patches.read import PatchStore
 from tasks.config import CampusConfig
 from tasks.ingest.columns import vertex_ids, weld_vertex_index
 
@@ -84,9 +84,9 @@ def test_store_v2_round_trip_welds_a_patch(tmp_path):
 def test_glb_seams_are_welded_on_ingest(tmp_path):
     """A GLB splits vertices at UV seams; its faces still share vertex ids after ingest."""
     from flows.campus import scan_inputs
-    from storage.columns import RunReader
-    from storage.pointcloud_io import PointChunk, write_points
-    from storage.workdir import WorkDir
+    from storage.contracts.columns import RunReader
+    from storage.formats.points import PointChunk, write_points
+    from storage.workdir.layout import WorkDir
     from tasks.ingest import plan_units, run_ingest_unit
 
     box = trimesh.creation.box((4, 4, 4))

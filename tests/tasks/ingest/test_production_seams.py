@@ -11,9 +11,9 @@ import pytest
 import trimesh
 
 from storage.errors import InputError
-from storage.inputs import assign_source_ids, discover
-from storage.mesh_io import read_mesh
-from storage.obj_io import write_obj
+from storage.formats.meshes import read_mesh
+from storage.formats.obj import write_obj
+from storage.inputs.identity import assign_source_ids, discover
 from tasks.config import CampusConfig
 from tasks.ingest.columns import SEAM_ID_BIT, open_boundary_vertices, vertex_ids, weld_vertex_index
 from tasks.scan import mesh_placement

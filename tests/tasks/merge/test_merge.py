@@ -10,11 +10,12 @@ import numpy as np
 import pytest
 from PIL import Image
 
+from storage.contracts.tile_mesh import GRADE_BAD, GRADE_GOOD, SOURCE_MESH, SOURCE_REBUILT, read_tile_mesh
 from storage.frame import CampusFrame
 from storage.ids import TileId
-from storage.patch_store import TileMeta, write_side_table, write_tile_tables
-from storage.tile_mesh import GRADE_BAD, GRADE_GOOD, SOURCE_MESH, SOURCE_REBUILT, read_tile_mesh
-from storage.workdir import WorkDir, campus_frame, read_campus, write_campus
+from storage.patches.schema import TileMeta
+from storage.patches.write import write_side_table, write_tile_tables
+from storage.workdir.layout import WorkDir, campus_frame, read_campus, write_campus
 from tasks.config import CampusConfig
 from tasks.merge import FaceSoup, RegionMesh, run_merge_tile, weld_soup
 from tasks.merge.weld import face_keep_mask, weld_corners, weld_keys
@@ -225,8 +226,8 @@ def test_rerun_skips_and_a_changed_region_redoes_its_tiles(handmade):
 def _write_region(cfg, wd, tmp, key: str, rm: RegionMesh, tiles: list[str]) -> None:
     """Write ``rm`` as repair does (``regions/{key}/``): the rows it replaces are the store rows of its
     replaced patches in each of ``tiles``."""
-    from storage.patch_store import PatchStore
-    from storage.region_mesh import write_region_doc, write_region_mesh
+    from storage.contracts.region_mesh import write_region_doc, write_region_mesh
+    from storage.patches.read import PatchStore
     from tasks.merge import faces_in_tile
 
     xyz = rm.vertices[rm.faces]
@@ -246,7 +247,7 @@ def _write_region(cfg, wd, tmp, key: str, rm: RegionMesh, tiles: list[str]) -> N
 def on_disk_regions(handmade):
     """The hand-made pair with two rebuilt regions on disk, as repair leaves them: "rx" (REPLACED_CELLS,
     across the tile border) and "ry" (one new face over cell (13, 0), right tile only)."""
-    from storage.region_plan import Region, write_plan
+    from storage.contracts.region_plan import Region, write_plan
 
     cfg, wd, tmp = handmade
     rx = _region(cfg, tmp, duplicate=False)
@@ -263,8 +264,8 @@ def on_disk_regions(handmade):
 
 
 def test_planning_reads_no_region_mesh_and_a_changed_region_file_reruns_only_its_tiles(on_disk_regions, monkeypatch):
-    from storage import region_mesh
-    from storage.region_mesh import region_files_for_tile, region_meshes_for_tile
+    from storage.contracts import region_mesh
+    from storage.contracts.region_mesh import region_files_for_tile, region_meshes_for_tile
     from tasks.units import MustRun, planning
 
     cfg, wd = on_disk_regions
@@ -356,7 +357,7 @@ def tiny_merged_run(tiny_campus, tmp_path_factory):
 
 
 def test_tiny_campus_merges_every_face_once(tiny_merged_run):
-    from storage.patch_store import PatchStore
+    from storage.patches.read import PatchStore
 
     _, wd, results = tiny_merged_run
     done = [r for r in results if r["status"] == "done"]
@@ -401,7 +402,7 @@ def test_tiny_campus_merge_feeds_export_and_passes_its_checks(tiny_merged_run, t
 
 
 def test_tiny_campus_rerun_skips_and_a_relabelled_tile_is_redone(tiny_merged_run, tmp_path):
-    from storage.patch_store import PatchStore
+    from storage.patches.read import PatchStore
 
     cfg0, wd0, results = tiny_merged_run
     work = tmp_path / "work"

@@ -8,9 +8,10 @@ import shutil
 import numpy as np
 import pytest
 
-from storage.patch_store import PatchStore, write_side_table
-from storage.tile_mesh import GRADE_BAD, read_tile_mesh
-from storage.workdir import WorkDir, campus_frame, read_campus
+from storage.contracts.tile_mesh import GRADE_BAD, read_tile_mesh
+from storage.patches.read import PatchStore
+from storage.patches.write import write_side_table
+from storage.workdir.layout import WorkDir, campus_frame, read_campus
 from synth.corner_scene import write_campus_workdir
 from tasks.config import CampusConfig
 from tasks.merge import faces_in_tile, run_merge_tile

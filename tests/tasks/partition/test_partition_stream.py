@@ -9,9 +9,10 @@ import numpy as np
 import pytest
 
 from flows.campus import InlineExecutor, reprocess
+from storage.contracts.staging import staged_files
 from storage.frame import CampusFrame
-from storage.patch_store import PatchStore, TileMeta
-from storage.staging import staged_files
+from storage.patches.read import PatchStore
+from storage.patches.schema import TileMeta
 from synth.handmade import build_campus
 from tasks.config import CampusConfig
 from tasks.partition.stream import plan_blocks, stream_partition_tile
@@ -23,13 +24,13 @@ def _sha(p):
 
 @pytest.fixture(scope="module")
 def staged(tmp_path_factory):
-    import storage.columns
+    import storage.contracts.columns
 
     root = tmp_path_factory.mktemp("stream")
     cfg = CampusConfig.from_yaml(build_campus(root / "in", tile_size_m=40.0, subdivisions=4),
                                  {"work_dir": str(root / "work"), "runner": "inline"})
     with pytest.MonkeyPatch.context() as mp:  # small row groups: many cut points on a small tile
-        mp.setattr(storage.columns, "RUN_ROW_GROUP", 256)
+        mp.setattr(storage.contracts.columns, "RUN_ROW_GROUP", 256)
         reprocess(cfg, InlineExecutor())
     frame = CampusFrame.from_json(json.loads((root / "work" / "campus.json").read_text())["frame"])
     return cfg, root / "work", frame
@@ -68,7 +69,7 @@ def test_plan_blocks_bounds_rows_and_covers_every_key():
 
 def test_the_stage_streams_when_the_budget_is_small(staged, tmp_path):
     from storage.ids import TileId
-    from storage.workdir import WorkDir
+    from storage.workdir.layout import WorkDir
     from tasks.partition import run_partition_tile
 
     cfg, work, frame = staged

@@ -17,7 +17,13 @@ from synth.handmade import region_mesh
 from tasks.config import CampusConfig, RegistrationConfig
 from tasks.register import guard
 from tasks.register.align import apply_similarity, compare_transforms, mesh_registration_target
-from tasks.register.guard import Estimate, TransformScore, clearly_better, guarded_register, judge_registration
+from tasks.register.guard import (
+    Estimate,
+    TransformScore,
+    clearly_better,
+    guarded_register,
+    judge_registration,
+)
 
 TRUTH = similarity(1.0, 2.0, 0.1, -0.1, (1.2, -0.8, 0.2))  # MLS -> mesh
 

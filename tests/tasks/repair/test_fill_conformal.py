@@ -14,7 +14,7 @@ def _band(length=30.0, height=3.0, nx=60, nz=6, y=0.0):
     """A vertical wall band in the x-z plane at y, as a grid of (nx x nz) quads: (vertices, faces)."""
     xs, zs = np.linspace(0, length, nx + 1), np.linspace(0, height, nz + 1)
     v = np.array([[x, y, z] for x in xs for z in zs])
-    idx = lambda i, j: i * (nz + 1) + j  # noqa: E731
+    idx = lambda i, j: i * (nz + 1) + j
     f = []
     for i in range(nx):
         for j in range(nz):
@@ -178,7 +178,6 @@ EDGE_IS_MESH_EDGE = _edge_is_mesh_edge()
 def test_unseen_zone_faces_stay_verbatim_and_the_rebuild_stitches_to_them():
     """The default: the unseen half of the zone is not rebuilt at all; its faces stay, and the rebuilt half
     welds to their vertices (no gap)."""
-    from tasks.config.repair import RepairConfig
     from tasks.repair.geometry import repair_region_geometry
 
     data = _half_seen_region()
@@ -203,7 +202,7 @@ def _wall_and_roof(seed: int):
 
     wv, wf = _band(length=8.0, height=3.0, nx=16, nz=6)
     rv = np.array([[x, y, 3.0] for x in np.linspace(0, 8, 17) for y in np.linspace(0, 3, 7)])
-    idx = lambda i, j: len(wv) + i * 7 + j  # noqa: E731
+    idx = lambda i, j: len(wv) + i * 7 + j
     rf = [[idx(i, j), idx(i + 1, j + 1), idx(i + 1, j)] for i in range(16) for j in range(6)]
     rf += [[idx(i, j), idx(i, j + 1), idx(i + 1, j + 1)] for i in range(16) for j in range(6)]
     v, f = np.concatenate([wv, rv]), np.concatenate([wf, np.array(rf, np.int64)])
@@ -218,7 +217,6 @@ def _wall_and_roof(seed: int):
 def test_a_roof_strip_in_a_facade_zone_is_never_rebuilt():
     """A zone over a wall's top storey takes a strip of the roof with it. The street MLS sees the wall
     only: the roof faces come out exactly as they went in, and no rebuilt triangle cuts across the eave."""
-    from tasks.config.repair import RepairConfig
     from tasks.repair.geometry import repair_region_geometry
 
     data, roof = _wall_and_roof(seed=0)

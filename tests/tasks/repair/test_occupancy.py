@@ -5,7 +5,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from storage.patch_store import PatchStore
+from storage.patches.read import PatchStore
 from tasks.repair import texture_inputs
 from tasks.repair.texture_inputs import occupancy, voxel_cells
 

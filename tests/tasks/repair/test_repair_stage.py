@@ -5,11 +5,12 @@ import json
 import numpy as np
 import pytest
 
+from storage.contracts.region_mesh import region_meshes_for_tile
 from storage.ids import TileId
-from storage.patch_store import PatchStore, write_side_table
-from storage.region_mesh import region_meshes_for_tile
-from storage.store_state import patch_grades
-from storage.workdir import campus_frame, read_campus
+from storage.patches.read import PatchStore
+from storage.patches.state import patch_grades
+from storage.patches.write import write_side_table
+from storage.workdir.layout import campus_frame, read_campus
 from synth.corner_scene import CENTRE, HALF, building_mesh, write_campus_workdir
 from tasks.config import CampusConfig
 from tasks.merge import faces_in_tile
@@ -101,7 +102,7 @@ def test_region_is_redone_when_grades_or_parameters_change(corner, tmp_path):
 
     wd0 = corner[0]
     shutil.copytree(wd0.root, tmp_path / "w", symlinks=True)
-    from storage.workdir import WorkDir
+    from storage.workdir.layout import WorkDir
 
     wd = WorkDir(tmp_path / "w")
     cfg = _cfg(wd)

@@ -8,9 +8,9 @@ import numpy as np
 import pytest
 
 from flows.campus import InlineExecutor, reprocess
-from storage.region_mesh import region_meshes_for_tile
-from storage.tile_mesh import SOURCE_REBUILT, read_tile_mesh
-from storage.workdir import WorkDir
+from storage.contracts.region_mesh import region_meshes_for_tile
+from storage.contracts.tile_mesh import SOURCE_REBUILT, read_tile_mesh
+from storage.workdir.layout import WorkDir
 from tasks.config import CampusConfig
 from tasks.regions import read_plan
 from tasks.repair import run_region

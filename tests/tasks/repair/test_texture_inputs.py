@@ -4,9 +4,9 @@ cameras.json through the registration), image paths resolve, missing images are 
 import numpy as np
 import pytest
 
-from storage.camera_formats import write_blocks_exchange, write_colmap
-from storage.cameras import Camera, CameraSet, write_cameras_json
 from storage.errors import InputError
+from storage.formats.camera_files import write_blocks_exchange, write_colmap
+from storage.formats.cameras import Camera, CameraSet, write_cameras_json
 from storage.frame import CampusFrame
 from tasks.config import CampusConfig
 from tasks.repair.texture_inputs import camera_paths, load_cameras

@@ -9,8 +9,10 @@ import pytest
 
 from storage.frame import CampusFrame
 from storage.grid import PatchGrid
-from storage.patch_store import PatchStore, TileMeta, side_table_path, write_side_table, write_tile_tables
-from storage.workdir import WorkDir, write_campus
+from storage.patches.read import PatchStore
+from storage.patches.schema import TileMeta, side_table_path
+from storage.patches.write import write_side_table, write_tile_tables
+from storage.workdir.layout import WorkDir, write_campus
 from tasks.partition import build_tile_tables
 from tasks.report.grades import UNKNOWN_REASONS, census_of_stores, grades_section, unknown_reasons
 

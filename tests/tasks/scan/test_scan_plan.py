@@ -4,7 +4,7 @@ import numpy as np
 
 from storage.frame import CampusFrame
 from storage.grid import PatchGrid
-from storage.inputs import InputFile
+from storage.inputs.identity import InputFile
 from tasks.ingest import IngestUnit, blocked_tiles
 from tasks.scan import scan_batches
 

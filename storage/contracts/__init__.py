@@ -1,0 +1,2 @@
+"""The stage-to-stage contracts: staging runs, surface samples, the region plan, region and tile meshes.
+"""

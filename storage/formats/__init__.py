@@ -1,0 +1,2 @@
+"""Input and output file formats: one module per format, readers in registries keyed by extension.
+"""

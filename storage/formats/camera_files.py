@@ -1,0 +1,326 @@
+"""Camera files: the registry of camera readers (:func:`read_cameras`), the COLMAP text model and the
+ContextCapture / iTwin Capture BlocksExchange XML. Both give :class:`storage.formats.cameras.CameraSet` in the OpenCV convention of
+:mod:`storage.formats.cameras` (pixel centres at integers; world-to-camera R, t).
+
+COLMAP (``cameras.txt``: ``CAMERA_ID MODEL WIDTH HEIGHT PARAMS...``; ``images.txt``: per image one line
+``IMAGE_ID QW QX QY QZ TX TY TZ CAMERA_ID NAME`` then one line of 2D points, possibly empty). The quaternion
+(Hamilton, w first) and t map world to camera. Models: SIMPLE_PINHOLE (f cx cy), PINHOLE (fx fy cx cy),
+SIMPLE_RADIAL (f cx cy k), RADIAL (f cx cy k1 k2), OPENCV (fx fy cx cy k1 k2 p1 p2) and FULL_OPENCV when its
+rational terms k4..k6 are 0. COLMAP's principal point counts from the image corner: cx = cx_colmap - 0.5.
+
+BlocksExchange: ``Block/Photogroups/Photogroup`` with ``ImageDimensions`` (Width, Height), ``FocalLengthPixels``
+or ``FocalLength`` (mm) with ``SensorSize`` (mm, the larger image side), ``PrincipalPoint`` (x, y pixels, taken
+with pixel centres at integers), ``AspectRatio`` (fy / fx), ``Skew`` (pixels), ``Distortion`` (K1 K2 K3 P1 P2,
+taken as OpenCV's), ``CameraOrientation`` (XRightYDown or XRightYUp) and ``Photo`` (``ImagePath``, ``Pose``:
+``Rotation`` M_00..M_22 world-to-camera, ``Center`` x y z). Photos without a rotation matrix and centre are
+skipped and counted (``CameraSet.skipped``). ``BaseImagePath`` prefixes relative image paths.
+"""
+
+from __future__ import annotations
+
+import xml.etree.ElementTree as ET
+from pathlib import Path
+
+import numpy as np
+
+from storage.errors import InputError
+from storage.formats.cameras import Camera, CameraSet, check_pose, read_cameras_json
+
+# ------------------------------------------------------------------------------------- rotations
+
+
+def quat_to_rot(q) -> np.ndarray:
+    """(qw, qx, qy, qz) -> (3, 3) float64 rotation (normalised first).
+
+    >>> quat_to_rot([0.0, 0.0, 0.0, 1.0]).round(6).tolist()  # 180 deg about z
+    [[-1.0, 0.0, 0.0], [0.0, -1.0, 0.0], [0.0, 0.0, 1.0]]
+    """
+    w, x, y, z = np.asarray(q, np.float64) / np.linalg.norm(q)
+    return np.array([[1 - 2 * (y * y + z * z), 2 * (x * y - z * w), 2 * (x * z + y * w)],
+                     [2 * (x * y + z * w), 1 - 2 * (x * x + z * z), 2 * (y * z - x * w)],
+                     [2 * (x * z - y * w), 2 * (y * z + x * w), 1 - 2 * (x * x + y * y)]])
+
+
+def rot_to_quat(r: np.ndarray) -> np.ndarray:
+    """(3, 3) rotation -> (4,) float64 (qw, qx, qy, qz), qw >= 0; from the largest diagonal term (stable)."""
+    r = np.asarray(r, np.float64)
+    tr = np.trace(r)
+    cands = [tr, r[0, 0], r[1, 1], r[2, 2]]
+    i = int(np.argmax(cands))
+    if i == 0:
+        s = 2.0 * np.sqrt(1.0 + tr)
+        q = [0.25 * s, (r[2, 1] - r[1, 2]) / s, (r[0, 2] - r[2, 0]) / s, (r[1, 0] - r[0, 1]) / s]
+    else:
+        a, b, c = [(0, 1, 2), (1, 2, 0), (2, 0, 1)][i - 1]
+        s = 2.0 * np.sqrt(1.0 + r[a, a] - r[b, b] - r[c, c])
+        q = np.zeros(4)
+        q[0] = (r[c, b] - r[b, c]) / s
+        q[1 + a] = 0.25 * s
+        q[1 + b] = (r[a, b] + r[b, a]) / s
+        q[1 + c] = (r[a, c] + r[c, a]) / s
+    q = np.asarray(q, np.float64)
+    return q if q[0] >= 0 else -q
+
+
+# ------------------------------------------------------------------------------------- COLMAP
+
+_COLMAP = {"SIMPLE_PINHOLE": 3, "PINHOLE": 4, "SIMPLE_RADIAL": 4, "RADIAL": 5, "OPENCV": 8, "FULL_OPENCV": 12}
+
+
+def _colmap_intrinsics(model: str, p: list[float]) -> tuple[np.ndarray, np.ndarray] | str:
+    """(K, dist) from a COLMAP model's parameters, or a message saying why not."""
+    if model not in _COLMAP:
+        return f"camera model {model} is not supported (use {', '.join(_COLMAP)})"
+    if len(p) != _COLMAP[model]:
+        return f"{model} takes {_COLMAP[model]} parameters, got {len(p)}"
+    d = np.zeros(5)
+    if model in ("SIMPLE_PINHOLE", "SIMPLE_RADIAL", "RADIAL"):
+        fx = fy = p[0]
+        cx, cy = p[1], p[2]
+        d[: len(p) - 3] = p[3:]  # k1 (and k2)
+    else:
+        fx, fy, cx, cy = p[:4]
+        if model in ("OPENCV", "FULL_OPENCV"):
+            d[:4] = p[4:8]
+        if model == "FULL_OPENCV":
+            if any(v != 0 for v in p[9:12]):
+                return "FULL_OPENCV with rational terms k4..k6 is not supported"
+            d[4] = p[8]
+    return np.array([[fx, 0.0, cx - 0.5], [0.0, fy, cy - 0.5], [0.0, 0.0, 1.0]]), d
+
+
+def _colmap_lines(path: Path) -> list[tuple[int, str]]:
+    try:
+        text = path.read_text()
+    except (OSError, UnicodeDecodeError) as e:
+        raise InputError(path, f"cannot read ({e})") from None
+    return [(i + 1, s) for i, s in enumerate(text.splitlines()) if not s.lstrip().startswith("#")]
+
+
+def _floats(path: Path, lineno: int, tokens: list[str]) -> list[float]:
+    try:
+        vals = [float(v) for v in tokens]
+    except ValueError:
+        raise InputError(path, f"line {lineno}: not a number in {' '.join(tokens)!r}") from None
+    if not np.isfinite(vals).all():
+        raise InputError(path, f"line {lineno}: NaN or infinite value")
+    return vals
+
+
+def _colmap_files(path: Path) -> tuple[Path, Path]:
+    folder = path if path.is_dir() else path.parent
+    cams, imgs = folder / "cameras.txt", folder / "images.txt"
+    for p in (cams, imgs):
+        if not p.is_file():
+            binary = " (a binary model: convert it with `colmap model_converter --output_type TXT`)" \
+                if p.with_suffix(".bin").exists() else ""
+            raise InputError(p, f"COLMAP text model incomplete: {p.name} not found{binary}")
+    return cams, imgs
+
+
+def read_colmap(path: Path) -> CameraSet:
+    """A COLMAP sparse text model: ``path`` is its folder, its cameras.txt or its images.txt."""
+    cams_txt, imgs_txt = _colmap_files(Path(path))
+    intr = {}
+    for lineno, line in _colmap_lines(cams_txt):
+        tok = line.split()
+        if not tok:
+            continue
+        if len(tok) < 4:
+            raise InputError(cams_txt, f"line {lineno}: expected CAMERA_ID MODEL WIDTH HEIGHT PARAMS...")
+        vals = _floats(cams_txt, lineno, [tok[0], *tok[2:]])
+        got = _colmap_intrinsics(tok[1].upper(), vals[3:])
+        if isinstance(got, str):
+            raise InputError(cams_txt, f"line {lineno}: {got}")
+        intr[tok[0]] = (got, int(vals[1]), int(vals[2]))
+    out = []
+    lines = _colmap_lines(imgs_txt)
+    i = 0
+    while i < len(lines):
+        lineno, line = lines[i]
+        tok = line.split()
+        if not tok:
+            i += 1
+            continue
+        if len(tok) < 10:
+            raise InputError(imgs_txt, f"line {lineno}: expected IMAGE_ID QW QX QY QZ TX TY TZ CAMERA_ID NAME "
+                                       f"(truncated?)")
+        v = _floats(imgs_txt, lineno, tok[1:8])
+        if tok[8] not in intr:
+            raise InputError(imgs_txt, f"line {lineno}: camera {tok[8]} is not in {cams_txt.name}")
+        (K, d), w, h = intr[tok[8]]
+        if np.linalg.norm(v[:4]) < 1e-9:
+            raise InputError(imgs_txt, f"line {lineno}: zero quaternion")
+        out.append(check_pose(imgs_txt, " ".join(tok[9:]), K, quat_to_rot(v[:4]), v[4:7], w, h, d))
+        i += 2  # the image line and its 2D-points line (which may be empty)
+    if not out:
+        raise InputError(imgs_txt, "no images in the COLMAP model")
+    return CameraSet(out, "mesh", (0.0, 0.0, 0.0), "colmap")
+
+
+def write_colmap(folder: Path, cams: list[Camera]) -> None:
+    """Write ``cams`` as a COLMAP text model (one OPENCV camera per image; FULL_OPENCV when k3 != 0)."""
+    folder = Path(folder)
+    folder.mkdir(parents=True, exist_ok=True)
+    cl, il = ["# Camera list: CAMERA_ID, MODEL, WIDTH, HEIGHT, PARAMS[]"], ["# Image list"]
+    for i, c in enumerate(cams, start=1):
+        k1, k2, p1, p2, k3 = np.asarray(c.dist, np.float64)
+        p = [c.K[0, 0], c.K[1, 1], c.K[0, 2] + 0.5, c.K[1, 2] + 0.5, k1, k2, p1, p2]
+        model = "OPENCV" if k3 == 0 else "FULL_OPENCV"
+        if k3 != 0:
+            p += [k3, 0.0, 0.0, 0.0]
+        cl.append(f"{i} {model} {c.width} {c.height} " + " ".join(repr(float(x)) for x in p))
+        q = rot_to_quat(c.R)
+        il.append(f"{i} " + " ".join(repr(float(x)) for x in (*q, *c.t)) + f" {i} {c.image}")
+        il.append("")
+    (folder / "cameras.txt").write_text("\n".join(cl) + "\n")
+    (folder / "images.txt").write_text("\n".join(il) + "\n")
+
+
+# ------------------------------------------------------------------------------------- BlocksExchange
+
+_ORIENT = {"xrightydown": np.eye(3), "xrightyup": np.diag([1.0, -1.0, -1.0])}
+
+
+def _num(path: Path, el, tag: str, default: float | None = None) -> float:
+    node = el.find(tag)
+    if node is None or node.text is None or not node.text.strip():
+        if default is None:
+            raise InputError(path, f"<{el.tag}> has no <{tag}>")
+        return default
+    try:
+        v = float(node.text)
+    except ValueError:
+        raise InputError(path, f"<{tag}> is not a number: {node.text.strip()!r}") from None
+    if not np.isfinite(v):
+        raise InputError(path, f"<{tag}> is not finite")
+    return v
+
+
+def _group_intrinsics(path: Path, g) -> tuple[np.ndarray, np.ndarray, int, int, np.ndarray]:
+    """(K, dist, width, height, orientation) of a Photogroup."""
+    w, h = int(_num(path, g, "ImageDimensions/Width")), int(_num(path, g, "ImageDimensions/Height"))
+    if g.find("FocalLengthPixels") is not None:
+        f = _num(path, g, "FocalLengthPixels")
+    else:
+        f = _num(path, g, "FocalLength") * max(w, h) / _num(path, g, "SensorSize")
+    cx = _num(path, g, "PrincipalPoint/x", (w - 1) / 2)
+    cy = _num(path, g, "PrincipalPoint/y", (h - 1) / 2)
+    K = np.array([[f, _num(path, g, "Skew", 0.0), cx], [0.0, f * _num(path, g, "AspectRatio", 1.0), cy],
+                  [0.0, 0.0, 1.0]])
+    d = np.array([_num(path, g, f"Distortion/{k}", 0.0) for k in ("K1", "K2", "P1", "P2", "K3")])
+    orient = (g.findtext("CameraOrientation") or "XRightYDown").strip().lower()
+    if orient not in _ORIENT:
+        raise InputError(path, f"CameraOrientation {orient!r} is not supported (XRightYDown, XRightYUp)")
+    return K, d, w, h, _ORIENT[orient]
+
+
+def read_blocks_exchange(path: Path) -> CameraSet:
+    """Every posed photo of every block of a BlocksExchange XML (module docstring)."""
+    try:
+        root = ET.parse(path).getroot()
+    except (ET.ParseError, OSError) as e:
+        raise InputError(path, f"not a readable BlocksExchange XML ({e})") from None
+    if root.tag != "BlocksExchange":
+        raise InputError(path, f"not a BlocksExchange XML (root element <{root.tag}>)")
+    base = (root.findtext("BaseImagePath") or "").strip()
+    out, skipped = [], 0
+    for g in root.iter("Photogroup"):
+        K, d, w, h, orient = _group_intrinsics(path, g)
+        for ph in g.findall("Photo"):
+            name = (ph.findtext("ImagePath") or "").strip()
+            rot, cen = ph.find("Pose/Rotation"), ph.find("Pose/Center")
+            if not name or rot is None or cen is None or rot.find("M_00") is None:
+                skipped += 1
+                continue
+            r = orient @ np.array([[_num(path, rot, f"M_{i}{j}") for j in range(3)] for i in range(3)])
+            c = np.array([_num(path, cen, a) for a in "xyz"])
+            if base and not Path(name).is_absolute() and not name[1:3] == ":\\":
+                name = str(Path(base) / name)
+            out.append(check_pose(path, name, K, r, -r @ c, w, h, d))
+    if not out:
+        raise InputError(path, f"no posed photo in the BlocksExchange XML ({skipped} without a pose)")
+    srs = root.findtext("SpatialReferenceSystems/SRS/Definition")
+    return CameraSet(out, "mesh", (0.0, 0.0, 0.0), "blocksexchange", skipped=skipped,
+                     crs=srs.strip() if srs else None)
+
+
+def write_blocks_exchange(path: Path, cams: list[Camera], crs: str | None = None, focal_mm: bool = False) -> None:
+    """Write ``cams`` as a BlocksExchange XML, one Photogroup per camera (focal in pixels, or with
+    ``focal_mm`` as FocalLength mm + a 36 mm SensorSize)."""
+    root = ET.Element("BlocksExchange", version="2.1")
+
+    def sub(parent, tag, text=None):
+        e = ET.SubElement(parent, tag)
+        if text is not None:
+            e.text = text if isinstance(text, str) else repr(float(text))
+        return e
+
+    if crs:
+        srs = sub(sub(root, "SpatialReferenceSystems"), "SRS")
+        sub(srs, "Id", "0")
+        sub(srs, "Definition", crs)
+    block = sub(root, "Block")
+    if crs:
+        sub(block, "SRSId", "0")
+    groups = sub(block, "Photogroups")
+    for i, c in enumerate(cams):
+        g = sub(groups, "Photogroup")
+        dims = sub(g, "ImageDimensions")
+        sub(dims, "Width", str(c.width))
+        sub(dims, "Height", str(c.height))
+        if focal_mm:
+            sub(g, "FocalLength", c.K[0, 0] * 36.0 / max(c.width, c.height))
+            sub(g, "SensorSize", 36.0)
+        else:
+            sub(g, "FocalLengthPixels", c.K[0, 0])
+        sub(g, "CameraOrientation", "XRightYDown")
+        pp = sub(g, "PrincipalPoint")
+        sub(pp, "x", c.K[0, 2])
+        sub(pp, "y", c.K[1, 2])
+        sub(g, "AspectRatio", c.K[1, 1] / c.K[0, 0])
+        sub(g, "Skew", c.K[0, 1])
+        dist = sub(g, "Distortion")
+        for k, v in zip(("K1", "K2", "P1", "P2", "K3"), np.asarray(c.dist, np.float64)):
+            sub(dist, k, v)
+        ph = sub(g, "Photo")
+        sub(ph, "Id", str(i))
+        sub(ph, "ImagePath", c.image)
+        pose = sub(ph, "Pose")
+        rot = sub(pose, "Rotation")
+        for a in range(3):
+            for b in range(3):
+                sub(rot, f"M_{a}{b}", c.R[a, b])
+        cen = sub(pose, "Center")
+        for a, v in zip("xyz", c.centre):
+            sub(cen, a, v)
+    ET.indent(root)
+    ET.ElementTree(root).write(path, encoding="utf-8", xml_declaration=True)
+
+
+# ------------------------------------------------------------------------------------- dispatch
+
+def camera_format(path: str | Path) -> str:
+    """'colmap' (a folder, cameras.txt or images.txt), 'blocksexchange' (.xml) or 'cameras.json' (.json)."""
+    p = Path(path)
+    if p.is_dir() or p.name.lower() in ("cameras.txt", "images.txt"):
+        return "colmap"
+    if p.suffix.lower() == ".xml":
+        return "blocksexchange"
+    if p.suffix.lower() == ".json":
+        return "cameras.json"
+    raise InputError(p, "unknown camera file: expected a cameras.json, a COLMAP text model (folder with "
+                        "cameras.txt + images.txt) or a ContextCapture BlocksExchange .xml")
+
+
+CAMERA_READERS = {"colmap": read_colmap, "blocksexchange": read_blocks_exchange, "cameras.json": read_cameras_json}
+"""Camera format (:func:`camera_format`) -> its reader; each returns a :class:`CameraSet` or raises InputError."""
+
+
+def read_cameras(path: str | Path) -> CameraSet:
+    """Every camera of a camera file (format by :func:`camera_format`). Raises InputError naming the file
+    on anything unreadable: missing, truncated, bad numbers, unknown camera model."""
+    p = Path(path)
+    if not p.exists():
+        raise InputError(p, "camera file not found (inputs.cameras in the config)")
+    return CAMERA_READERS[camera_format(p)](p)

@@ -1,0 +1,379 @@
+"""LAS / LAZ: reading (header, streamed points, truncation checks) and a chunked LAS 1.4 / LAZ writer.
+
+``las_info(path) -> CloudInfo`` and ``iter_las(path, chunk_points, start, stop) -> Iterator[PointChunk]``
+are the LAS entry of the reader registry in :mod:`storage.formats.points`, which is the public API;
+:class:`LasChunkWriter` and :func:`write_points` write LAS 1.4 / LAZ (lazrs) atomically.
+
+Coordinates are float64 WORLD metres (LAS integers times scale plus offset). A truncated file is
+detected from the header's point count before any point is returned, including a LAZ whose chunk
+table was cut off ("truncated after K of N points").
+"""
+
+from __future__ import annotations
+
+import contextlib
+import io
+import struct
+import sys
+from collections.abc import Iterator
+from pathlib import Path
+from typing import Self
+
+import laspy
+import numpy as np
+
+from storage.atomic import atomic_path
+from storage.errors import InputError
+from storage.formats.point_chunk import (
+    CloudInfo,
+    PointChunk,
+    check_cloud_file,
+    check_finite_points,
+    crs_to_string,
+)
+
+LAS_INT32_MAX = 2**31 - 1
+
+
+# LAS 1.4 point formats 6-10 are compressed in layers; only the ones ms3d stores are decompressed
+# (skipping flags, scan angle, user data and point source ids saves ~5-20 % of the decode time).
+_D = laspy.DecompressionSelection
+DECOMPRESS = (_D.XY_RETURNS_CHANNEL | _D.Z | _D.CLASSIFICATION | _D.INTENSITY | _D.GPS_TIME | _D.RGB
+              | _D.ALL_EXTRA_BYTES)
+
+
+def _open_las(path: Path, selective: bool = False) -> laspy.LasReader:
+    check_cloud_file(path)
+    with open(path, "rb") as f:
+        signature = f.read(4)
+    if signature != b"LASF":
+        raise InputError(path, f"not a LAS/LAZ file (signature {signature!r}, expected b'LASF')")
+    kw = {"decompression_selection": DECOMPRESS} if selective else {}
+    try:
+        return laspy.open(path, **kw)
+    except Exception:  # noqa: BLE001 - EVLRs past the end of a truncated file: retry without them
+        try:
+            return laspy.open(path, read_evlrs=False, **kw)
+        except Exception as err:
+            raise InputError(path, f"unreadable LAS header, the file may be truncated ({err})") from err
+
+
+class _LazWithEmptyChunkTable(io.RawIOBase):
+    """Read-only view of a truncated LAZ file whose chunk-table offset is rewritten to point at an empty
+    chunk table appended after the surviving bytes, so lazrs decodes the surviving chunks in order."""
+
+    def __init__(self, path: Path, offset_field_at: int):
+        self._f = open(path, "rb")  # noqa: SIM115 - closed by close()
+        self._size = path.stat().st_size
+        self._patch_at = offset_field_at
+        self._patch = struct.pack("<q", self._size)
+        self._tail = struct.pack("<II", 0, 0)  # chunk-table version 0, zero chunks
+        self._pos = 0
+
+    def readable(self) -> bool:
+        return True
+
+    def seekable(self) -> bool:
+        return True
+
+    def tell(self) -> int:
+        return self._pos
+
+    def seek(self, pos: int, whence: int = io.SEEK_SET) -> int:
+        base = {io.SEEK_SET: 0, io.SEEK_CUR: self._pos, io.SEEK_END: self._size + len(self._tail)}[whence]
+        self._pos = max(0, base + pos)
+        return self._pos
+
+    def readinto(self, buf) -> int:
+        total = self._size + len(self._tail)
+        n = max(0, min(len(buf), total - self._pos))
+        self._f.seek(min(self._pos, self._size))
+        data = bytearray(self._f.read(max(0, min(n, self._size - self._pos))))
+        data += self._tail[max(0, self._pos - self._size) : max(0, self._pos + n - self._size)]
+        lo, hi = max(self._pos, self._patch_at), min(self._pos + n, self._patch_at + 8)
+        if lo < hi:
+            data[lo - self._pos : hi - self._pos] = self._patch[lo - self._patch_at : hi - self._patch_at]
+        buf[:n] = data
+        self._pos += n
+        return n
+
+    def close(self) -> None:
+        self._f.close()
+        super().close()
+
+
+def _count_decodable_laz_points(path: Path, header: laspy.LasHeader) -> int:
+    """Points of a LAZ file whose chunk table is missing (cut off) that still decode, in whole steps."""
+    import lazrs
+
+    laszip = header.vlrs.get("LasZipVlr")
+    if not laszip:
+        return 0
+    record = laszip[0].record_data
+    item_size = lazrs.LazVlr(record).item_size()
+    step, done = 10_000, 0
+    with io.BufferedReader(_LazWithEmptyChunkTable(path, header.offset_to_point_data)) as stream:
+        stream.seek(header.offset_to_point_data)
+        try:
+            decoder = lazrs.LasZipDecompressor(stream, record)
+            while done < header.point_count:
+                m = min(step, header.point_count - done)
+                decoder.decompress_many(bytearray(m * item_size))
+                done += m
+        except Exception:  # noqa: BLE001, S110 - lazrs reports running out of data as a generic error
+            pass
+    return done
+
+
+def _las_points_available(path: Path, header: laspy.LasHeader) -> int:
+    """How many of the header's points the file really holds (cheap except for a cut-off LAZ)."""
+    size = path.stat().st_size
+    start = header.offset_to_point_data
+    if not header.are_points_compressed:
+        end = size
+        if getattr(header, "number_of_evlrs", 0) and header.start_of_first_evlr:
+            end = min(end, header.start_of_first_evlr)
+        return max(0, (end - start) // header.point_format.size)
+    with open(path, "rb") as f:
+        f.seek(start)
+        raw = f.read(8)
+        table_at = struct.unpack("<q", raw)[0] if len(raw) == 8 else -1
+        if table_at <= start and size >= start + 16:  # writer could not patch it: LASzip puts it last
+            f.seek(-8, io.SEEK_END)
+            table_at = struct.unpack("<q", f.read(8))[0]
+    if start < table_at and table_at + 8 <= size:
+        return header.point_count
+    return _count_decodable_laz_points(path, header)
+
+
+def las_info(path: Path) -> CloudInfo:
+    """Header facts of a LAS/LAZ file (after the truncation check); no points are read."""
+    with _open_las(path) as reader:
+        h = reader.header
+        _check_las_complete(path, h)
+        try:
+            crs = crs_to_string(h.parse_crs())
+        except Exception:  # noqa: BLE001 - an unparsable CRS VLR is reported as unknown, not fatal
+            crs = None
+        dims = set(h.point_format.dimension_names)
+        return CloudInfo(
+            path=str(path),
+            format=path.suffix.lower(),
+            point_count=int(h.point_count),
+            bounds=np.array([h.mins, h.maxs], dtype=np.float64),
+            crs=crs,
+            scale=tuple(float(s) for s in h.scales),
+            offset=tuple(float(o) for o in h.offsets),
+            has_rgb="red" in dims,
+            has_time="gps_time" in dims,
+            point_format=int(h.point_format.id),
+            version=str(h.version),
+        )
+
+
+def _check_las_complete(path: Path, h: laspy.LasHeader) -> None:
+    if h.point_count == 0:
+        raise InputError(path, "no points (the header's point count is 0)")
+    if not (np.isfinite(h.scales).all() and np.isfinite(h.offsets).all()) or not np.all(h.scales):
+        raise InputError(path, f"invalid LAS scale {list(h.scales)} or offset {list(h.offsets)}")
+    available = _las_points_available(path, h)
+    if available < h.point_count:
+        raise InputError(path, f"truncated after {available:,} of {h.point_count:,} points")
+
+
+def _chunk_from_las(record, h: laspy.LasHeader) -> PointChunk:
+    arr = record.array
+    n = len(arr)
+    xyz = np.empty((n, 3), dtype=np.float64, order="F")  # column-major: every later step works per axis
+    for i, name in enumerate("XYZ"):
+        np.multiply(arr[name], h.scales[i], out=xyz[:, i])  # one pass per axis, no temporaries
+        xyz[:, i] += h.offsets[i]
+    dims = set(h.point_format.dimension_names)
+    rgb = None
+    if "red" in dims:
+        rgb = np.empty((n, 3), dtype=np.uint16, order="F")  # contiguous columns, as stored
+        for i, name in enumerate(("red", "green", "blue")):
+            rgb[:, i] = arr[name]
+    extra = {name: np.array(record[name]) for name in h.point_format.extra_dimension_names}
+    return PointChunk(
+        xyz=xyz,
+        rgb=rgb,
+        intensity=np.array(arr["intensity"], dtype=np.uint16),
+        gps_time=np.array(arr["gps_time"], dtype=np.float64) if "gps_time" in dims else None,
+        classification=np.asarray(record["classification"], dtype=np.uint8).copy(),
+        extra=extra,
+    )
+
+
+def iter_las(path: Path, chunk_points: int, start: int = 0, stop: int | None = None) -> Iterator[PointChunk]:
+    """Points ``[start, stop)`` of a LAS/LAZ file in chunks of at most ``chunk_points``."""
+    with _open_las(path, selective=True) as reader:
+        h = reader.header
+        n = int(h.point_count)
+        _check_las_complete(path, h)
+        stop = n if stop is None else min(stop, n)
+        if start >= stop:
+            return
+        if start:
+            reader.seek(start)
+        pos = start
+        while pos < stop:
+            m = min(chunk_points, stop - pos)
+            try:
+                record = reader.read_points(m)
+            except Exception as err:
+                raise InputError(path, f"truncated or corrupt after {pos:,} of {n:,} points ({err})") from err
+            if len(record) < m:
+                raise InputError(path, f"truncated after {pos + len(record):,} of {n:,} points")
+            chunk = _chunk_from_las(record, h)
+            check_finite_points(path, chunk.xyz)
+            yield chunk
+            pos += m
+
+
+# --- LAS 1.4 / LAZ writer --------------------------------------------------------------------------
+
+
+def choose_offset(xyz: np.ndarray, snap_m: float = 1000.0) -> np.ndarray:
+    """A LAS offset near the data: the bounding-box centre snapped to ``snap_m``. (3,) float64.
+
+    At 1 mm scale an int32 reaches +-2147 km from the offset, so any campus fits.
+    """
+    if len(xyz) == 0:
+        return np.zeros(3)
+    centre = (xyz.min(axis=0) + xyz.max(axis=0)) / 2.0
+    return np.round(centre / snap_m) * snap_m
+
+
+class LasChunkWriter:
+    """Write a LAS 1.4 (``.las``) or LAZ (``.laz``, lazrs) file chunk by chunk, atomically.
+
+    Memory is bounded by the largest chunk. The file appears at ``path`` only when the context exits
+    without error (written under a temporary name beside it, then renamed).
+
+    Args:
+        path: output ``.las`` / ``.laz``.
+        crs: e.g. "EPSG:32650" (anything pyproj accepts), written as a WKT VLR; None writes no CRS.
+        scale: (3,) metres per integer step; 1 mm by default.
+        offset: (3,) world metres; None chooses one near the first chunk (``choose_offset``).
+        point_format: 6 (no colour), 7 (RGB, default) or 8 (RGB + NIR); all carry GPS time.
+        extra_dims: {name: numpy dtype} written as LAS extra bytes from ``PointChunk.extra[name]``.
+
+    Example::
+
+        with LasChunkWriter("out.laz", crs="EPSG:32650") as w:
+            for chunk in iter_points("in.las"):
+                w.write(chunk)
+    """
+
+    def __init__(
+        self,
+        path: str | Path,
+        crs: str | None = None,
+        scale=(0.001, 0.001, 0.001),
+        offset=None,
+        point_format: int = 7,
+        extra_dims: dict[str, object] | None = None,
+    ):
+        self.path = Path(path)
+        if self.path.suffix.lower() not in (".las", ".laz"):
+            raise ValueError(f"{self.path}: LasChunkWriter writes .las or .laz, not {self.path.suffix!r}")
+        if point_format not in (6, 7, 8):
+            raise ValueError(f"point_format must be 6, 7 or 8 (LAS 1.4), got {point_format}")
+        self.header = laspy.LasHeader(point_format=point_format, version="1.4")
+        self.header.scales = np.asarray(scale, dtype=np.float64)
+        self.extra_dims = {k: np.dtype(v) for k, v in (extra_dims or {}).items()}
+        if self.extra_dims:
+            params = [laspy.ExtraBytesParams(name=k, type=v) for k, v in self.extra_dims.items()]
+            self.header.add_extra_dims(params)
+        if crs is not None:
+            import pyproj
+
+            self.header.add_crs(pyproj.CRS.from_user_input(crs))
+        self._offset = None if offset is None else np.asarray(offset, dtype=np.float64)
+        self._stack: contextlib.ExitStack | None = None
+        self._writer = None
+        self.points_written = 0
+
+    def __enter__(self) -> Self:
+        self._stack = contextlib.ExitStack()
+        self._tmp = self._stack.enter_context(atomic_path(self.path))
+        return self
+
+    def write(self, chunk: PointChunk) -> None:
+        """Append the points of ``chunk`` (xyz float64 world metres)."""
+        if self._stack is None:
+            raise RuntimeError("use LasChunkWriter as a context manager")
+        xyz = np.asarray(chunk.xyz, dtype=np.float64)
+        bad = ~np.isfinite(xyz).all(axis=1)
+        if bad.any():
+            raise ValueError(f"{self.path}: refusing to write {int(bad.sum())} NaN/inf points")
+        if len(xyz) == 0:  # an empty first chunk must not fix the offset
+            return
+        if self._writer is None:
+            self._open(xyz)
+        self._writer.write_points(self._record(chunk, xyz))
+        self.points_written += len(xyz)
+
+    def _open(self, xyz: np.ndarray) -> None:
+        self.header.offsets = self._offset if self._offset is not None else choose_offset(xyz)
+        self._writer = laspy.open(
+            self._tmp, mode="w", header=self.header, do_compress=self.path.suffix.lower() == ".laz"
+        )
+
+    def _record(self, chunk: PointChunk, xyz: np.ndarray):
+        h = self._writer.header
+        ints = np.round((xyz - h.offsets) / h.scales)
+        if np.abs(ints).max() > LAS_INT32_MAX:
+            raise ValueError(
+                f"{self.path}: coordinates {xyz.min(axis=0)}..{xyz.max(axis=0)} do not fit LAS int32 at scale "
+                f"{list(h.scales)} around offset {list(h.offsets)}; pass an offset nearer the data"
+            )
+        rec = laspy.ScaleAwarePointRecord.zeros(len(xyz), header=h)
+        for i, name in enumerate("XYZ"):
+            rec[name] = ints[:, i].astype(np.int32)
+        if chunk.intensity is not None:
+            rec["intensity"] = chunk.intensity
+        if chunk.classification is not None:
+            rec["classification"] = chunk.classification
+        if chunk.gps_time is not None:
+            rec["gps_time"] = chunk.gps_time
+        if chunk.rgb is not None and h.point_format.id in (7, 8):
+            for i, name in enumerate(("red", "green", "blue")):
+                rec[name] = chunk.rgb[:, i]
+        for name in self.extra_dims:
+            if name not in chunk.extra:
+                raise ValueError(f"{self.path}: chunk has no extra field {name!r} declared in extra_dims")
+            rec[name] = chunk.extra[name]
+        return rec
+
+    def _abandon(self) -> None:
+        if self._writer is not None:
+            with contextlib.suppress(Exception):
+                self._writer.close()
+
+    def __exit__(self, exc_type, exc, tb):
+        stack, self._stack = self._stack, None
+        if exc_type is not None:
+            self._abandon()
+            return stack.__exit__(exc_type, exc, tb)
+        try:
+            if self._writer is None:  # nothing written: an empty but valid file
+                self._open(np.zeros((0, 3)))
+            self._writer.close()
+        except BaseException:
+            self._abandon()
+            if not stack.__exit__(*sys.exc_info()):
+                raise
+            return False
+        return stack.__exit__(None, None, None)
+
+
+def write_points(path: str | Path, chunk: PointChunk, crs: str | None = None, **writer_kwargs) -> Path:
+    """Write one PointChunk to a LAS/LAZ file atomically (see LasChunkWriter for the options)."""
+    with LasChunkWriter(path, crs=crs, **writer_kwargs) as writer:
+        writer.write(chunk)
+    return Path(path)
+
+
+__all__ = ["LAS_INT32_MAX", "LasChunkWriter", "choose_offset", "iter_las", "las_info", "write_points"]

@@ -1,0 +1,2 @@
+"""The object store: one interface over a local folder and ``s3://``, conditional writes, the run lease, commits.
+"""

@@ -1,0 +1,132 @@
+"""The work-dir layout of DESIGN.md, and campus.json.
+
+::
+
+    campus.json                     CRS, origin, registration, inputs, config snapshot, code version
+    registration.json               the recorded MLS -> mesh similarity (reused by registration.mode pinned)
+    manifest.parquet                one row per (stage, unit), consolidated by the flow
+    manifest.d/{stage}/{unit}.json  the same rows, one file each, written atomically by the tasks
+    scan/{source}.npz               per mesh file: surface samples registration aligns to
+    staging/{tile}/{unit}-{k}.parquet  ingest output: rows of one input unit routed to one tile
+    tiles/{ix}_{iy}/points.parquet  MLS points of the tile, sorted by patch
+    tiles/{ix}_{iy}/faces.parquet   mesh faces of the tile, sorted by patch
+    tiles/{ix}_{iy}/patches.parquet one row per patch (its presence marks a complete store)
+    tiles/{ix}_{iy}/{labels,outliers,grades}.parquet  side tables, one row per patch
+    tiles/{ix}_{iy}/stale.json      the store is the last good one; its inputs now fail (see the error)
+    report/                         figures for the run report (histograms, ...)
+    prefect/                        the embedded Prefect server's database (run history)
+
+Tile keys are world-anchored (``tasks.config.CampusConfig.grid``): tile (ix, iy) covers
+``[ix*t, (ix+1)*t) x [iy*t, (iy+1)*t)`` world metres.
+"""
+
+from __future__ import annotations
+
+import json
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+
+from storage import __version__
+from storage.atomic import write_json_atomic
+from storage.errors import InputError
+from storage.frame import CampusFrame
+from storage.ids import TileId
+
+CAMPUS_SCHEMA_VERSION = 2
+STALE_FILE = "stale.json"
+
+
+@dataclass(frozen=True)
+class WorkDir:
+    root: Path
+
+    def __init__(self, root: str | Path):
+        object.__setattr__(self, "root", Path(root).absolute())
+
+    @property
+    def campus_json(self) -> Path:
+        return self.root / "campus.json"
+
+    @property
+    def manifest(self) -> Path:
+        return self.root / "manifest.parquet"
+
+    @property
+    def manifest_dir(self) -> Path:
+        return self.root / "manifest.d"
+
+    @property
+    def report_dir(self) -> Path:
+        return self.root / "report"
+
+    @property
+    def prefect_dir(self) -> Path:
+        return self.root / "prefect"
+
+    def tile_dir(self, tile: TileId) -> Path:
+        return self.root / "tiles" / tile.key
+
+    def staging_dir(self, tile: TileId) -> Path:
+        return self.root / "staging" / tile.key
+
+    def staged_tiles(self) -> list[TileId]:
+        d = self.root / "staging"
+        return sorted(TileId.from_key(p.name) for p in d.iterdir() if p.is_dir()) if d.exists() else []
+
+    def done_tiles(self) -> list[TileId]:
+        """Tiles with a complete store (live or stale)."""
+        d = self.root / "tiles"
+        if not d.exists():
+            return []
+        return sorted(TileId.from_key(p.name) for p in d.iterdir() if (p / "patches.parquet").exists())
+
+    def live_tiles(self) -> list[TileId]:
+        """Tiles with a complete store that is current (not marked stale): what later stages read."""
+        return [t for t in self.done_tiles() if not (self.tile_dir(t) / STALE_FILE).exists()]
+
+    def stale_tiles(self) -> list[TileId]:
+        return [t for t in self.done_tiles() if (self.tile_dir(t) / STALE_FILE).exists()]
+
+    def tile_keys_on_disk(self) -> list[str]:
+        """Every tile folder, complete or not (to drop stores the current plan no longer names)."""
+        d = self.root / "tiles"
+        return sorted(p.name for p in d.iterdir() if p.is_dir()) if d.exists() else []
+
+
+def write_campus(wd: WorkDir, frame: CampusFrame, registration: dict, config_snapshot: dict,
+                 extra: dict | None = None) -> None:
+    """Write campus.json atomically. registration: {"matrix": 4x4 list, "scale", "fitness", ...}."""
+    doc = {
+        "schema_version": CAMPUS_SCHEMA_VERSION,
+        "frame": frame.to_json(),
+        "registration": registration,
+        "config": config_snapshot,
+        "code_version": __version__,
+    }
+    doc.update(extra or {})
+    write_json_atomic(wd.campus_json, doc)
+
+
+def read_campus(wd: WorkDir) -> dict:
+    path = wd.campus_json
+    if not path.exists():
+        raise InputError(path, "no campus.json: run the register stage first (ms3d run CONFIG)")
+    try:
+        doc = json.loads(path.read_text())
+    except json.JSONDecodeError as e:
+        raise InputError(path, f"corrupt campus.json ({e})") from None
+    if doc.get("schema_version") != CAMPUS_SCHEMA_VERSION:
+        raise InputError(path, f"campus.json schema_version {doc.get('schema_version')}, this ms3d reads "
+                               f"{CAMPUS_SCHEMA_VERSION}: re-run `ms3d run` to rebuild the work dir")
+    return doc
+
+
+def campus_frame(doc: dict) -> CampusFrame:
+    return CampusFrame.from_json(doc["frame"])
+
+
+def registration_matrix(doc: dict) -> np.ndarray:
+    """(4, 4) float64 similarity mapping MLS world coordinates (minus origin) to campus-local."""
+    return np.asarray(doc["registration"]["matrix"], dtype=np.float64)
