@@ -2,7 +2,7 @@
 
 Pure pydantic, no heavy imports: ``tasks.config.campus`` imports it. Every threshold notes where its default
 comes from (the paper names none of them: §5 gives the method, not the values; ours are measured on
-synth campuses, see ``benchmarks/quality_bench.py`` and ``docs/repair.md``).
+synth campuses, see ``benchmarks/quality_bench.py`` and ``docs/benchmarks.md``).
 """
 
 from __future__ import annotations
@@ -47,17 +47,17 @@ class FusionConfig(_Section):
     unary_weight: float = Field(4.0, gt=0, description="weight of the data terms")
     normal_k: int = Field(12, ge=5, le=64, description="neighbours of the PCA normal estimate (MLS points)")
     mls_spacing_m: float = Field(0.05, gt=0, description="MLS points are thinned to one per voxel of this size "
-                                 "before fusion (real MLS density is far above what the mesh needs); measured on "
-                                 "30 demo regions: F@5cm 0.826 at 3 cm, 0.834 at 5 and 7 cm")
+                                 "before fusion (real MLS density is far above what the mesh needs); 5 cm scores above 3 cm "
+                                 "and like 7 cm on the development campus (docs/benchmarks.md)")
     thin: bool = Field(True, description="false: every MLS point of a region is fused, not one per mls_spacing_m "
                        "voxel; the evidence tolerances still follow mls_spacing_m, so this measures what the thinning "
                        "alone costs (at real density: several times the time and memory of a region)")
     detail_spacing_m: float = Field(0.025, ge=0, description="where the 5 cm-thinned MLS surface is not flat (its "
                                     "neighbours within detail_radius_m do not fit a plane to detail_tolerance_m "
                                     "RMS: a window's frame and reveal, a balcony's edge) the points are thinned to one "
-                                    "per voxel of this size instead of mls_spacing_m; 0 or >= mls_spacing_m: off. "
-                                    "Measured on held-out 9103 at real density: 5 cm everywhere cost 0.0108 F@5cm "
-                                    "on the MLS-seen facades against unthinned fusion (docs/repair.md)")
+                                    "per voxel of this size instead of mls_spacing_m; 0 or >= mls_spacing_m: off. It keeps "
+                                    "the small parts (glass, frames, balconies) that 5 cm voxels lose against unthinned "
+                                    "fusion (docs/benchmarks.md)")
     detail_tolerance_m: float = Field(0.02, gt=0, description="RMS distance to the neighbourhood's plane (radius "
                                       "detail_radius_m) above which a stretch gets detail_spacing_m")
     detail_radius_m: float = Field(0.15, gt=0, description="radius of the neighbourhood the plane of "
@@ -73,9 +73,8 @@ class TypedRepairConfig(_Section):
     offset_m: float = Field(0.06, gt=0, description="a mesh vertex this far in front of / behind the MLS surface "
                             "is evidence of a protrusion / recess")
     conflict_radius_m: float = Field(0.5, ge=0, description="a mesh vertex with an accepted MLS point this close but no "
-                                     "similar one contradicts the scan and is cut (measured: such vertices lie "
-                                     "within 5 cm of the truth in 0-23 % of cases; F@5cm 0.798 / 0.826 / 0.827 at "
-                                     "0.3 / 0.5 / 0.8 m); 0 disables")
+                                     "similar one contradicts the scan and is cut (such vertices are rarely within 5 cm "
+                                     "of the truth; 0.3 m scores lower, 0.8 m the same: docs/benchmarks.md); 0 disables")
     conflict_cone_deg: float = Field(45.0, gt=0, le=90, description="the contradicting MLS point must lie within "
                                      "this angle of the vertex normal line (in front or behind): a scanned wall top "
                                      "beside a roof edge the scanner never saw does not cut the roof; 90: any point "
@@ -86,13 +85,12 @@ class TypedRepairConfig(_Section):
     front_m: float = Field(0.0, ge=0, description="a mesh vertex farther than conflict_radius_m from the MLS but this far "
                            "in front of the nearest scanned surface (on the scanner's side of it) stands where the "
                            "laser passed: cut it (melted eaves hanging off a scanned wall); 0 disables (the default: "
-                           "measured at 0.15 / 0.3 m on 29 demo regions, mean F@5cm 0.835 / 0.835 against 0.836, "
-                           "mean accuracy 4.0 cm -> 4.0 cm; gains and losses cancel)")
+                           "at 0.15 and 0.3 m its gains and losses cancel on the development campus)")
     front_reach_m: float = Field(3.0, gt=0, description="scanned surface farther than this from a vertex says nothing of it")
     uncovered: Literal["keep", "fill"] = Field("fill", description="a region the MLS does not cover is left to "
                                                 "the mesh: 'fill' re-triangulates its own vertices in its chart, "
-                                                "closing its holes from the mesh alone (measured: never worse, "
-                                                "F@5cm 0.500 -> 0.533 on a holed one); 'keep' leaves its faces")
+                                                "closing its holes from the mesh alone (never worse than 'keep' on "
+                                                "the development campus); 'keep' leaves its faces")
     min_coverage: float = Field(0.15, ge=0, le=1, description="regions whose surface the MLS covers less than this "
                                 "are left to the mesh (a hole no scanner saw)")
 
@@ -100,12 +98,11 @@ class TypedRepairConfig(_Section):
 class MeshConfig(_Section):
     """Triangulation of the fused points, clipping and stitching, §5.2 (``tasks.repair.mesh``)."""
 
-    method: Literal["delaunay", "poisson"] = Field("delaunay", description="(measured on 30 demo regions: F@5cm "
-                                                   "0.826 delaunay, 0.818 poisson at 1.8x the time) delaunay: the fused points "
+    method: Literal["delaunay", "poisson"] = Field("delaunay", description="delaunay: the fused points "
                                                    "triangulated in the region's chart (Gopi et al. 2000 style, "
                                                    "interpolating); poisson: screened Poisson of the fused points, "
-                                                   "density-trimmed, triangulated in the same chart. Default by "
-                                                   "measured accuracy (docs/repair.md)")
+                                                   "density-trimmed, triangulated in the same chart. delaunay is the "
+                                                   "default: more accurate at about half the time (docs/benchmarks.md)")
     poisson_depth: int = Field(9, ge=5, le=12, description="octree depth of screened Poisson per region")
     poisson_trim_quantile: float = Field(0.05, ge=0, lt=0.5, description="Poisson vertices of lower density "
                                          "than this quantile are trimmed")
@@ -114,8 +111,8 @@ class MeshConfig(_Section):
     flat_spacing_m: float = Field(0.15, ge=0, description="fused MLS points on a flat stretch (neighbours within "
                                   "this radius fit a plane to flat_tolerance_m RMS, the point not at the scan's edge) "
                                   "are thinned to one per voxel of this size before the triangulation "
-                                  "(tasks.repair.coarsen): a flat wall at real MLS density carried ~8 rebuilt faces per "
-                                  "input face; 0: every fused point is triangulated")
+                                  "(tasks.repair.coarsen): at real MLS density a flat wall would otherwise carry several "
+                                  "rebuilt faces per input face; 0: every fused point is triangulated")
     flat_tolerance_m: float = Field(0.015, gt=0, description="RMS distance to the neighbourhood's plane under which "
                                     "a stretch counts as flat (flat_spacing_m). 1.5 cm: above a wall's scan noise "
                                     "(4-10 mm), below what a 5 cm relief over a third of the neighbourhood gives "
@@ -187,14 +184,14 @@ class TextureConfig(_Section):
 
 
 class RepairConfig(_Section):
-    """The repair of bad regions (issue 9): which grades, how regions form, fuse, mesh, texture."""
+    """The repair of bad regions: which grades, how regions form, fuse, mesh, texture."""
 
     enabled: bool = True
     grades: Literal["auto", "model", "labels", "all"] = Field(
         "auto", description="auto: the classify stage's grades.parquet when present, else labels.parquet; "
         "model / labels: only that one (a tile without it has no bad patches); all: rebuild every patch from "
-        "the fused points (measured on a held-out synth demo campus: F@5cm on the MLS-seen facades 0.958 "
-        "against 0.846 with the model's grades, at 6.7x the repair time and ~2x the peak memory per region)")
+        "the fused points (better geometry at several times the repair time and about twice the peak memory "
+        "per region: docs/benchmarks.md)")
     regions: RegionsConfig = Field(default_factory=RegionsConfig)
     fusion: FusionConfig = Field(default_factory=FusionConfig)
     typed: TypedRepairConfig = Field(default_factory=TypedRepairConfig)
