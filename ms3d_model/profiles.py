@@ -6,7 +6,7 @@
   the same command, at ~1-2 pairs/s here (a GPU's job).
 - ``tiny``: for tests (seconds).
 
-Training defaults are chosen for what repair needs and for 2 CPU cores (issue 16): AdamW with a one-cycle
+Training defaults are chosen for what repair needs and for 2 CPU cores: AdamW with a one-cycle
 schedule, class-balanced cross-entropy, the epoch selected by validation average precision on bad, and an
 operating threshold chosen on validation (the largest recall on bad at precision >= ``min_precision``) that ships in
 the checkpoint. :data:`PAPER_TRAINING` is the paper's §4.4 as a switch (``ms3d train --paper-training``):

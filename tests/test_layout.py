@@ -1,4 +1,4 @@
-"""The layout rules of the code base (STYLE.md, issue 14), checked statically with ``ast``, nothing imported:
+"""The layout rules of the code base (docs/design.md), checked statically with ``ast``, nothing imported:
 
 (a) no module over 400 lines; (b) no function over 80 lines (both: non-test code);
 (c) a stage package (a subpackage of ``tasks`` other than ``config`` and ``geometry``) imports another

@@ -1,4 +1,4 @@
-"""The deploy recipes are checked offline (issue 18, items 4 and 6): every YAML parses, the Kubernetes
+"""The deploy recipes are checked offline: every YAML parses, the Kubernetes
 manifests validate against the bundled Kubernetes schemas (kubernetes-validate, strict: unknown fields
 fail), workers are sized against ``partition.memory_budget_mb``, no recipe holds an inline credential,
 servers listen only inside the cluster network, and the SLURM job script renders (dask-jobqueue).
@@ -24,7 +24,7 @@ DEPLOY = ROOT / "deploy"
 K8S = DEPLOY / "k8s"
 K8S_VERSION = "1.30.0"   # podFailurePolicy and CronJob timeZone are GA from 1.30
 IMPORT_OVERHEAD_MB = 1024  # torch + Prefect + Arrow pools in a worker process, above the tile's own data
-MEASURED_PEAK_MB = 2860    # largest unit of the demo campus (export), worker high-water mark (README.md)
+MEASURED_PEAK_MB = 2860    # largest unit of the demo campus (export), worker high-water mark (docs/benchmarks.md)
 NANNY_MB = 256             # the Dask nanny process beside each worker in the same container
 SERVER_COMMANDS = (("dask", "scheduler"), ("prefect", "server"))
 

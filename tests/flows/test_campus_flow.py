@@ -34,7 +34,7 @@ def test_tiny_campus_on_dask_processes_then_resume(tiny_campus, tmp_path, prefec
     # the tiles ran in Dask worker processes, not in this process ...
     pids = {r.summary["worker"].split(":")[1] for r in recs.values()}
     assert str(os.getpid()) not in pids
-    # ... and every task run the flow submitted was recorded by the one server of this session (no
+    # ... and every task run the flow submitted was recorded by the one server of this test run (no
     # per-worker servers): scan, register, ingest, partition, outliers, merge, export nodes, quality, report
     n_tasks = summary["task_runs"]
     assert n_tasks >= 10

@@ -1,4 +1,4 @@
-"""Workers restarted between stages when earlier stages left them holding memory (issue 17: a later stage's
+"""Workers restarted between stages when earlier stages left them holding memory (a later stage's
 peak must count its own memory), and left alone when they hold little."""
 
 from __future__ import annotations

@@ -1,4 +1,4 @@
-"""A service that stops when told (issue 18, 5) and listens on 127.0.0.1 only (issue 18, 6).
+"""A service that stops when told and listens on 127.0.0.1 only.
 
 The end-to-end test serves the hand-made campus (classify off, one Dask worker), triggers a run through
 the embedded Prefect API, sends SIGTERM once units are recorded, and checks: exit within a bound with

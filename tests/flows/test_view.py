@@ -80,7 +80,7 @@ def test_headless_screenshot_shows_the_buildings(tiny_export, tmp_path):
     red = drawn & (r > g + 60) & (r > b + 60)
     blue = drawn & (b > r + 60) & (b > g + 30)
     assert green.mean() > 0.05 and (red.mean() + blue.mean()) > 0.002, (green.mean(), red.mean(), blue.mean())
-    if os.environ.get("MS3D_UPDATE_DOCS"):  # refresh the README's picture on request, never as a side effect
+    if os.environ.get("MS3D_UPDATE_DOCS"):  # refresh docs/viewer.png on request, never as a side effect
         shutil.copyfile(shot, DOCS_PNG)
 
 

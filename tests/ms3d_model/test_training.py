@@ -1,4 +1,4 @@
-"""Training for what repair needs (issue 16): the threshold chosen on validation, the class-balanced loss,
+"""Training for what repair needs: the threshold chosen on validation, the class-balanced loss,
 selection by AP on bad, the validation buffer, the featurise-once cache, and the threshold the grader reads
 from the checkpoint."""
 

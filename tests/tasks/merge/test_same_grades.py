@@ -1,5 +1,5 @@
 """Merge and repair act on the same grades: under ``repair.grades`` labels / model / all, the patches the
-regions stage plans as bad are exactly the patches whose faces the merged mesh marks bad (issue 14)."""
+regions stage plans as bad are exactly the patches whose faces the merged mesh marks bad."""
 
 from __future__ import annotations
 

@@ -1,4 +1,4 @@
-"""Registration and the co-registration check against a coarse, LoD2-like mesh (issue 6, item 6).
+"""Registration and the co-registration check against a coarse, LoD2-like mesh.
 
 The scene is built here: five box buildings on both sides of a road along x, on a ground plane. The
 mesh is the exact surface with as few triangles as it takes (``trimesh.creation.box``, 12 triangles
