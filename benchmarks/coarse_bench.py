@@ -1,5 +1,5 @@
 """Coarse city model in, rebuilt model out: does the grader see what the block model lacks, and does the
-repair beat the block model there? (issue 15, 2)
+repair beat the block model there?
 
     .venv/bin/python benchmarks/coarse_bench.py --seed 31 --out /tmp/coarse-31 [--mvs-seed 31]
 

@@ -1,5 +1,5 @@
 """The classify cues' compiled per-pair loops (``ms3d_model.cue_kernels``) against the numpy code they
-replaced, side by side, on a classify batch of real density built here (issue 17, 2).
+replaced, side by side, on a classify batch of real density built here.
 
     .venv/bin/python benchmarks/cue_kernel_bench.py [--pairs 300] [--repeat 3]
 

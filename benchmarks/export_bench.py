@@ -16,7 +16,7 @@ tiles of a processed work dir (``tiles/*/merged.*`` and the textures they name; 
 instead of the fake merge; ``--code DIR`` runs the export of another checkout (e.g. ``git archive HEAD``
 unpacked) for a side-by-side before/after; ``--quick`` skips the Draco and 2-process runs.
 
-Target (issue 10): >= 40 k triangles/s for merge + export on this 2-core machine; this script measures
+Target: >= 40 k triangles/s for merge + export on this 2-core machine; this script measures
 export (merge comes later); peak RSS < 2 GB. Always exits 0: it reports.
 
     .venv/bin/python benchmarks/export_bench.py                     # ms3d-work/demo-input (made if missing)

@@ -1,5 +1,5 @@
 """The compiled kernels (``ms3d_model.kernels``) against the numpy code they replaced, side by side, on
-inputs of a real-density region's size built here (issue 17, 2).
+inputs of a real-density region's size built here.
 
     .venv/bin/python benchmarks/kernel_bench.py [--points 500000] [--repeat 3]
 

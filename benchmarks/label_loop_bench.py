@@ -1,4 +1,4 @@
-"""Simulated user loop (issue 16): label the least-sure patches from the truth, fine-tune, re-grade.
+"""Simulated user loop: label the least-sure patches from the truth, fine-tune, re-grade.
 
     nice -n 10 .venv/bin/python benchmarks/label_loop_bench.py --config CAMPUS.yaml --work WORK_DIR \
         [--n-labels 200] [--out OUT] [--data DATA] [--seeds 7 11] [--synth SYNTH_DIR] [--omp-threads N]

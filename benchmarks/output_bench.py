@@ -11,7 +11,7 @@ Each step runs in a fresh process, so its peak RSS (VmHWM) is its own:
    content per tile is the same and only the campus grows.
 
 Printed: triangles per second of merge, of export and of merge + export (leaf triangles / the sum of
-the two wall times; and per CPU second), peak RSS of each step at both sizes. Targets (issue 10):
+the two wall times; and per CPU second), peak RSS of each step at both sizes. Targets:
 >= 40 k triangles/s for merge + export on this 2-core machine; peak RSS < 2 GB, not growing with the
 campus. Always exits 0: it reports.
 

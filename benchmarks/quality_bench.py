@@ -1,4 +1,4 @@
-"""Quality of the repaired campus against the synth truth (issue 9): is the repair worth it?
+"""Quality of the repaired campus against the synth truth: is the repair worth it?
 
     nice -n 10 .venv/bin/python benchmarks/quality_bench.py --synth SYNTH_DIR --work WORK_DIR \
         [--out OUT_DIR] [--variants a,b,c,d,e] [--grade-noise 0.12] [--max-regions N]
@@ -18,7 +18,7 @@ Figures: F-score at 5 and 10 cm, mean accuracy and completeness, uncovered facad
 within +-20 cm along the true normal), over all facades and over the facades the MLS saw (truth
 facade area within 10 cm of a registered MLS point), per class; per region: time and peak RSS.
 The repair variants run in sandboxes under OUT_DIR (tile folders of symlinks + their own grades), so
-WORK_DIR is only read. The held-out seed of the issue's benchmark is recorded in QUALITY_SEED.md.
+WORK_DIR is only read. The held-out seed of this benchmark is recorded in QUALITY_SEED.md.
 """
 
 from __future__ import annotations
