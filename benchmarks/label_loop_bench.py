@@ -20,7 +20,7 @@ script as OUT/campus.yaml from the given config with ``work_dir`` set to WORK_DI
 Figures on the gradable pairs WITH a truth label that the simulated user did NOT label: recall, precision,
 accuracy and AP on bad, of the model's score alone (before at the shipped threshold; after at the shipped
 threshold and at the fine-tuned checkpoint's own) and of the final grade (score + geometric evidence).
-``--omp-threads`` unset leaves OpenMP as the CLI does (all cores); the issue's target is <= 10 min on 2 cores.
+``--omp-threads`` unset leaves OpenMP as the CLI does (all cores); the target is <= 10 min on 2 cores.
 """
 
 from __future__ import annotations

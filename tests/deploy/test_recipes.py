@@ -198,7 +198,7 @@ def test_run_pods_and_workers_share_the_work_dir_and_stop_cleanly(tmp_path):
             assert pod["restartPolicy"] == "Never" and cmd[:2] == ["ms3d", "run"]
             assert _flag(cmd, "--dask-address") == f"tcp://dask-scheduler:{scheduler[0]['port']}"
             (_claim, path), = mounts[name]
-            assert _flag(cmd, "--work-dir").startswith(path + "/")  # TODAY: the shared volume
+            assert _flag(cmd, "--work-dir").startswith(path + "/")  # as shipped: the shared volume
     assert mounts["ms3d-run"] == mounts["ms3d-nightly"] == mounts["dask-worker"] == {("ms3d-work", "/data")}
     assert "ReadWriteMany" in _by_name("PersistentVolumeClaim", "ms3d-work")["spec"]["accessModes"]
     assert worker["containers"][0]["command"][2] == f"tcp://dask-scheduler:{scheduler[0]['port']}"

@@ -34,7 +34,7 @@ def test_a_failed_reregistration_keeps_the_recorded_transform(tiny_campus, tmp_p
     assert first["verdict"]["chosen"] == "estimate" and first["distance_after_m"] < 0.05
     recorded = json.loads((work / "registration.json").read_text())["matrix"]
 
-    strips[1].unlink()  # the remaining strip re-registers; make that fit fail as the degenerate scene did
+    strips[1].unlink()  # the remaining strip re-registers; make that fit fail as a degenerate scene does
 
     def lost(*a, **k):
         raise InputError(None, "ICP lost the overlap: 0 source points within 0.15 m")

@@ -49,7 +49,7 @@ def test_clear_improvement_is_needed():
 
 
 def test_the_issues_case_keeps_identity_with_one_line():
-    """One building of the issue: scale 0.9953, SAC-IA fitness 0, final 0.42, 22 cm median move."""
+    """A degenerate one-building scene: scale 0.9953, SAC-IA fitness 0, final 0.42, 22 cm median move."""
     est = Estimate(np.eye(4), 0.9953, 0.42, 0.0, _score(0.03), (0.22, 0.29))
     v = judge_registration(_score(0.06), est, RegistrationConfig())
     assert v.chosen == "identity"
