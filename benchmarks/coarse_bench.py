@@ -40,11 +40,11 @@ RING = np.array([(a, b, c) for a in (-1, 0, 1) for b in (-1, 0, 1) for c in (-1,
 
 def run_campus(src: Path, work: Path, overrides: dict) -> dict:
     """The pipeline on ``src`` into ``work`` (inline runner); the run summary."""
-    from flows.campus import InlineExecutor, reprocess
+    from flows.campus import InlineExecutor, run_campus
     from tasks.config import CampusConfig
 
     ov = {"work_dir": str(work), "runner": "inline", "report.enabled": False} | overrides
-    return reprocess(CampusConfig.from_yaml(src / "campus.yaml", ov), InlineExecutor())
+    return run_campus(CampusConfig.from_yaml(src / "campus.yaml", ov), executor=InlineExecutor())
 
 
 def pinned_truth(src: Path) -> dict:

@@ -21,7 +21,6 @@ import logging
 import time
 from dataclasses import dataclass, field
 
-import dask
 import numpy as np
 from prefect import flow
 from prefect.artifacts import create_table_artifact
@@ -52,33 +51,30 @@ from storage.patches.schema import FACES_FILE, POINTS_FILE
 from storage.workdir.housekeeping import drop_unplanned_records, sweep_temporary_files, work_dir_lock
 from storage.workdir.layout import WorkDir, write_campus
 from storage.workdir.manifest import consolidate
-from tasks.batches import balanced_batches, fixed_batches
 from tasks.config import CampusConfig
+from tasks.stages import BatchContext
 
 log = logging.getLogger("ms3d.flow")
-# Dask priority of the export's node tasks over the report's renders (the quality shares, submitted first, are
-# already running): each level of the quadtree waits for the one below, so a queued node must not wait behind them
-EXPORT_PRIORITY = 10
 RECYCLE_OVER = 0.25  # restart the local workers before merge when one holds more than this share of the budget
 
-__all__ = ["CampusRunFailed", "InlineExecutor", "make_task_runner", "reprocess_campus", "reprocess_from_config",
-           "run_campus", "scan_inputs"]
+__all__ = ["CampusRunFailed", "InlineExecutor", "make_task_runner", "reprocess_from_config", "run_campus",
+           "scan_inputs", "store_sizes"]
 
 
 @flow(name="reprocess-campus", log_prints=True)
-def reprocess_campus(cfg_json: dict, progress: bool = True) -> dict:
-    """The campus run of ``cfg_json`` as a Prefect flow (see the module docstring)."""
+def _campus_flow(cfg_json: dict, progress: bool = True) -> dict:
+    """The campus run of ``cfg_json`` as a Prefect flow on the flow's task runner (see the module docstring)."""
     cfg, _ = config_of(cfg_json)
-    return reprocess(cfg, PrefectExecutor(progress), publish=_publish_artifact)
+    return _run_locked(cfg, PrefectExecutor(progress), publish=_publish_artifact)
 
 
-def reprocess(cfg: CampusConfig, ex, publish=None) -> dict:
-    """The campus run on an executor (:class:`PrefectExecutor` inside the flow, :class:`InlineExecutor`
-    for a run without Prefect). Raises CampusRunFailed when units failed or the campus is incomplete."""
+def _run_locked(cfg: CampusConfig, ex, publish=None) -> dict:
+    """The campus run on an executor, holding the work dir (its lock, or on a bucket its lease). Raises
+    CampusRunFailed when units failed or the campus is incomplete."""
     wd = work_dir_of(cfg)
     with remote_run(cfg) if is_remote(cfg) else work_dir_lock(wd) as mirror:  # a URL: lease, sweep, pull
         ex = SyncExecutor(ex, mirror) if mirror is not None else ex
-        summary = _reprocess(_Run(cfg, cfg.model_dump(mode="json"), wd, ex))
+        summary = _run_stages(_Run(cfg, cfg.model_dump(mode="json"), wd, ex))
     if publish is not None:
         publish(summary)
     if summary["failed"] or summary["incomplete"]:
@@ -86,15 +82,20 @@ def reprocess(cfg: CampusConfig, ex, publish=None) -> dict:
     return summary
 
 
+def batcher(tsk, ctx: BatchContext):
+    """units -> batches by the rule ``tsk``'s stage declares (``tsk.spec.batch``)."""
+    return lambda units: tsk.spec.batch(units, ctx)
+
+
 def scan_inputs(cfg: CampusConfig, wd: WorkDir, ex) -> tuple:
     """Discover and scan every input file (once per content), then choose the campus frame.
 
     Returns (records: list[InputFile], frame: CampusFrame, discovery, {path: source id}, scan summaries).
     """
-    from tasks.scan import campus_frame, scan_batches, scan_files, scanned_records
+    from tasks.scan import campus_frame, scan_files, scanned_records
 
     found, ids, files = scan_files(cfg)
-    scans = map_pending(wd, ex, scan_task, files, "scan", lambda todo: scan_batches(todo, cfg.cluster.n_workers),
+    scans = map_pending(wd, ex, scan_task, files, "scan", batcher(scan_task, BatchContext(cfg.cluster.n_workers)),
                         cfg_json=cfg.model_dump(mode="json"))
     records = scanned_records([files], scans)
     return records, campus_frame(records, cfg), found, ids, scans
@@ -116,6 +117,14 @@ class _Run:
     def n_workers(self) -> int:
         return max(self.cfg.cluster.n_workers, 1)
 
+    def batches(self, tsk, units: list, weights: dict | None = None) -> list[list]:
+        """``units`` of ``tsk``'s stage as task batches, by the rule its declaration names."""
+        return self.batcher(tsk, weights)(units)
+
+    def batcher(self, tsk, weights: dict | None = None):
+        """units -> batches for ``tsk``'s stage (``tsk.spec.batch``) in this run's context."""
+        return batcher(tsk, BatchContext(self.n_workers, self.cfg.cluster.tiles_per_task, weights or {}))
+
     def note(self, label: str, results: list[dict], per_unit: bool = True) -> list[dict]:
         """Note every failed summary of ``results`` as "<label> <unit>" (or ``label`` alone for a
         campus-wide step, first error kept); returns ``results``."""
@@ -125,7 +134,7 @@ class _Run:
         return results
 
 
-def _reprocess(run: _Run) -> dict:
+def _run_stages(run: _Run) -> dict:
     """Inputs, tiles, outputs; then the run summary (failures, per-stage counts, output paths)."""
     t_wall, t_start = time.perf_counter(), time.time()
     sweep_temporary_files(run.wd)
@@ -145,7 +154,7 @@ def _reprocess(run: _Run) -> dict:
 def _inputs(run: _Run) -> dict:
     """Scan, register (once, while the meshes are routed: mesh ingest needs the frame only), ingest the
     points; then note the bad inputs and prune whatever the plan no longer names."""
-    from tasks.ingest import blocked_tiles, ingest_batches, plan_units
+    from tasks.ingest import blocked_tiles, plan_units
 
     cfg, wd, ex = run.cfg, run.wd, run.ex
     records, frame, found, ids, scans = scan_inputs(cfg, wd, ex)
@@ -156,8 +165,7 @@ def _inputs(run: _Run) -> dict:
     mesh_units = [u for u in units if u.kind == "mesh"]
     todo, mesh_done = pending(wd, ingest_task, [u.to_json() for u in mesh_units], "ingest meshes",
                               **ingest_consts, matrix=None)
-    mesh_batches, _ = ingest_batches(_named(mesh_units, todo), run.n_workers)
-    mesh_ingest = ex.map(ingest_task, mesh_batches, "ingest meshes", **ingest_consts, matrix=None)
+    mesh_ingest = ex.map(ingest_task, run.batches(ingest_task, todo), "ingest meshes", **ingest_consts, matrix=None)
     registration = reg_future.result()
     if "error" in registration:
         mesh_ingest.results()
@@ -167,7 +175,7 @@ def _inputs(run: _Run) -> dict:
                         "skipped_files": [list(s) for s in found.skipped]})
     matrix = np.asarray(registration["matrix"], np.float64)
     point_ingest = map_pending(wd, ex, ingest_task, [u.to_json() for u in units if u.kind == "points"],
-                               "ingest points", lambda todo: [[u] for u in todo], **ingest_consts,
+                               "ingest points", run.batcher(ingest_task), **ingest_consts,
                                matrix=matrix.tolist())
     ingests = [r for rs in mesh_done.values() for r in rs] + mesh_ingest.results() + point_ingest
     blocked, failed, incomplete = blocked_tiles(records, ingests, units, frame, matrix, cfg.grid())
@@ -180,11 +188,9 @@ def _inputs(run: _Run) -> dict:
             "incomplete": incomplete, "registration": registration}
 
 
-def largest_first(wd: WorkDir, tiles: list[str]) -> list[str]:
-    """``tiles`` by the size of their patch stores, largest first (ties in key order): a stage's longest units
-    start first and the short ones fill the end, instead of one long unit running alone on the last worker
-    (measured: 8 s of one idle core at the end of classify on the real-density campus). A store that cannot
-    be read counts as empty."""
+def store_sizes(wd: WorkDir, tiles: list[str]) -> dict[str, int]:
+    """{tile key: bytes of its points and faces stores}, the classify stage's weights (its largest stores start
+    first: one long unit no longer runs alone on the last worker). A store that cannot be read counts as empty."""
     def size(key: str) -> int:
         total = 0
         for name in (POINTS_FILE, FACES_FILE):
@@ -194,8 +200,7 @@ def largest_first(wd: WorkDir, tiles: list[str]) -> list[str]:
                 pass
         return total
 
-    sizes = {k: size(k) for k in tiles}
-    return sorted(tiles, key=lambda k: -sizes[k])
+    return {k: size(k) for k in tiles}
 
 
 def _tiles(run: _Run, inputs: dict) -> dict:
@@ -208,10 +213,7 @@ def _tiles(run: _Run, inputs: dict) -> dict:
     hints = input_tiles(inputs["records"], inputs["frame"], inputs["matrix"], cfg.grid())
     tiles = sorted({k for h in hints.values() for k in h} | {t.key for t in wd.staged_tiles()}
                    | set(wd.tile_keys_on_disk()))
-    def batches(todo: list[str]) -> list[list[str]]:
-        return fixed_batches(todo, cfg.cluster.tiles_per_task)
-
-    parts = run.note("tile", map_pending(wd, ex, partition_task, tiles, "partition", batches, cfg_json=cj,
+    parts = run.note("tile", map_pending(wd, ex, partition_task, tiles, "partition", run.batcher(partition_task), cfg_json=cj,
                                          frame_json=inputs["frame"].to_json(), blocked=inputs["blocked"]))
     run.note("labels", [{"status": "failed", "unit": s["unit"], "error": s["labels_error"]}
                         for s in parts if s.get("labels_error")])
@@ -220,19 +222,18 @@ def _tiles(run: _Run, inputs: dict) -> dict:
     outliers = submit_pending(wd, ex, outliers_task, cj).result()
     run.note("outliers", [outliers], per_unit=False)
     grades = run.note("classify", map_pending(wd, ex, classify_task, tiles, "classify",
-                                              lambda todo: batches(largest_first(wd, todo)), cfg_json=cj))
+                                              run.batcher(classify_task, store_sizes(wd, tiles)), cfg_json=cj))
     drop_unplanned_records(wd, "classify", set(tiles))
     plan = submit_pending(wd, ex, regions_task, cj).result()
     run.note("regions", [plan], per_unit=False)
     todo, unchanged = pending_regions(plan["regions"], local_view(cfg, "texture"), wd)  # one read of the plan, records
-    weight = dict(zip(plan["regions"], plan["weights"]))
-    region_batches = balanced_batches(todo, [weight.get(k, 1.0) for k in todo], 4 * run.n_workers)
+    region_batches = run.batches(repair_task, todo, dict(zip(plan["regions"], plan["weights"])))
     repairs = run.note("region", unchanged + ex.map(repair_task, region_batches, "repair", cfg_json=cj).results())
     if not cfg.cluster.address:  # our own workers: what classify and repair left must not count against merge
         rec = ex.recycle_workers(RECYCLE_OVER * cfg.partition.memory_budget_mb)
         if rec["restarted"]:
             log.info("restarted %d workers before merge (one held %.0f MB)", rec["restarted"], rec["largest_mb"])
-    merges = run.note("merge", map_pending(wd, ex, merge_task, tiles, "merge", batches, cfg_json=cj))
+    merges = run.note("merge", map_pending(wd, ex, merge_task, tiles, "merge", run.batcher(merge_task), cfg_json=cj))
     drop_unplanned_records(wd, "merge", set(tiles))
     run.stages |= {"partition": parts, "classify": grades, "repair": repairs, "merge": merges}
     return outliers
@@ -241,7 +242,7 @@ def _tiles(run: _Run, inputs: dict) -> dict:
 def _outputs(run: _Run) -> tuple[dict, dict]:
     """3D Tiles (nodes mapped over the workers) beside the model's quality shares, then the run report.
     Returns (export summary, report summary)."""
-    from tasks.export import node_batches, node_records, run_export_stage
+    from tasks.export import node_records, run_export_stage
     from tasks.quality import quality_parts, quality_plan, share_name, write_quality
     from tasks.report import region_renders_fresh
 
@@ -254,13 +255,11 @@ def _outputs(run: _Run) -> tuple[dict, dict]:
     # queued task does not move for a priority): the leaves' level ended ~10 s later on the 384 M-point campus
     def start_renders() -> None:
         if "renders" not in side:
-            with dask.annotate(priority=-EXPORT_PRIORITY):
-                side["renders"] = ex.submit(region_renders_task, cj) \
-                    if cfg.report.enabled and not region_renders_fresh(cfg, wd) else None
+            side["renders"] = ex.submit(region_renders_task, cj) \
+                if cfg.report.enabled and not region_renders_fresh(cfg, wd) else None
 
     def map_jobs(jobs: list) -> list[dict]:  # one level of the quadtree at a time; records in job order
-        with dask.annotate(priority=EXPORT_PRIORITY):  # the export's levels are the chain the run waits on
-            mapped = ex.map(export_nodes_task, node_batches(jobs, run.n_workers), "export")
+        mapped = ex.map(export_nodes_task, run.batches(export_nodes_task, jobs), "export")
         if side.get("leaves_built"):  # queued behind the level above the leaves: a worker takes them when it
             start_renders()           # has no node left, beside the upper levels and the driver's points overlay
         done = mapped.results()
@@ -291,12 +290,6 @@ def _outputs(run: _Run) -> tuple[dict, dict]:
     return exported, report
 
 
-def _named(units: list, todo: list[dict]) -> list:
-    """The ingest units (``IngestUnit``) whose JSON is in ``todo``, in their order."""
-    keys = {u["key"] for u in todo}
-    return [u for u in units if u.key in keys]
-
-
 def _publish_artifact(summary: dict) -> None:
     try:
         create_table_artifact(key="campus-tiles", table=summary["tile_rows"],
@@ -324,19 +317,25 @@ def make_task_runner(cfg: CampusConfig):
         cfg.cluster.n_workers, cfg.cluster.threads_per_worker, cfg.cluster.memory_limit))
 
 
-def run_campus(cfg: CampusConfig, progress: bool = True) -> dict:
-    """Run the campus flow with one embedded Prefect API (unless one is configured) and a Dask cluster."""
+def run_campus(cfg: CampusConfig, progress: bool = True, executor=None) -> dict:
+    """Reprocess a campus: the one entry point of a run (the CLI's ``ms3d run``, ``ms3d demo``, training and
+    evaluation call it). The campus flow runs with one embedded Prefect API (unless one is configured) and a
+    Dask cluster; ``runner: inline`` in the config, or an ``executor`` (:class:`InlineExecutor`, or a test's),
+    runs the stages in this process without Prefect. Returns the run summary; raises CampusRunFailed when
+    units failed or the campus is incomplete."""
+    if executor is not None:
+        return _run_locked(cfg, executor)
     from flows.runtime import embedded_prefect
     from storage.workdir.housekeeping import check_work_dir_writable
 
     wd = work_dir_of(cfg)  # a work dir by URL: this process's mirror (flows.remote)
     check_work_dir_writable(wd)
     if cfg.runner == "inline":
-        return reprocess(cfg, InlineExecutor())
+        return _run_locked(cfg, InlineExecutor())
     with embedded_prefect(wd.prefect_dir, cfg.cluster.prefect_api_url):
         log.info("Prefect API up %.1f s after the process started", _since_process_start())
         runner = make_task_runner(cfg)
-        return reprocess_campus.with_options(task_runner=runner)(cfg.model_dump(mode="json"), progress=progress)
+        return _campus_flow.with_options(task_runner=runner)(cfg.model_dump(mode="json"), progress=progress)
 
 
 def _since_process_start() -> float:
@@ -351,7 +350,7 @@ def _since_process_start() -> float:
 
 @flow(name="reprocess-campus-from-config")
 def reprocess_from_config(config_path: str, overrides: dict | None = None) -> dict:
-    """Deployment entry point: load a YAML config and reprocess its campus (uses the flow's task runner,
-    configured in deploy/prefect.yaml; the Prefect API is the deployment's server)."""
+    """The entry point of a scheduled run (``deploy/prefect.yaml``, ``ms3d serve``): load a YAML config and
+    reprocess its campus on the task runner the config names; the Prefect API is the deployment's server."""
     cfg = CampusConfig.from_yaml(config_path, overrides)
-    return reprocess_campus.with_options(task_runner=make_task_runner(cfg))(cfg.model_dump(mode="json"), progress=False)
+    return _campus_flow.with_options(task_runner=make_task_runner(cfg))(cfg.model_dump(mode="json"), progress=False)

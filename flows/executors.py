@@ -3,8 +3,10 @@ inline in this process without Prefect (tests, debugging). Both give the flow th
 
 from __future__ import annotations
 
+import contextlib
 import logging
 
+import dask
 from prefect import unmapped
 
 from flows.progress import wait_all
@@ -22,13 +24,15 @@ class PrefectExecutor:
     def map(self, tsk, batches: list, label: str, **consts) -> _Mapped | _Done:
         if not batches:  # nothing to run (the planner skipped every unit): no task run, no progress bar
             return _Done([])
-        futs = tsk.map(batches, **{k: unmapped(v) for k, v in consts.items()})
+        with _priority(tsk):
+            futs = tsk.map(batches, **{k: unmapped(v) for k, v in consts.items()})
         self.task_runs += len(futs)
         return _Mapped(batches, futs, label, self.progress)
 
     def submit(self, tsk, *args):
         self.task_runs += 1
-        return tsk.submit(*args)
+        with _priority(tsk):
+            return tsk.submit(*args)
 
     def recycle_workers(self, over_mb: float) -> dict:
         """Restart the flow's Dask workers (between stages, nothing running) when one of them holds more than
@@ -53,6 +57,12 @@ class PrefectExecutor:
             log.warning("could not restart the workers before merge: %s", f"{type(e).__name__}: {e}".splitlines()[0])
             return {"restarted": 0, "largest_mb": largest}
         return {"restarted": len(rss), "largest_mb": largest}
+
+
+def _priority(tsk):
+    """The Dask priority its stage declares (``tsk.spec.priority``) around a submission; none when 0."""
+    priority = getattr(getattr(tsk, "spec", None), "priority", 0)
+    return dask.annotate(priority=priority) if priority else contextlib.nullcontext()
 
 
 def _rss_mb() -> float:

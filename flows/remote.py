@@ -73,61 +73,30 @@ def _cfg_json_of(args, kwargs) -> dict | None:
     return cj
 
 
-# What a task reads from the work dir, by its function name: path prefixes ("{tile}" once per tile of its
-# batch). A task not listed pulls everything. From each stage's stage.py: scan checks its record and samples;
-# ingest its record and earlier staging outputs; partition (+ labels) a tile's staging runs and store;
-# classify its tile's store (a pair's neighbourhood cues stay within the tile); merge the campus frame,
-# the region plan and files, and the tile's store.
-TASK_READS = {
-    "scan_task": ("manifest.d/scan/", "scan/"),
-    "ingest_task": ("manifest.d/ingest/", "staging/"),
-    "partition_task": ("manifest.d/partition/", "manifest.d/labels/", "staging/{tile}/", "tiles/{tile}/"),
-    "classify_task": ("manifest.d/classify/", "tiles/{tile}/"),
-    "merge_task": ("manifest.d/merge/", "campus.json", "regions/", "tiles/{tile}/"),
-}
-# What a task that pulls everything else never reads: the ingest runs (``staging/``, the largest part of a
-# work dir: only partition and the driver's planning read them) and what export writes in the driver.
-TASK_SKIPS = {name: ("staging/", "export/", "output/") for name in
-              ("outliers_task", "regions_task", "repair_task", "quality_task", "region_renders_task")}
+def synced(spec):
+    """Decorate a stage's task function (``spec``: its ``tasks.stages.StageSpec``): with a work dir by URL,
+    pull what the declaration says the task reads (``spec.reads_for`` its batch, or all but ``spec.skips``)
+    before, and push after (a task that raises pushes nothing: its units are not recorded and run again).
+    Inside planning it only runs ``fn``."""
+    def decorate(fn):
+        @functools.wraps(fn)
+        def wrapper(*args, **kwargs):
+            from tasks.units import is_planning
 
-
-def task_reads(name: str, batch) -> tuple[str, ...] | None:
-    """The work-dir prefixes task ``name`` reads for ``batch`` (its first argument), or None for all.
-
-    >>> task_reads("merge_task", ["1_2"])
-    ('manifest.d/merge/', 'campus.json', 'regions/', 'tiles/1_2/')
-    >>> task_reads("regions_task", None) is None
-    True
-    """
-    spec = TASK_READS.get(name)
-    if spec is None:
-        return None
-    out: list[str] = []
-    for p in spec:
-        out += [p.format(tile=k) for k in batch] if "{tile}" in p else [p]
-    return tuple(out)
-
-
-def synced(fn):
-    """Decorate a task function: with a work dir by URL, pull before and push after (a task that raises
-    pushes nothing: its units are not recorded and run again). Inside planning it only runs ``fn``."""
-    @functools.wraps(fn)
-    def wrapper(*args, **kwargs):
-        from tasks.units import is_planning
-
-        cj = _cfg_json_of(args, kwargs)
-        if cj is None or not is_remote(cj.get("work_dir")) or is_planning():
-            return fn(*args, **kwargs)
-        mirror = mirror_for(cj["work_dir"])
-        first = args[0] if args else kwargs.get(next(iter(inspect.signature(fn).parameters)))
-        reads = task_reads(fn.__name__, first if isinstance(first, list) else [])
-        skips = TASK_SKIPS.get(fn.__name__, ())
-        mirror.pull((lambda rel: rel.startswith(reads)) if reads is not None else
-                    (lambda rel: not rel.startswith(skips)) if skips else None)
-        out = fn(*args, **kwargs)
-        mirror.push(getattr(fn, "__name__", "task"))
-        return out
-    return wrapper
+            cj = _cfg_json_of(args, kwargs)
+            if cj is None or not is_remote(cj.get("work_dir")) or is_planning():
+                return fn(*args, **kwargs)
+            mirror = mirror_for(cj["work_dir"])
+            first = args[0] if args else kwargs.get(next(iter(inspect.signature(fn).parameters)))
+            reads = spec.reads_for(first if isinstance(first, list) else [])
+            skips = spec.skips
+            mirror.pull((lambda rel: rel.startswith(reads)) if reads is not None else
+                        (lambda rel: not rel.startswith(skips)) if skips else None)
+            out = fn(*args, **kwargs)
+            mirror.push(getattr(fn, "__name__", "task"))
+            return out
+        return wrapper
+    return decorate
 
 
 @contextlib.contextmanager

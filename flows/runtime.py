@@ -149,19 +149,23 @@ def worker_spawn_environ() -> dict:
     return env
 
 
-# What a task of these functions is expected to take before the scheduler has timed one (Dask assumes 0.5 s).
-# The flow submits the quality shares and the report's renders beside the export's leaves while every worker
-# is busy: with 0.5 s each, Dask queued all the leaves on one worker and did not steal them (the demo ran its
-# two 13 s leaves one after the other while the other worker idled 13 s). Measured on the demo, 2 workers.
-TASK_DURATIONS = {"quality_task": "30s", "region_renders_task": "15s", "export_nodes_task": "5s"}
+def task_durations() -> dict[str, str]:
+    """Dask's first guess of each long task's duration, from the stages' declarations (``StageSpec.duration``),
+    keyed by task function name (Dask's key prefix). The flow submits the quality shares and the report's renders
+    beside the export's leaves while every worker is busy: guessed at Dask's 0.5 s, the leaves queued on one
+    worker and were not stolen."""
+    from flows import tasks
+
+    found = [getattr(tasks, n) for n in dir(tasks)]
+    return {t.fn.__name__: t.spec.duration for t in found if getattr(getattr(t, "spec", None), "duration", None)}
 
 
 def scheduler_task_durations() -> dict:
-    """Set :data:`TASK_DURATIONS` in Dask's ``distributed.scheduler.default-task-durations`` (process-wide:
+    """Set :func:`task_durations` in Dask's ``distributed.scheduler.default-task-durations`` (process-wide:
     the local cluster's scheduler runs in this process) and return the resulting mapping."""
     import dask
 
-    durations = {**dask.config.get("distributed.scheduler.default-task-durations", {}), **TASK_DURATIONS}
+    durations = {**dask.config.get("distributed.scheduler.default-task-durations", {}), **task_durations()}
     dask.config.set({"distributed.scheduler.default-task-durations": durations})
     return durations
 

@@ -10,7 +10,6 @@ from __future__ import annotations
 
 import os
 import time
-from functools import partial
 
 import numpy as np
 from prefect import task
@@ -22,8 +21,33 @@ from storage.frame import CampusFrame
 from storage.ids import TileId
 from storage.inputs.identity import InputFile
 from storage.workdir.layout import WorkDir
+from tasks.classify import STAGE as CLASSIFY
 from tasks.config import CampusConfig
-from tasks.units import Done, MustRun, is_planning, record_step, run_unit, skipped_summary
+from tasks.export import STAGE as EXPORT
+from tasks.ingest import STAGE as INGEST
+from tasks.merge import STAGE as MERGE
+from tasks.outliers import STAGE as OUTLIERS
+from tasks.partition import STAGE as PARTITION
+from tasks.quality import STAGE as QUALITY
+from tasks.regions import STAGE as REGIONS
+from tasks.register import STAGE as REGISTER
+from tasks.repair import STAGE as REPAIR
+from tasks.report import RENDERS_STAGE
+from tasks.report import STAGE as REPORT
+from tasks.scan import STAGE as SCAN
+from tasks.stages import StageSpec
+from tasks.units import is_planning, record_step
+
+
+def stage_task(spec: StageSpec):
+    """The Prefect task of a stage's declaration (``tasks.stages.StageSpec``): named by the stage, no Prefect
+    cache (the manifest decides what is done), synced with a work dir by URL as the declaration says; the
+    declaration stays on the task (``.spec``) for the flow's batching, priorities and durations."""
+    def wrap(fn):
+        tsk = task(name=spec.name, cache_policy=NO_CACHE)(synced(spec)(fn))
+        tsk.spec = spec
+        return tsk
+    return wrap
 
 
 def config_of(cfg_json: dict) -> tuple[CampusConfig, WorkDir]:
@@ -32,8 +56,7 @@ def config_of(cfg_json: dict) -> tuple[CampusConfig, WorkDir]:
     return cfg, work_dir_of(cfg)  # a work dir by URL: this process's mirror (flows.remote)
 
 
-@task(name="scan", cache_policy=NO_CACHE)
-@synced
+@stage_task(SCAN)
 def scan_task(files: list[dict], cfg_json: dict) -> list[dict]:
     """Scan a batch of input files ({"path", "kind", "source"}), one summary each."""
     from tasks.scan import run_scan_file
@@ -42,8 +65,7 @@ def scan_task(files: list[dict], cfg_json: dict) -> list[dict]:
     return [run_scan_file(f["path"], f["kind"], f["source"], cfg, wd) for f in files]
 
 
-@task(name="register", cache_policy=NO_CACHE)
-@synced
+@stage_task(REGISTER)
 def register_task(records: list[dict], frame_json: dict, cfg_json: dict) -> dict:
     """The campus registration ({"matrix", "scale", ...}), or {"error": one line}."""
     from tasks.register import run_register
@@ -55,8 +77,7 @@ def register_task(records: list[dict], frame_json: dict, cfg_json: dict) -> dict
         return {"error": str(e)}
 
 
-@task(name="ingest", cache_policy=NO_CACHE)
-@synced
+@stage_task(INGEST)
 def ingest_task(units: list[dict], cfg_json: dict, frame_json: dict, matrix: list | None) -> list[dict]:
     """Route a batch of ingest units to staging files; matrix: the (4, 4) registration (None for meshes)."""
     from tasks.ingest import IngestUnit, run_ingest_unit
@@ -67,8 +88,7 @@ def ingest_task(units: list[dict], cfg_json: dict, frame_json: dict, matrix: lis
     return [run_ingest_unit(IngestUnit(**u), cfg, wd, frame, m) for u in units]
 
 
-@task(name="partition", cache_policy=NO_CACHE)
-@synced
+@stage_task(PARTITION)
 def partition_task(tile_keys: list[str], cfg_json: dict, frame_json: dict, blocked: dict[str, str]) -> list[dict]:
     """Partition a batch of tiles into patch stores, then label each one partitioned (a labels failure
     comes back as the tile's ``labels_error``)."""
@@ -92,22 +112,12 @@ def partition_task(tile_keys: list[str], cfg_json: dict, frame_json: dict, block
     return out
 
 
-@task(name="outliers", cache_policy=NO_CACHE)
-@synced
+@stage_task(OUTLIERS)
 def outliers_task(cfg_json: dict) -> dict:
-    """The campus-wide patch outlier fit; skipped while no live store changed (``flows.campus_steps``)."""
-    import json
+    """The campus-wide patch outlier fit; skipped while no live store changed."""
+    from tasks.outliers import run_outliers_unit
 
-    from flows.campus_steps import outliers_fingerprint, outliers_outputs
-    from tasks.outliers import run_outliers
-
-    cfg, wd = config_of(cfg_json)
-
-    def work() -> Done:
-        out = json.loads(json.dumps(run_outliers(cfg, wd)))
-        return Done(outputs=outliers_outputs(wd), summary=out)
-
-    return run_unit(wd, "outliers", "campus", outliers_fingerprint(wd), cfg.stage_params("outliers"), work)
+    return run_outliers_unit(*config_of(cfg_json))
 
 
 def _per_tile(run, tile_keys: list[str], cfg_json: dict) -> list[dict]:
@@ -116,8 +126,7 @@ def _per_tile(run, tile_keys: list[str], cfg_json: dict) -> list[dict]:
     return [res for k in tile_keys if (res := run(TileId.from_key(k), cfg, wd)) is not None]
 
 
-@task(name="classify", cache_policy=NO_CACHE)
-@synced
+@stage_task(CLASSIFY)
 def classify_task(tile_keys: list[str], cfg_json: dict) -> list[dict]:
     """Grade the pairs of a batch of tiles (MS3DQE-Net); one summary per tile that has a live store."""
     from tasks.classify import run_classify_tile
@@ -125,35 +134,15 @@ def classify_task(tile_keys: list[str], cfg_json: dict) -> list[dict]:
     return _per_tile(run_classify_tile, tile_keys, cfg_json)
 
 
-@task(name="regions", cache_policy=NO_CACHE)
-@synced
+@stage_task(REGIONS)
 def regions_task(cfg_json: dict) -> dict:
     """Plan the bad regions of the campus: {"status", "regions": [keys], "weights": [bytes per key], ...}."""
-    from flows.campus_steps import regions_fingerprint, regions_params
-    from storage.contracts.region_plan import plan_path, read_plan
-    from tasks.regions import region_weight, run_regions
+    from tasks.regions import run_regions_unit
 
-    cfg, wd = config_of(cfg_json)
-    ran: dict = {}
-
-    def work() -> Done:
-        ran.update(run_regions(cfg, wd))
-        if ran["status"] == "failed":
-            raise InputError(None, ran["error"])
-        return Done(outputs=[str(plan_path(wd.root).relative_to(wd.root))],
-                    summary={k: v for k, v in ran.items() if k not in ("regions", "weights")})
-
-    res = run_unit(wd, "regions", "campus", regions_fingerprint(wd), regions_params(cfg), work)
-    if res["status"] == "failed":
-        return {**res, "regions": [], "weights": []}
-    if ran:
-        return {**ran, **res}
-    plan = read_plan(wd.root)  # skipped: the plan on disk is current
-    return {**res, "regions": [r.key for r in plan], "weights": [region_weight(r) for r in plan]}
+    return run_regions_unit(*config_of(cfg_json))
 
 
-@task(name="repair", cache_policy=NO_CACHE)
-@synced
+@stage_task(REPAIR)
 def repair_task(region_keys: list[str], cfg_json: dict) -> list[dict]:
     """Repair a batch of regions (fuse -> mesh -> stitch -> texture), one summary each."""
     from storage.contracts.region_plan import read_plan
@@ -165,8 +154,7 @@ def repair_task(region_keys: list[str], cfg_json: dict) -> list[dict]:
     return [run_region(k, cfg, wd, plan) for k in region_keys]
 
 
-@task(name="merge", cache_policy=NO_CACHE)
-@synced
+@stage_task(MERGE)
 def merge_task(tile_keys: list[str], cfg_json: dict) -> list[dict]:
     """Merge a batch of tiles into one clean mesh each (retained faces + rebuilt regions)."""
     from tasks.merge import run_merge_tile
@@ -174,8 +162,7 @@ def merge_task(tile_keys: list[str], cfg_json: dict) -> list[dict]:
     return _per_tile(run_merge_tile, tile_keys, cfg_json)
 
 
-@task(name="export-nodes", cache_policy=NO_CACHE)
-@synced
+@stage_task(EXPORT)
 def export_nodes_task(jobs: list) -> list[dict]:
     """Build a batch of 3D Tiles nodes ((index, job) pairs); one {"index", "status", "record" | "error"} each."""
     from tasks.export import build_nodes
@@ -183,8 +170,7 @@ def export_nodes_task(jobs: list) -> list[dict]:
     return build_nodes(jobs)
 
 
-@task(name="quality", cache_policy=NO_CACHE)
-@synced
+@stage_task(QUALITY)
 def quality_task(cfg_json: dict, plan: dict, part: tuple) -> dict:
     """One share of the model's quality against the truth: {"status", "sums": {model: partial sums}}."""
     from tasks.quality import run_quality_share, share_name
@@ -195,37 +181,17 @@ def quality_task(cfg_json: dict, plan: dict, part: tuple) -> dict:
                        lambda: {"sums": run_quality_share(cfg, wd, plan, tuple(part))})
 
 
-@task(name="region renders", cache_policy=NO_CACHE)
-@synced
+@stage_task(RENDERS_STAGE)
 def region_renders_task(cfg_json: dict) -> dict:
-    """Draw the rebuilt regions' before/after renders for the report (``report/regions/``, kept under a key of
-    their inputs), beside the export: {"status", "figures" | "error"}. A failure costs nothing but time: the
-    report draws them itself and says why not."""
-    from tasks.report import region_renders
+    """Draw the rebuilt regions' before/after renders for the report, beside the export."""
+    from tasks.report import run_region_renders
 
-    if is_planning():
-        return {"status": "skipped"}
-    cfg, wd = config_of(cfg_json)
-    try:
-        sec, _ = region_renders(cfg, wd)
-    except (InputError, OSError, ValueError, KeyError) as e:
-        return {"status": "failed", "error": str(e).splitlines()[0] if str(e) else type(e).__name__}
-    return {"status": "done", "figures": len(sec.figures)}
+    return run_region_renders(*config_of(cfg_json))
 
 
-@task(name="report", cache_policy=NO_CACHE)
-@synced
+@stage_task(REPORT)
 def report_task(cfg_json: dict) -> dict:
     """Write the run report (``output/report.html``)."""
-    from flows.campus_steps import report_fingerprint, report_params
-    from storage.workdir.manifest import is_done, params_hash
-    from tasks.report import run_report
+    from tasks.report import run_report_unit
 
-    cfg, wd = config_of(cfg_json)
-    fp, ph = report_fingerprint(wd), params_hash(report_params(cfg))
-    rec = is_done(wd, "report", "campus", fp, ph)
-    if rec is not None and (wd.root / "output" / "report.html").exists():
-        return {**skipped_summary(rec), "report": str(wd.root / "output" / "report.html")}
-    if is_planning():
-        raise MustRun("report", "campus")
-    return record_step(wd, "report", "campus", partial(run_report, cfg, wd, quality=cfg.report.quality), fp, ph)
+    return run_report_unit(*config_of(cfg_json))

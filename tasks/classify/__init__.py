@@ -11,15 +11,23 @@ tile; with ``classify.enabled`` off the grades are removed.
 Also the pair readers training and evaluation use (:func:`read_tile_pairs`, :func:`campus_pair_set`).
 """
 
-from tasks.classify.pairs import featurise_tile_pairs, read_tile_pairs
-from tasks.classify.stage import (
-    DEFAULT_MODEL,
-    campus_pair_set,
-    grade_pairs,
-    grading_threshold,
-    load_model,
-    run_classify_tile,
-)
+from tasks.stages import StageSpec, largest_first_tile_batches, lazy_exports
 
-__all__ = ["DEFAULT_MODEL", "campus_pair_set", "featurise_tile_pairs", "grade_pairs", "grading_threshold", "load_model",
+STAGE = StageSpec("classify", "tile", largest_first_tile_batches, reads=("manifest.d/classify/", "tiles/{tile}/"))
+"""A pair's neighbourhood cues stay within its tile; the largest stores start first."""
+
+# the names below load on first use (tasks.stages.lazy_exports): importing the package for its STAGE costs
+# nothing, and a worker loads only the modules its tasks run
+__getattr__ = lazy_exports(__name__, {
+    "DEFAULT_MODEL": "tasks.classify.stage",
+    "campus_pair_set": "tasks.classify.stage",
+    "featurise_tile_pairs": "tasks.classify.pairs",
+    "grade_pairs": "tasks.classify.stage",
+    "grading_threshold": "tasks.classify.stage",
+    "load_model": "tasks.classify.stage",
+    "read_tile_pairs": "tasks.classify.pairs",
+    "run_classify_tile": "tasks.classify.stage",
+})
+
+__all__ = ["STAGE", "DEFAULT_MODEL", "campus_pair_set", "featurise_tile_pairs", "grade_pairs", "grading_threshold", "load_model",
            "read_tile_pairs", "run_classify_tile"]

@@ -16,9 +16,32 @@ decimation, ENU frame), ``check`` (validation:
 ``python -m tasks.export.check WORKDIR``), ``stage`` (the run and its records).
 """
 
-from tasks.export.georef import EnuProjector, make_georef
-from tasks.export.nodes import NodeJob, build_node
-from tasks.export.stage import build_nodes, node_batches, node_records, run_export, run_export_stage
+from tasks.stages import BatchContext, StageSpec, lazy_exports
 
-__all__ = ["EnuProjector", "NodeJob", "build_node", "build_nodes", "make_georef", "node_batches", "node_records",
+
+def node_task_batches(jobs: list, ctx: BatchContext) -> list[list]:
+    """The export's batching rule: :func:`tasks.export.stage.node_batches` for ``ctx.n_workers``."""
+    from tasks.export.stage import node_batches  # on first use: the package stays light (lazy_exports)
+
+    return node_batches(jobs, ctx.n_workers)
+
+STAGE = StageSpec("export-nodes", "node", node_task_batches, duration="5s", priority=10)
+"""The quadtree's levels are the chain the run waits on: a queued node must not wait behind the side tasks."""
+
+# the names below load on first use (tasks.stages.lazy_exports): importing the package for its STAGE costs
+# nothing, and a worker loads only the modules its tasks run
+__getattr__ = lazy_exports(__name__, {
+    "EnuProjector": "tasks.export.georef",
+    "NodeJob": "tasks.export.nodes",
+    "build_node": "tasks.export.nodes",
+    "build_nodes": "tasks.export.stage",
+    "make_georef": "tasks.export.georef",
+    "node_batches": "tasks.export.stage",
+    "node_records": "tasks.export.stage",
+    "node_task_batches": "tasks.export.stage",
+    "run_export": "tasks.export.stage",
+    "run_export_stage": "tasks.export.stage",
+})
+
+__all__ = ["STAGE", "EnuProjector", "NodeJob", "build_node", "build_nodes", "make_georef", "node_batches", "node_records",
            "run_export", "run_export_stage"]

@@ -12,8 +12,31 @@ blocks; :func:`storage.contracts.staging.prune_staging` then removes what the pl
 rebuilt exactly when the set of files that feed it changes.
 """
 
-from tasks.ingest.plan import IngestUnit, blocked_tiles, ingest_batches, input_tiles, plan_units, tiles_hint
-from tasks.ingest.stage import run_ingest_unit
+from tasks.stages import BatchContext, StageSpec, lazy_exports
 
-__all__ = ["IngestUnit", "blocked_tiles", "ingest_batches", "input_tiles", "plan_units", "run_ingest_unit",
+
+def ingest_task_batches(units: list[dict], ctx: BatchContext) -> list[list[dict]]:
+    """The ingest stage's batching rule over unit JSON: the meshes' batches of
+    :func:`tasks.ingest.plan.ingest_batches`, then one point range per batch."""
+    from tasks.ingest.plan import IngestUnit, ingest_batches  # on first use (lazy_exports)
+
+    meshes, points = ingest_batches([IngestUnit(**u) for u in units], ctx.n_workers)
+    return meshes + points
+
+STAGE = StageSpec("ingest", "ingest unit", ingest_task_batches, reads=("manifest.d/ingest/", "staging/"))
+
+# the names below load on first use (tasks.stages.lazy_exports): importing the package for its STAGE costs
+# nothing, and a worker loads only the modules its tasks run
+__getattr__ = lazy_exports(__name__, {
+    "IngestUnit": "tasks.ingest.plan",
+    "blocked_tiles": "tasks.ingest.plan",
+    "ingest_batches": "tasks.ingest.plan",
+    "ingest_task_batches": "tasks.ingest.plan",
+    "input_tiles": "tasks.ingest.plan",
+    "plan_units": "tasks.ingest.plan",
+    "run_ingest_unit": "tasks.ingest.stage",
+    "tiles_hint": "tasks.ingest.plan",
+})
+
+__all__ = ["STAGE", "IngestUnit", "blocked_tiles", "ingest_batches", "input_tiles", "plan_units", "run_ingest_unit",
            "tiles_hint"]

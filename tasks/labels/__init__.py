@@ -8,6 +8,13 @@
   a re-partitioned tile is relabelled), the labels parameters and ``STAGE_VERSIONS["labels"]``.
 """
 
-from tasks.labels.stage import bad_patch_keys, run_labels_tile
+from tasks.stages import lazy_exports
+
+# the names below load on first use (tasks.stages.lazy_exports): importing the package for its STAGE costs
+# nothing, and a worker loads only the modules its tasks run
+__getattr__ = lazy_exports(__name__, {
+    "bad_patch_keys": "tasks.labels.stage",
+    "run_labels_tile": "tasks.labels.stage",
+})
 
 __all__ = ["bad_patch_keys", "run_labels_tile"]

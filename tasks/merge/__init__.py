@@ -9,10 +9,23 @@ regions stage's rule), ``campus.json`` (frame) and the rebuilt regions reaching 
 the grid.
 """
 
-from storage.contracts.region_mesh import RegionMesh
-from tasks.merge.soup import FaceSoup, weld_soup
-from tasks.merge.stage import run_merge_tile
-from tasks.merge.tile import MergeStats, faces_in_tile, merge_tile, retained_soup
+from tasks.stages import StageSpec, fixed_tile_batches, lazy_exports
 
-__all__ = ["FaceSoup", "MergeStats", "RegionMesh", "faces_in_tile", "merge_tile", "retained_soup",
+STAGE = StageSpec("merge", "tile", fixed_tile_batches, reads=(
+    "manifest.d/merge/", "campus.json", "regions/", "tiles/{tile}/"))
+
+# the names below load on first use (tasks.stages.lazy_exports): importing the package for its STAGE costs
+# nothing, and a worker loads only the modules its tasks run
+__getattr__ = lazy_exports(__name__, {
+    "FaceSoup": "tasks.merge.soup",
+    "MergeStats": "tasks.merge.tile",
+    "RegionMesh": "storage.contracts.region_mesh",
+    "faces_in_tile": "tasks.merge.tile",
+    "merge_tile": "tasks.merge.tile",
+    "retained_soup": "tasks.merge.tile",
+    "run_merge_tile": "tasks.merge.stage",
+    "weld_soup": "tasks.merge.soup",
+})
+
+__all__ = ["STAGE", "FaceSoup", "MergeStats", "RegionMesh", "faces_in_tile", "merge_tile", "retained_soup",
            "run_merge_tile", "weld_soup"]

@@ -7,7 +7,17 @@
   every threshold), but rewrites only the tiles whose flags changed.
 """
 
-from tasks.outliers.fit import OutlierFit, fit_count_outliers
-from tasks.outliers.stage import run_outliers
+from tasks.stages import CAMPUS_WIDE_SKIPS, StageSpec, lazy_exports
 
-__all__ = ["OutlierFit", "fit_count_outliers", "run_outliers"]
+STAGE = StageSpec("outliers", "campus", skips=CAMPUS_WIDE_SKIPS)
+
+# the names below load on first use (tasks.stages.lazy_exports): importing the package for its STAGE costs
+# nothing, and a worker loads only the modules its tasks run
+__getattr__ = lazy_exports(__name__, {
+    "OutlierFit": "tasks.outliers.fit",
+    "fit_count_outliers": "tasks.outliers.fit",
+    "run_outliers": "tasks.outliers.stage",
+    "run_outliers_unit": "tasks.outliers.stage",
+})
+
+__all__ = ["STAGE", "OutlierFit", "fit_count_outliers", "run_outliers", "run_outliers_unit"]

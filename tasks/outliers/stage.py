@@ -12,17 +12,20 @@ import numpy as np
 
 from storage.errors import InputError
 from storage.patches.read import PatchStore, read_side_table
+from storage.patches.schema import side_table_path
+from storage.patches.state import store_fingerprint
 from storage.patches.write import write_side_table
 from storage.workdir.layout import WorkDir
-from storage.workdir.manifest import ManifestRecord, write_record
+from storage.workdir.manifest import combine_fingerprints
 from tasks.config import CampusConfig
 from tasks.outliers.fit import fit_count_outliers, save_histogram_png
+from tasks.units import Done, run_unit
 
 
 def run_outliers(cfg: CampusConfig, wd: WorkDir) -> dict:
     """Fit the campus-wide distributions of faces and points per patch (normal fit on log counts) over
     every live (done, not stale) tile, write each tile's ``outliers.parquet`` where its flags changed,
-    and save both histograms as PNG."""
+    and save both histograms as PNG. Records nothing: :func:`run_outliers_unit` is the resumable unit."""
     t0 = time.perf_counter()
     tiles = wd.live_tiles()
     stores = [(t, PatchStore(wd.tile_dir(t))) for t in tiles]
@@ -61,6 +64,27 @@ def run_outliers(cfg: CampusConfig, wd: WorkDir) -> dict:
     for name, (fit, flags) in fits.items():
         out[name] = {"mean_log10": float(fit.mean), "std_log10": float(fit.std), "low": float(fit.low),
                      "high": float(fit.high), "flagged": int(flags.sum())}
-    write_record(wd, ManifestRecord("outliers", "campus", "done", seconds=out["seconds"],
-                                    summary=json.loads(json.dumps(out))))
     return out
+
+
+def outliers_fingerprint(wd: WorkDir) -> str:
+    """What the outlier fit reads: the patch tables of every live tile (the store files' sizes and mtimes,
+    not the side tables it writes itself)."""
+    return combine_fingerprints(["outliers", *(f"{t.key}:{store_fingerprint(wd.tile_dir(t))}" for t in wd.live_tiles())])
+
+
+def outliers_outputs(wd: WorkDir) -> list[str]:
+    """The outlier fit's files (work-dir relative) that exist: each live tile's ``outliers`` side table and
+    the two histograms."""
+    paths = [side_table_path(wd.tile_dir(t), "outliers") for t in wd.live_tiles()]
+    paths += [wd.report_dir / f"patch_{n}_histogram.png" for n in ("points", "faces")]
+    return [str(p.relative_to(wd.root)) for p in paths if p.exists()]
+
+
+def run_outliers_unit(cfg: CampusConfig, wd: WorkDir) -> dict:
+    """The campus-wide fit as one resumable unit ("outliers", "campus"): skipped while no live store and
+    neither the ``partition`` outlier / minimum-count fields changed; its summary."""
+    def work() -> Done:
+        return Done(outputs=outliers_outputs(wd), summary=json.loads(json.dumps(run_outliers(cfg, wd))))
+
+    return run_unit(wd, "outliers", "campus", outliers_fingerprint(wd), cfg.stage_params("outliers"), work)

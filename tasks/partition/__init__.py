@@ -13,7 +13,18 @@ Pure kernels: :mod:`tasks.partition.kernels` (in memory), :mod:`tasks.partition.
 same files).
 """
 
-from tasks.partition.kernels import build_tile_tables
-from tasks.partition.stage import run_partition_tile, write_tile_store
+from tasks.stages import StageSpec, fixed_tile_batches, lazy_exports
 
-__all__ = ["build_tile_tables", "run_partition_tile", "write_tile_store"]
+STAGE = StageSpec("partition", "tile", fixed_tile_batches, reads=(
+    "manifest.d/partition/", "manifest.d/labels/", "staging/{tile}/", "tiles/{tile}/"))
+"""Partition runs the labels of each tile it partitions in the same task (:mod:`tasks.labels`)."""
+
+# the names below load on first use (tasks.stages.lazy_exports): importing the package for its STAGE costs
+# nothing, and a worker loads only the modules its tasks run
+__getattr__ = lazy_exports(__name__, {
+    "build_tile_tables": "tasks.partition.kernels",
+    "run_partition_tile": "tasks.partition.stage",
+    "write_tile_store": "tasks.partition.stage",
+})
+
+__all__ = ["STAGE", "build_tile_tables", "run_partition_tile", "write_tile_store"]

@@ -8,9 +8,23 @@ regions the plan no longer names. Invalidated by any change of a tile's store or
 every run; each region's repair decides from its own fingerprint whether it must be redone.
 """
 
-from storage.contracts.region_plan import Region, read_plan
-from tasks.regions.plan import connected_components, dilate, patch_cost_bytes, plan_regions
-from tasks.regions.stage import region_weight, run_regions
+from tasks.stages import CAMPUS_WIDE_SKIPS, StageSpec, lazy_exports
 
-__all__ = ["Region", "connected_components", "dilate", "patch_cost_bytes", "plan_regions", "read_plan",
-           "region_weight", "run_regions"]
+STAGE = StageSpec("regions", "campus", skips=CAMPUS_WIDE_SKIPS)
+
+# the names below load on first use (tasks.stages.lazy_exports): importing the package for its STAGE costs
+# nothing, and a worker loads only the modules its tasks run
+__getattr__ = lazy_exports(__name__, {
+    "Region": "storage.contracts.region_plan",
+    "connected_components": "tasks.regions.plan",
+    "dilate": "tasks.regions.plan",
+    "patch_cost_bytes": "tasks.regions.plan",
+    "plan_regions": "tasks.regions.plan",
+    "read_plan": "storage.contracts.region_plan",
+    "region_weight": "tasks.regions.stage",
+    "run_regions": "tasks.regions.stage",
+    "run_regions_unit": "tasks.regions.stage",
+})
+
+__all__ = ["STAGE", "Region", "connected_components", "dilate", "patch_cost_bytes", "plan_regions", "read_plan",
+           "region_weight", "run_regions", "run_regions_unit"]

@@ -12,14 +12,16 @@ import time
 
 import numpy as np
 
-from storage.contracts.region_plan import REGIONS_DIR, Region, write_plan
+from storage.contracts.region_plan import REGIONS_DIR, Region, plan_path, read_plan, write_plan
+from storage.errors import InputError
 from storage.patches.read import PatchStore
 from storage.patches.state import GRADE_BAD, patch_grades, store_fingerprint
 from storage.workdir.housekeeping import drop_unplanned_records
 from storage.workdir.layout import WorkDir
+from storage.workdir.manifest import combine_fingerprints
 from tasks.config import CampusConfig
 from tasks.regions.plan import patch_cost_bytes, plan_regions
-from tasks.units import record_step
+from tasks.units import Done, record_step, run_unit
 
 
 def _campus_grades(cfg: CampusConfig, wd: WorkDir) -> tuple[np.ndarray, np.ndarray, np.ndarray, dict, dict]:
@@ -86,3 +88,37 @@ def run_regions(cfg: CampusConfig, wd: WorkDir) -> dict:
 
     out = record_step(wd, "regions", "campus", work)
     return out if out["status"] != "failed" else {**out, "regions": [], "weights": []}
+
+
+def regions_fingerprint(wd: WorkDir) -> str:
+    """What the region plan reads: the live tiles' stores with their grades and labels tables."""
+    return combine_fingerprints(["regions", *(f"{t.key}:{store_fingerprint(wd.tile_dir(t), ('grades', 'labels'))}"
+                                              for t in wd.live_tiles())])
+
+
+def regions_params(cfg: CampusConfig) -> dict:
+    """The region plan's parameters: the repair and partition sections and the grid (more than the plan
+    uses: a change reruns the plan, never reuses a stale one)."""
+    return {"repair": cfg.repair.model_dump(mode="json"), "partition": cfg.partition.model_dump(mode="json"),
+            "grid": cfg.grid().to_json()}
+
+
+def run_regions_unit(cfg: CampusConfig, wd: WorkDir) -> dict:
+    """The region plan as one resumable unit ("regions", "campus"): {"status", "regions": [keys],
+    "weights": [bytes per key], ...}; a skipped unit's keys and weights come from the plan on disk."""
+    ran: dict = {}
+
+    def work() -> Done:
+        ran.update(run_regions(cfg, wd))
+        if ran["status"] == "failed":
+            raise InputError(None, ran["error"])
+        return Done(outputs=[str(plan_path(wd.root).relative_to(wd.root))],
+                    summary={k: v for k, v in ran.items() if k not in ("regions", "weights")})
+
+    res = run_unit(wd, "regions", "campus", regions_fingerprint(wd), regions_params(cfg), work)
+    if res["status"] == "failed":
+        return {**res, "regions": [], "weights": []}
+    if ran:
+        return {**ran, **res}
+    plan = read_plan(wd.root)  # skipped: the plan on disk is current
+    return {**res, "regions": [r.key for r in plan], "weights": [region_weight(r) for r in plan]}

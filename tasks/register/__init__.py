@@ -12,7 +12,15 @@
 The pure algorithm is in :mod:`tasks.register.align` (coarse, fine, target, check and base modules).
 """
 
-from tasks.register.stage import run_register
-from tasks.register.target import mesh_registration_target
+from tasks.stages import StageSpec, lazy_exports
 
-__all__ = ["mesh_registration_target", "run_register"]
+STAGE = StageSpec("register", "campus")
+
+# the names below load on first use (tasks.stages.lazy_exports): importing the package for its STAGE costs
+# nothing, and a worker loads only the modules its tasks run
+__getattr__ = lazy_exports(__name__, {
+    "mesh_registration_target": "tasks.register.target",
+    "run_register": "tasks.register.stage",
+})
+
+__all__ = ["STAGE", "mesh_registration_target", "run_register"]

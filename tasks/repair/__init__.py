@@ -9,6 +9,16 @@ invalidated by a change of its plan entry (patches, bad set, context), of a stor
 cameras file, or of ``repair.*`` / the grid.
 """
 
-from tasks.repair.stage import pending_regions, region_fingerprint, run_region
+from tasks.stages import CAMPUS_WIDE_SKIPS, StageSpec, balanced_region_batches, lazy_exports
 
-__all__ = ["pending_regions", "region_fingerprint", "run_region"]
+STAGE = StageSpec("repair", "region", balanced_region_batches, skips=CAMPUS_WIDE_SKIPS)
+
+# the names below load on first use (tasks.stages.lazy_exports): importing the package for its STAGE costs
+# nothing, and a worker loads only the modules its tasks run
+__getattr__ = lazy_exports(__name__, {
+    "pending_regions": "tasks.repair.stage",
+    "region_fingerprint": "tasks.repair.stage",
+    "run_region": "tasks.repair.stage",
+})
+
+__all__ = ["STAGE", "pending_regions", "region_fingerprint", "run_region"]

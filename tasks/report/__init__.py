@@ -10,7 +10,22 @@ of the merged tiles and the grid (:func:`region_renders`, which the flow calls b
 report does not draw them on the critical path).
 """
 
-from tasks.report.grades import GradeCensus, census_of_stores
-from tasks.report.stage import region_renders, region_renders_fresh, run_report
+from tasks.stages import CAMPUS_WIDE_SKIPS, StageSpec, lazy_exports
 
-__all__ = ["GradeCensus", "census_of_stores", "region_renders", "region_renders_fresh", "run_report"]
+RENDERS_STAGE = StageSpec("region renders", "campus", skips=CAMPUS_WIDE_SKIPS, duration="15s", priority=-10)
+"""The report's figures, drawn beside the export's upper levels (a core idle), behind its nodes."""
+STAGE = StageSpec("report", "campus")
+
+# the names below load on first use (tasks.stages.lazy_exports): importing the package for its STAGE costs
+# nothing, and a worker loads only the modules its tasks run
+__getattr__ = lazy_exports(__name__, {
+    "GradeCensus": "tasks.report.grades",
+    "census_of_stores": "tasks.report.grades",
+    "region_renders": "tasks.report.stage",
+    "region_renders_fresh": "tasks.report.stage",
+    "run_region_renders": "tasks.report.stage",
+    "run_report": "tasks.report.stage",
+    "run_report_unit": "tasks.report.stage",
+})
+
+__all__ = ["RENDERS_STAGE", "STAGE", "GradeCensus", "census_of_stores", "region_renders", "region_renders_fresh", "run_region_renders", "run_report", "run_report_unit"]

@@ -28,12 +28,14 @@ import json
 import logging
 import time
 from collections.abc import Callable
+from functools import partial
 from pathlib import Path
 
-from storage.atomic import write_bytes_atomic, write_json_atomic
+from storage import __version__
+from storage.atomic import file_sha256, write_bytes_atomic, write_json_atomic
 from storage.errors import InputError
 from storage.workdir.layout import WorkDir, campus_frame, read_campus
-from storage.workdir.manifest import all_records, combine_fingerprints
+from storage.workdir.manifest import all_records, combine_fingerprints, is_done, params_hash
 from tasks.classify import grading_threshold
 from tasks.quality import ensure_quality, merged_tiles, truth_dir_of
 from tasks.report.grades import census_of_stores, grades_section
@@ -47,6 +49,7 @@ from tasks.report.sections import (
     quality_section,
     stages_section,
 )
+from tasks.units import MustRun, is_planning, record_step, skipped_summary
 
 log = logging.getLogger("ms3d.report")
 
@@ -153,3 +156,64 @@ def run_report(cfg, wd: WorkDir, truth_dir: str | Path | None = None, quality: b
     figures = [name for s in sections for name in s.figures]
     return {"report": str(path), "figures": figures, "sections": [s.title for s in sections],
             "bytes": len(page), "truth": str(truth) if truth else None, "seconds": time.perf_counter() - t0}
+
+
+# stages recorded by record_step on every run they make: their seconds change on each run
+_ALWAYS_RECORDED = ("export", "quality", "outliers", "regions")
+REPORT_VERSION = 1  # bumped whenever report.html changes for the same inputs
+
+
+def _sha(path) -> str:
+    try:
+        return file_sha256(path)
+    except OSError:
+        return "-"
+
+
+def report_fingerprint(wd: WorkDir) -> str:
+    """What the run report shows: every manifest record but the report's own (status, fingerprint,
+    parameters and, for the units skipped by fingerprint, seconds: a unit that ran this run changes it), the
+    content of ``tileset.json`` and ``report/quality.json``."""
+    parts = []
+    for r in all_records(wd):
+        if r.stage == "report":
+            continue
+        secs = None if r.stage in _ALWAYS_RECORDED else r.seconds
+        parts.append(json.dumps([r.stage, r.unit, r.status, r.fingerprint, r.params_hash, secs, r.error]))
+    parts += [_sha(wd.root / "output" / "tileset.json"), _sha(wd.report_dir / "quality.json")]
+    return combine_fingerprints(sorted(parts))
+
+
+def report_params(cfg) -> dict:
+    """The run report's parameters (cfg: CampusConfig): the ``report`` and ``partition`` sections, the grid,
+    ``classify.threshold`` and the package and report versions (an upgrade that changes the page, with
+    :data:`REPORT_VERSION` bumped, redraws it)."""
+    return {"code_version": __version__, "report_version": REPORT_VERSION, "report": cfg.report.model_dump(mode="json"),
+            "classify_threshold": cfg.classify.threshold,
+            "partition": cfg.partition.model_dump(mode="json"), "grid": cfg.grid().to_json()}
+
+
+def run_report_unit(cfg, wd: WorkDir) -> dict:
+    """The run report as one resumable unit ("report", "campus"): skipped while its fingerprint, its
+    parameters and ``output/report.html`` stand; {"status", "report": path, ...}."""
+    fp, ph = report_fingerprint(wd), params_hash(report_params(cfg))
+    page = wd.root / "output" / "report.html"
+    rec = is_done(wd, "report", "campus", fp, ph)
+    if rec is not None and page.exists():
+        return {**skipped_summary(rec), "report": str(page)}
+    if is_planning():
+        raise MustRun("report", "campus")
+    return record_step(wd, "report", "campus", partial(run_report, cfg, wd, quality=cfg.report.quality), fp, ph)
+
+
+def run_region_renders(cfg, wd: WorkDir) -> dict:
+    """The rebuilt regions' before/after renders for the report (``report/regions/``, kept under a key of
+    their inputs), drawn beside the export: {"status", "figures" | "error"}. A failure costs nothing but
+    time: the report draws them itself and says why not."""
+    if is_planning():
+        return {"status": "skipped"}
+    try:
+        sec, _ = region_renders(cfg, wd)
+    except (InputError, OSError, ValueError, KeyError) as e:
+        return {"status": "failed", "error": str(e).splitlines()[0] if str(e) else type(e).__name__}
+    return {"status": "done", "figures": len(sec.figures)}

@@ -12,10 +12,30 @@ A file that cannot be read is still scanned: its record carries the error and, w
 its bounds (:mod:`tasks.scan.salvage`), so that exactly the tiles it covers are blocked.
 """
 
-from tasks.scan.frame import campus_frame
-from tasks.scan.placement import MeshPlacement, mesh_placement
-from tasks.scan.plan import file_size, scan_batches, scan_files, scanned_records
-from tasks.scan.stage import run_scan_file
+from tasks.stages import BatchContext, StageSpec, lazy_exports
 
-__all__ = ["MeshPlacement", "campus_frame", "file_size", "mesh_placement", "run_scan_file", "scan_batches", "scan_files",
+
+def scan_task_batches(files: list[dict], ctx: BatchContext) -> list[list[dict]]:
+    """The scan stage's batching rule: :func:`tasks.scan.plan.scan_batches` for ``ctx.n_workers``."""
+    from tasks.scan.plan import scan_batches  # on first use (lazy_exports)
+
+    return scan_batches(files, ctx.n_workers)
+
+STAGE = StageSpec("scan", "file", scan_task_batches, reads=("manifest.d/scan/", "scan/"))
+
+# the names below load on first use (tasks.stages.lazy_exports): importing the package for its STAGE costs
+# nothing, and a worker loads only the modules its tasks run
+__getattr__ = lazy_exports(__name__, {
+    "MeshPlacement": "tasks.scan.placement",
+    "campus_frame": "tasks.scan.frame",
+    "file_size": "tasks.scan.plan",
+    "mesh_placement": "tasks.scan.placement",
+    "run_scan_file": "tasks.scan.stage",
+    "scan_batches": "tasks.scan.plan",
+    "scan_files": "tasks.scan.plan",
+    "scan_task_batches": "tasks.scan.plan",
+    "scanned_records": "tasks.scan.plan",
+})
+
+__all__ = ["STAGE", "MeshPlacement", "campus_frame", "file_size", "mesh_placement", "run_scan_file", "scan_batches", "scan_files",
            "scanned_records"]

@@ -13,7 +13,7 @@ import json
 
 import numpy as np
 
-from flows.campus import InlineExecutor, reprocess
+from flows.campus import InlineExecutor, run_campus
 from storage.formats.meshes import read_mesh
 from storage.patches.read import PatchStore
 from synth.generate import WORLD_ORIGIN, generate
@@ -39,7 +39,7 @@ def test_coarse_block_model_patches_are_graded(tmp_path):
     cfg = CampusConfig.from_yaml(src / "campus.yaml", {
         "work_dir": str(tmp_path / "work"), "runner": "inline", "registration": {"mode": "auto"},
         "repair.enabled": False, "report.enabled": False})
-    reg = reprocess(cfg, InlineExecutor())["registration"]
+    reg = run_campus(cfg, executor=InlineExecutor())["registration"]
     assert reg["displacement_max_m"] < 0.02, reg
     grid = cfg.grid()
     mesh = read_mesh(src / "mesh" / "mvs.obj", offset=WORLD_ORIGIN)

@@ -20,7 +20,7 @@ from pathlib import Path
 import httpx
 import pytest
 
-from flows.campus import InlineExecutor, reprocess
+from flows.campus import InlineExecutor, run_campus
 from storage.workdir.layout import WorkDir
 from storage.workdir.manifest import all_records
 from tasks.config import CampusConfig
@@ -47,7 +47,7 @@ def campus(tmp_path_factory) -> Path:
 def clean_checksums(campus, tmp_path_factory) -> dict[str, str]:
     """The stores of a clean inline run of ``campus``, run once for the module."""
     work = tmp_path_factory.mktemp("clean")
-    reprocess(CampusConfig.from_yaml(campus, {"work_dir": str(work), "runner": "inline"}), InlineExecutor())
+    run_campus(CampusConfig.from_yaml(campus, {"work_dir": str(work), "runner": "inline"}), executor=InlineExecutor())
     return _checksums(work)
 
 

@@ -81,15 +81,16 @@ def test_local_workers_start_with_the_heap_settings_and_keep_them_after_a_restar
 def test_the_local_scheduler_starts_with_the_long_tasks_durations():
     """Before a prefix has run, Dask assumes 0.5 s per task and queued both of the demo's 13 s export leaves on
     one worker while the other idled: the local cluster's scheduler (in this process) starts from
-    TASK_DURATIONS instead, and keeps the durations Dask sets itself."""
+    the declared durations instead, and keeps the durations Dask sets itself."""
     import dask
     from distributed.scheduler import TaskPrefix
 
-    from flows.runtime import TASK_DURATIONS, local_cluster_kwargs
+    from flows.runtime import local_cluster_kwargs, task_durations
 
     with dask.config.set({"distributed.scheduler.default-task-durations": {"other_task": "2s"}}):
         local_cluster_kwargs(1, 1, "1GB")
         assert TaskPrefix("quality_task").duration_average == 30.0
         assert TaskPrefix("export_nodes_task").duration_average == 5.0
         assert TaskPrefix("other_task").duration_average == 2.0
-        assert set(TASK_DURATIONS) <= set(dask.config.get("distributed.scheduler.default-task-durations"))
+        assert task_durations() == {"quality_task": "30s", "region_renders_task": "15s", "export_nodes_task": "5s"}
+        assert set(task_durations()) <= set(dask.config.get("distributed.scheduler.default-task-durations"))

@@ -11,7 +11,7 @@ import shutil
 import numpy as np
 import pytest
 
-from flows.campus import InlineExecutor, reprocess
+from flows.campus import InlineExecutor, run_campus
 from flows.summary import format_summary
 from storage.errors import InputError
 from storage.formats.points import read_points, write_points
@@ -21,8 +21,8 @@ EARLY = {"classify.enabled": False, "repair.enabled": False, "report.enabled": F
 
 
 def _run(campus, work, **over):
-    return reprocess(CampusConfig.from_yaml(campus / "campus.yaml", {**EARLY, "work_dir": str(work), **over}),
-                     InlineExecutor())
+    return run_campus(CampusConfig.from_yaml(campus / "campus.yaml", {**EARLY, "work_dir": str(work), **over}),
+                      executor=InlineExecutor())
 
 
 def test_a_failed_reregistration_keeps_the_recorded_transform(tiny_campus, tmp_path, monkeypatch):

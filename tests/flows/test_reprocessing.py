@@ -13,7 +13,7 @@ import pyarrow.parquet as pq
 import pytest
 import yaml
 
-from flows.campus import CampusRunFailed, InlineExecutor, reprocess
+from flows.campus import CampusRunFailed, InlineExecutor, run_campus
 from storage.formats.points import PointChunk, read_points, write_points
 from storage.patches.read import PatchStore
 from storage.workdir.layout import WorkDir
@@ -34,7 +34,7 @@ def _cfg(path: Path, work: Path, full: bool = False, **over) -> CampusConfig:
 
 
 def _run(cfg: CampusConfig) -> dict:
-    return reprocess(cfg, InlineExecutor())
+    return run_campus(cfg, executor=InlineExecutor())
 
 
 def _stores(work: Path) -> dict[str, dict]:

@@ -9,7 +9,7 @@ import hashlib
 
 import numpy as np
 
-from flows.campus import InlineExecutor, reprocess
+from flows.campus import InlineExecutor, run_campus
 from storage.formats.points import PointChunk, write_points
 from storage.workdir.layout import WorkDir
 from synth.handmade import ORIGIN, region_mesh
@@ -62,7 +62,7 @@ def test_reruns_map_only_what_must_run(handmade_campus):
         "runner": "inline", "classify.enabled": False, "report.enabled": False, "repair.grades": "all"})
     wd = WorkDir(cfg.work_dir)
     first = _Recording()
-    s1 = reprocess(cfg, first)
+    s1 = run_campus(cfg, executor=first)
     regions = sorted(first.mapped["repair"])
     assert regions and s1["stages"]["repair"]["run"] == len(regions)
     assert {"outliers", "regions"} <= set(first.submitted)
@@ -70,7 +70,7 @@ def test_reruns_map_only_what_must_run(handmade_campus):
 
     # nothing changed: no task run at all, the same files untouched, the same counts (all skipped)
     again = _Recording()
-    s2 = reprocess(cfg, again)
+    s2 = run_campus(cfg, executor=again)
     assert again.mapped == {} and again.submitted == []
     assert _store_files(wd) == files
     for stage in _COUNTS:
@@ -81,7 +81,7 @@ def test_reruns_map_only_what_must_run(handmade_campus):
     # a region whose record is gone is redone, and only it
     (wd.manifest_dir / "region" / f"{regions[0]}.json").unlink()
     third = _Recording()
-    s3 = reprocess(cfg, third)
+    s3 = run_campus(cfg, executor=third)
     assert third.mapped["repair"] == [regions[0]] and set(third.mapped) <= {"repair", "merge"}  # merge: its tiles
     assert s3["stages"]["repair"]["units_run"] == [regions[0]]
     assert s3["stages"]["repair"]["skipped"] == len(regions) - 1
@@ -90,7 +90,7 @@ def test_reruns_map_only_what_must_run(handmade_campus):
     _rewrite_west_scan(cfg_path.parent)
     files = _store_files(wd)
     fourth = _Recording()
-    s4 = reprocess(cfg, fourth)
+    s4 = run_campus(cfg, executor=fourth)
     assert [f["path"].rsplit("/", 1)[-1] for f in fourth.mapped["scan"]] == ["west.laz"]
     assert [u["key"] for u in fourth.mapped["ingest"]] and all(
         "west" in u["path"] for u in fourth.mapped["ingest"])

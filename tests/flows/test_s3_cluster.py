@@ -120,7 +120,7 @@ def _n_records(store) -> int:
 def test_no_shared_disk_cluster_survives_a_killed_worker_and_a_killed_run(tmp_path, s3_env, dask_cluster):
     import yaml
 
-    from flows.campus import InlineExecutor, reprocess
+    from flows.campus import InlineExecutor
     from flows.remote import mirror_for
     from storage.objstore.store import open_store
     from tasks.config import CampusConfig

@@ -210,19 +210,19 @@ def test_tiny_campus_on_s3_equals_local_and_reruns_as_noop(tiny_campus, s3, tmp_
     a no-op from an empty mirror.
     Registration is off to keep it short (it gives the same transform under other names or URLs:
     tests/flows/test_reprocessing.py::test_renamed_inputs_in_another_run_order_give_the_same_stores_and_grades)."""
-    from flows.campus import InlineExecutor, reprocess
+    from flows.campus import InlineExecutor, run_campus
     from flows.remote import mirror_for
     from tasks.config import CampusConfig
 
     over = {"runner": "inline", "report.enabled": False, "registration.mode": "off"}
     local = CampusConfig.from_yaml(tiny_campus / "campus.yaml", {**over, "work_dir": str(tmp_path / "local")})
-    reprocess(local, InlineExecutor())
+    run_campus(local, executor=InlineExecutor())
     upload(tiny_campus, s3 + "/campus")
     c = s3 + "/campus"
     remote = CampusConfig.from_yaml(tiny_campus / "campus.yaml", {
         **over, "work_dir": s3 + "/work", "inputs.mesh": [c + "/mesh"], "inputs.points": [c + "/mls"],
         "inputs.labels": c + "/truth/defects.json", "inputs.images": c + "/images", "inputs.cameras": c + "/sparse/0"})
-    first = reprocess(remote, InlineExecutor())
+    first = run_campus(remote, executor=InlineExecutor())
     assert first["stages"]["repair"]["run"] > 0  # rebuilt regions, textured from the staged images
     refs = _recorded_textures(mirror_for(remote.work_dir).root)
     inputs = sorted(t for t in refs if t.startswith(c + "/mesh/"))  # never this process's cache paths:
@@ -232,7 +232,7 @@ def test_tiny_campus_on_s3_equals_local_and_reruns_as_noop(tiny_campus, s3, tmp_
     from storage.inputs.remote import readable
 
     assert Path(readable(inputs[0])).is_relative_to(tmp_path / "cache-b")
-    again = reprocess(remote, InlineExecutor())  # another process, an empty mirror: nothing to redo
+    again = run_campus(remote, executor=InlineExecutor())  # another process, an empty mirror: nothing to redo
     assert all(c["run"] == 0 for c in again["stages"].values()), again["stages"]
     mirror = mirror_for(remote.work_dir)
     got, want = tables_by_content(mirror.root), tables_by_content(tmp_path / "local")

@@ -7,7 +7,7 @@ import json
 import numpy as np
 import trimesh
 
-from flows.campus import InlineExecutor, reprocess
+from flows.campus import InlineExecutor, run_campus
 from storage.grid import PatchGrid
 from storage.patches.read import PatchStore
 from tasks.config import CampusConfig
@@ -49,7 +49,7 @@ def test_store_v2_round_trip_welds_a_patch(tmp_path):
     from synth.handmade import build_campus
 
     cfg = CampusConfig.from_yaml(build_campus(tmp_path / "in", subdivisions=5), {"work_dir": str(tmp_path / "work"), "runner": "inline"})
-    reprocess(cfg, InlineExecutor())
+    run_campus(cfg, executor=InlineExecutor())
     grid = cfg.grid()
     origin = np.asarray(json.loads((tmp_path / "work" / "campus.json").read_text())["frame"]["origin"])
     checked = 0

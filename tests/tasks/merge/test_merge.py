@@ -344,13 +344,13 @@ def test_weld_soup_keeps_untextured_colours_apart():
 def tiny_merged_run(tiny_campus, tmp_path_factory):
     """The tiny campus through the pipeline without classify and repair (inline, registration off, 25 m
     tiles), merged again here without regions."""
-    from flows.campus import InlineExecutor, reprocess
+    from flows.campus import InlineExecutor, run_campus
 
     work = tmp_path_factory.mktemp("merge-tiny") / "work"
     cfg = CampusConfig.from_yaml(tiny_campus / "campus.yaml", {
         "work_dir": str(work), "runner": "inline", "tiling.tile_size_m": 25.0, "registration.mode": "off",
         "classify.enabled": False, "repair.enabled": False})  # the retained mesh alone, graded by the labels
-    reprocess(cfg, InlineExecutor())
+    run_campus(cfg, executor=InlineExecutor())
     wd = WorkDir(work)
     results = [run_merge_tile(t, cfg, wd) for t in wd.live_tiles()]
     return cfg, wd, results

@@ -8,7 +8,7 @@ import json
 import numpy as np
 import pytest
 
-from flows.campus import InlineExecutor, reprocess
+from flows.campus import InlineExecutor, run_campus
 from storage.contracts.staging import staged_files
 from storage.frame import CampusFrame
 from storage.patches.read import PatchStore
@@ -31,7 +31,7 @@ def staged(tmp_path_factory):
                                  {"work_dir": str(root / "work"), "runner": "inline"})
     with pytest.MonkeyPatch.context() as mp:  # small row groups: many cut points on a small tile
         mp.setattr(storage.contracts.columns, "RUN_ROW_GROUP", 256)
-        reprocess(cfg, InlineExecutor())
+        run_campus(cfg, executor=InlineExecutor())
     frame = CampusFrame.from_json(json.loads((root / "work" / "campus.json").read_text())["frame"])
     return cfg, root / "work", frame
 

@@ -7,7 +7,7 @@ import json
 import numpy as np
 import pytest
 
-from flows.campus import InlineExecutor, reprocess
+from flows.campus import InlineExecutor, run_campus
 from storage.contracts.region_mesh import region_meshes_for_tile
 from storage.contracts.tile_mesh import SOURCE_REBUILT, read_tile_mesh
 from storage.workdir.layout import WorkDir
@@ -20,7 +20,7 @@ pytestmark = pytest.mark.slow
 
 def test_tiny_campus_regions_are_rebuilt_welded_textured_and_merged(tiny_campus, tmp_path):
     cfg = CampusConfig.from_yaml(tiny_campus / "campus.yaml", {"work_dir": str(tmp_path / "work"), "runner": "inline"})
-    summary = reprocess(cfg, InlineExecutor())
+    summary = run_campus(cfg, executor=InlineExecutor())
     wd = WorkDir(cfg.work_dir)
     plan = json.loads((wd.root / "regions" / "regions.json").read_text())
     assert set(plan["grades"].values()) == {"grades"}  # the classify stage's grades, not the labels
@@ -47,5 +47,5 @@ def test_tiny_campus_regions_are_rebuilt_welded_textured_and_merged(tiny_campus,
     assert merged_rebuilt >= 0.99 * sum(len(m.faces) for m in pieces) > 0
     # a second run skips every region
     assert all(run_region(k, cfg, wd)["skipped"] for k in keys)
-    again = reprocess(cfg, InlineExecutor())
+    again = run_campus(cfg, executor=InlineExecutor())
     assert again["stages"]["repair"]["run"] == 0 and again["stages"]["repair"]["skipped"] == len(keys)

@@ -1,0 +1,105 @@
+"""What the flow needs to know about a stage, declared once in the stage's own package (``STAGE`` in its
+``__init__``): the flow iterates over these declarations and keeps no table of its own.
+
+- ``unit``: what one manifest unit of the stage is ("file", "ingest unit", "tile", "campus", "region",
+  "node", "share");
+- ``batch``: how the units that must run become task runs (a task run costs ~0.3 s here: units are batched),
+  a function of (units, :class:`BatchContext`) -> batches;
+- ``reads``: the work-dir prefixes one task reads ("{tile}" once per tile of its batch); None for all but
+  ``skips``;
+- ``duration``: Dask's first guess of one task's duration, before it has timed one (Dask assumes 0.5 s; a
+  long task guessed short makes the scheduler queue every one on one worker);
+- ``priority``: the Dask priority of its tasks (higher first among queued tasks).
+
+>>> spec = StageSpec("merge", "tile", fixed_tile_batches, reads=("tiles/{tile}/",))
+>>> spec.reads_for(["1_2", "3_4"]), spec.batch([1, 2, 3], BatchContext(2, tiles_per_task=2))
+(('tiles/1_2/', 'tiles/3_4/'), [[1, 2], [3]])
+"""
+
+from __future__ import annotations
+
+from collections.abc import Callable
+from dataclasses import dataclass, field
+
+from tasks.batches import balanced_batches, fixed_batches
+
+
+@dataclass(frozen=True)
+class BatchContext:
+    """What a batching rule may use: the worker count, ``cluster.tiles_per_task``, and per-unit weights
+    (``{unit: weight}``: the regions' bytes, the tiles' store sizes) when the flow has them."""
+
+    n_workers: int
+    tiles_per_task: int = 1
+    weights: dict = field(default_factory=dict)
+
+
+def fixed_tile_batches(units: list, ctx: BatchContext) -> list[list]:
+    """``cluster.tiles_per_task`` consecutive units per task."""
+    return fixed_batches(units, ctx.tiles_per_task)
+
+
+def largest_first_tile_batches(units: list, ctx: BatchContext) -> list[list]:
+    """The units by weight (their store's size), largest first (ties in key order), then
+    ``cluster.tiles_per_task`` per task: the longest units start first and the short ones fill the end."""
+    return fixed_batches(sorted(units, key=lambda k: -ctx.weights.get(k, 0)), ctx.tiles_per_task)
+
+
+def balanced_region_batches(units: list, ctx: BatchContext) -> list[list]:
+    """``4 * n_workers`` batches of about equal weight (the regions' bytes), heaviest first."""
+    return balanced_batches(units, [ctx.weights.get(k, 1.0) for k in units], 4 * ctx.n_workers)
+
+
+def one_per_task(units: list, ctx: BatchContext) -> list[list]:
+    """One unit per task (a unit long enough to be worth its task run)."""
+    return [[u] for u in units]
+
+
+@dataclass(frozen=True)
+class StageSpec:
+    """One stage as the flow sees it (module doc)."""
+
+    name: str
+    unit: str
+    batch: Callable[[list, BatchContext], list[list]] = one_per_task
+    reads: tuple[str, ...] | None = None
+    skips: tuple[str, ...] = ()
+    duration: str | None = None
+    priority: int = 0
+
+    def reads_for(self, batch: list) -> tuple[str, ...] | None:
+        """The work-dir prefixes a task of this stage reads for ``batch`` (None: all but ``skips``)."""
+        if self.reads is None:
+            return None
+        out: list[str] = []
+        for p in self.reads:
+            out += [p.format(tile=k) for k in batch] if "{tile}" in p else [p]
+        return tuple(out)
+
+    def __repr__(self) -> str:
+        return f"StageSpec({self.name!r}, unit={self.unit!r}, batch={self.batch.__name__})"
+
+
+# What a task that pulls the whole work dir never reads: the ingest runs (``staging/``, the largest part of a
+# work dir: only partition and the driver's planning read them) and what the export writes.
+CAMPUS_WIDE_SKIPS = ("staging/", "export/", "output/")
+
+__all__ = ["CAMPUS_WIDE_SKIPS", "BatchContext", "StageSpec", "balanced_region_batches", "fixed_tile_batches", "lazy_exports",
+           "largest_first_tile_batches", "one_per_task"]
+
+
+def lazy_exports(package: str, names: dict[str, str | tuple[str, str]]) -> Callable[[str], object]:
+    """A package's module ``__getattr__`` (PEP 562) that imports each exported name from its module on
+    first use: ``{name: module}`` or ``{name: (module, name there)}``. A stage package then costs nothing
+    to import for its ``STAGE`` (the flow's Prefect tasks import every stage's declaration), and a Dask
+    worker loads only the modules of the tasks it runs (torch, open3d and numba are hundreds of MB)."""
+    import importlib
+
+    def __getattr__(name: str):
+        where = names.get(name)
+        if where is None:
+            raise AttributeError(f"module {package!r} has no attribute {name!r}")
+        module, attr = (where, name) if isinstance(where, str) else where
+        return getattr(importlib.import_module(module), attr)
+
+    return __getattr__
