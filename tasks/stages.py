@@ -88,18 +88,28 @@ __all__ = ["CAMPUS_WIDE_SKIPS", "BatchContext", "StageSpec", "balanced_region_ba
            "largest_first_tile_batches", "one_per_task"]
 
 
-def lazy_exports(package: str, names: dict[str, str | tuple[str, str]]) -> Callable[[str], object]:
-    """A package's module ``__getattr__`` (PEP 562) that imports each exported name from its module on
-    first use: ``{name: module}`` or ``{name: (module, name there)}``. A stage package then costs nothing
-    to import for its ``STAGE`` (the flow's Prefect tasks import every stage's declaration), and a Dask
-    worker loads only the modules of the tasks it runs (torch, open3d and numba are hundreds of MB)."""
+def lazy_exports(package: str, modules: dict[str, str]) -> Callable[[str], object]:
+    """A package's module ``__getattr__`` (PEP 562) that imports each exported name from its module on first
+    use: ``{module: "name name ..."}`` (``alias=name`` for a name exported under another). A stage package then
+    costs nothing to import for its ``STAGE`` (the flow's Prefect tasks import every stage's declaration), and a
+    Dask worker loads only the modules of the tasks it runs (torch, open3d and numba are hundreds of MB).
+
+    >>> get = lazy_exports("pkg", {"math": "pi tau=pi"})
+    >>> get("pi") == get("tau") == 3.141592653589793
+    True
+    """
     import importlib
 
+    where = {}
+    for module, names in modules.items():
+        for n in names.split():
+            alias, _, attr = n.partition("=")
+            where[alias] = (module, attr or alias)
+
     def __getattr__(name: str):
-        where = names.get(name)
-        if where is None:
+        if name not in where:
             raise AttributeError(f"module {package!r} has no attribute {name!r}")
-        module, attr = (where, name) if isinstance(where, str) else where
+        module, attr = where[name]
         return getattr(importlib.import_module(module), attr)
 
     return __getattr__

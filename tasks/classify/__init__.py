@@ -19,14 +19,8 @@ STAGE = StageSpec("classify", "tile", largest_first_tile_batches, reads=("manife
 # the names below load on first use (tasks.stages.lazy_exports): importing the package for its STAGE costs
 # nothing, and a worker loads only the modules its tasks run
 __getattr__ = lazy_exports(__name__, {
-    "DEFAULT_MODEL": "tasks.classify.stage",
-    "campus_pair_set": "tasks.classify.stage",
-    "featurise_tile_pairs": "tasks.classify.pairs",
-    "grade_pairs": "tasks.classify.stage",
-    "grading_threshold": "tasks.classify.stage",
-    "load_model": "tasks.classify.stage",
-    "read_tile_pairs": "tasks.classify.pairs",
-    "run_classify_tile": "tasks.classify.stage",
+    "tasks.classify.pairs": "featurise_tile_pairs read_tile_pairs",
+    "tasks.classify.stage": "DEFAULT_MODEL campus_pair_set grade_pairs grading_threshold load_model run_classify_tile",
 })
 
 __all__ = ["STAGE", "DEFAULT_MODEL", "campus_pair_set", "featurise_tile_pairs", "grade_pairs", "grading_threshold", "load_model",

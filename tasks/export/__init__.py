@@ -31,16 +31,9 @@ STAGE = StageSpec("export-nodes", "node", node_task_batches, duration="5s", prio
 # the names below load on first use (tasks.stages.lazy_exports): importing the package for its STAGE costs
 # nothing, and a worker loads only the modules its tasks run
 __getattr__ = lazy_exports(__name__, {
-    "EnuProjector": "tasks.export.georef",
-    "NodeJob": "tasks.export.nodes",
-    "build_node": "tasks.export.nodes",
-    "build_nodes": "tasks.export.stage",
-    "make_georef": "tasks.export.georef",
-    "node_batches": "tasks.export.stage",
-    "node_records": "tasks.export.stage",
-    "node_task_batches": "tasks.export.stage",
-    "run_export": "tasks.export.stage",
-    "run_export_stage": "tasks.export.stage",
+    "tasks.export.georef": "EnuProjector make_georef",
+    "tasks.export.nodes": "NodeJob build_node",
+    "tasks.export.stage": "build_nodes node_batches node_records node_task_batches run_export run_export_stage",
 })
 
 __all__ = ["STAGE", "EnuProjector", "NodeJob", "build_node", "build_nodes", "make_georef", "node_batches", "node_records",

@@ -28,14 +28,8 @@ STAGE = StageSpec("ingest", "ingest unit", ingest_task_batches, reads=("manifest
 # the names below load on first use (tasks.stages.lazy_exports): importing the package for its STAGE costs
 # nothing, and a worker loads only the modules its tasks run
 __getattr__ = lazy_exports(__name__, {
-    "IngestUnit": "tasks.ingest.plan",
-    "blocked_tiles": "tasks.ingest.plan",
-    "ingest_batches": "tasks.ingest.plan",
-    "ingest_task_batches": "tasks.ingest.plan",
-    "input_tiles": "tasks.ingest.plan",
-    "plan_units": "tasks.ingest.plan",
-    "run_ingest_unit": "tasks.ingest.stage",
-    "tiles_hint": "tasks.ingest.plan",
+    "tasks.ingest.plan": "IngestUnit blocked_tiles ingest_batches ingest_task_batches input_tiles plan_units tiles_hint",
+    "tasks.ingest.stage": "run_ingest_unit",
 })
 
 __all__ = ["STAGE", "IngestUnit", "blocked_tiles", "ingest_batches", "input_tiles", "plan_units", "run_ingest_unit",

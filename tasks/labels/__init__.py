@@ -12,9 +12,6 @@ from tasks.stages import lazy_exports
 
 # the names below load on first use (tasks.stages.lazy_exports): importing the package for its STAGE costs
 # nothing, and a worker loads only the modules its tasks run
-__getattr__ = lazy_exports(__name__, {
-    "bad_patch_keys": "tasks.labels.stage",
-    "run_labels_tile": "tasks.labels.stage",
-})
+__getattr__ = lazy_exports(__name__, {"tasks.labels.stage": "bad_patch_keys run_labels_tile"})
 
 __all__ = ["bad_patch_keys", "run_labels_tile"]

@@ -17,14 +17,10 @@ STAGE = StageSpec("merge", "tile", fixed_tile_batches, reads=(
 # the names below load on first use (tasks.stages.lazy_exports): importing the package for its STAGE costs
 # nothing, and a worker loads only the modules its tasks run
 __getattr__ = lazy_exports(__name__, {
-    "FaceSoup": "tasks.merge.soup",
-    "MergeStats": "tasks.merge.tile",
-    "RegionMesh": "storage.contracts.region_mesh",
-    "faces_in_tile": "tasks.merge.tile",
-    "merge_tile": "tasks.merge.tile",
-    "retained_soup": "tasks.merge.tile",
-    "run_merge_tile": "tasks.merge.stage",
-    "weld_soup": "tasks.merge.soup",
+    "storage.contracts.region_mesh": "RegionMesh",
+    "tasks.merge.soup": "FaceSoup weld_soup",
+    "tasks.merge.stage": "run_merge_tile",
+    "tasks.merge.tile": "MergeStats faces_in_tile merge_tile retained_soup",
 })
 
 __all__ = ["STAGE", "FaceSoup", "MergeStats", "RegionMesh", "faces_in_tile", "merge_tile", "retained_soup",

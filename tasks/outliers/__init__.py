@@ -14,10 +14,8 @@ STAGE = StageSpec("outliers", "campus", skips=CAMPUS_WIDE_SKIPS)
 # the names below load on first use (tasks.stages.lazy_exports): importing the package for its STAGE costs
 # nothing, and a worker loads only the modules its tasks run
 __getattr__ = lazy_exports(__name__, {
-    "OutlierFit": "tasks.outliers.fit",
-    "fit_count_outliers": "tasks.outliers.fit",
-    "run_outliers": "tasks.outliers.stage",
-    "run_outliers_unit": "tasks.outliers.stage",
+    "tasks.outliers.fit": "OutlierFit fit_count_outliers",
+    "tasks.outliers.stage": "run_outliers run_outliers_unit",
 })
 
 __all__ = ["STAGE", "OutlierFit", "fit_count_outliers", "run_outliers", "run_outliers_unit"]

@@ -22,9 +22,8 @@ STAGE = StageSpec("partition", "tile", fixed_tile_batches, reads=(
 # the names below load on first use (tasks.stages.lazy_exports): importing the package for its STAGE costs
 # nothing, and a worker loads only the modules its tasks run
 __getattr__ = lazy_exports(__name__, {
-    "build_tile_tables": "tasks.partition.kernels",
-    "run_partition_tile": "tasks.partition.stage",
-    "write_tile_store": "tasks.partition.stage",
+    "tasks.partition.kernels": "build_tile_tables",
+    "tasks.partition.stage": "run_partition_tile write_tile_store",
 })
 
 __all__ = ["STAGE", "build_tile_tables", "run_partition_tile", "write_tile_store"]

@@ -18,14 +18,7 @@ STAGE = StageSpec("quality", "share", skips=CAMPUS_WIDE_SKIPS, duration="30s")
 # the names below load on first use (tasks.stages.lazy_exports): importing the package for its STAGE costs
 # nothing, and a worker loads only the modules its tasks run
 __getattr__ = lazy_exports(__name__, {
-    "ensure_quality": "tasks.quality.stage",
-    "merged_tiles": "tasks.quality.stage",
-    "quality_parts": "tasks.quality.stage",
-    "quality_plan": "tasks.quality.stage",
-    "run_quality_share": "tasks.quality.stage",
-    "share_name": "tasks.quality.stage",
-    "truth_dir_of": "tasks.quality.stage",
-    "write_quality": "tasks.quality.stage",
+    "tasks.quality.stage": "ensure_quality merged_tiles quality_parts quality_plan run_quality_share share_name truth_dir_of write_quality",
 })
 
 __all__ = ["STAGE", "ensure_quality", "merged_tiles", "quality_parts", "quality_plan", "run_quality_share", "share_name",

@@ -15,15 +15,9 @@ STAGE = StageSpec("regions", "campus", skips=CAMPUS_WIDE_SKIPS)
 # the names below load on first use (tasks.stages.lazy_exports): importing the package for its STAGE costs
 # nothing, and a worker loads only the modules its tasks run
 __getattr__ = lazy_exports(__name__, {
-    "Region": "storage.contracts.region_plan",
-    "connected_components": "tasks.regions.plan",
-    "dilate": "tasks.regions.plan",
-    "patch_cost_bytes": "tasks.regions.plan",
-    "plan_regions": "tasks.regions.plan",
-    "read_plan": "storage.contracts.region_plan",
-    "region_weight": "tasks.regions.stage",
-    "run_regions": "tasks.regions.stage",
-    "run_regions_unit": "tasks.regions.stage",
+    "storage.contracts.region_plan": "Region read_plan",
+    "tasks.regions.plan": "connected_components dilate patch_cost_bytes plan_regions",
+    "tasks.regions.stage": "region_weight run_regions run_regions_unit",
 })
 
 __all__ = ["STAGE", "Region", "connected_components", "dilate", "patch_cost_bytes", "plan_regions", "read_plan",

@@ -19,8 +19,8 @@ STAGE = StageSpec("register", "campus")
 # the names below load on first use (tasks.stages.lazy_exports): importing the package for its STAGE costs
 # nothing, and a worker loads only the modules its tasks run
 __getattr__ = lazy_exports(__name__, {
-    "mesh_registration_target": "tasks.register.target",
-    "run_register": "tasks.register.stage",
+    "tasks.register.stage": "run_register",
+    "tasks.register.target": "mesh_registration_target",
 })
 
 __all__ = ["STAGE", "mesh_registration_target", "run_register"]

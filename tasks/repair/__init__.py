@@ -15,10 +15,6 @@ STAGE = StageSpec("repair", "region", balanced_region_batches, skips=CAMPUS_WIDE
 
 # the names below load on first use (tasks.stages.lazy_exports): importing the package for its STAGE costs
 # nothing, and a worker loads only the modules its tasks run
-__getattr__ = lazy_exports(__name__, {
-    "pending_regions": "tasks.repair.stage",
-    "region_fingerprint": "tasks.repair.stage",
-    "run_region": "tasks.repair.stage",
-})
+__getattr__ = lazy_exports(__name__, {"tasks.repair.stage": "pending_regions region_fingerprint run_region"})
 
 __all__ = ["STAGE", "pending_regions", "region_fingerprint", "run_region"]

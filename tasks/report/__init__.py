@@ -19,13 +19,8 @@ STAGE = StageSpec("report", "campus")
 # the names below load on first use (tasks.stages.lazy_exports): importing the package for its STAGE costs
 # nothing, and a worker loads only the modules its tasks run
 __getattr__ = lazy_exports(__name__, {
-    "GradeCensus": "tasks.report.grades",
-    "census_of_stores": "tasks.report.grades",
-    "region_renders": "tasks.report.stage",
-    "region_renders_fresh": "tasks.report.stage",
-    "run_region_renders": "tasks.report.stage",
-    "run_report": "tasks.report.stage",
-    "run_report_unit": "tasks.report.stage",
+    "tasks.report.grades": "GradeCensus census_of_stores",
+    "tasks.report.stage": "region_renders region_renders_fresh run_region_renders run_report run_report_unit",
 })
 
 __all__ = ["RENDERS_STAGE", "STAGE", "GradeCensus", "census_of_stores", "region_renders", "region_renders_fresh", "run_region_renders", "run_report", "run_report_unit"]

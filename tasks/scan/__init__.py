@@ -26,15 +26,10 @@ STAGE = StageSpec("scan", "file", scan_task_batches, reads=("manifest.d/scan/", 
 # the names below load on first use (tasks.stages.lazy_exports): importing the package for its STAGE costs
 # nothing, and a worker loads only the modules its tasks run
 __getattr__ = lazy_exports(__name__, {
-    "MeshPlacement": "tasks.scan.placement",
-    "campus_frame": "tasks.scan.frame",
-    "file_size": "tasks.scan.plan",
-    "mesh_placement": "tasks.scan.placement",
-    "run_scan_file": "tasks.scan.stage",
-    "scan_batches": "tasks.scan.plan",
-    "scan_files": "tasks.scan.plan",
-    "scan_task_batches": "tasks.scan.plan",
-    "scanned_records": "tasks.scan.plan",
+    "tasks.scan.frame": "campus_frame",
+    "tasks.scan.placement": "MeshPlacement mesh_placement",
+    "tasks.scan.plan": "file_size scan_batches scan_files scan_task_batches scanned_records",
+    "tasks.scan.stage": "run_scan_file",
 })
 
 __all__ = ["STAGE", "MeshPlacement", "campus_frame", "file_size", "mesh_placement", "run_scan_file", "scan_batches", "scan_files",
