@@ -41,6 +41,7 @@ $(STAMP): pyproject.toml | $(APT_STAMP)
 	@touch $@
 
 install: $(STAMP) $(APT_TEST_STAMP) $(NPM_STAMP)
+	@echo "ms3d install: all set up (full output of the set-up in $(INSTALL_LOG))"
 
 demo: $(STAMP)
 	$(VENV)/bin/ms3d demo --out $(DEMO_OUT) --work $(DEMO_WORK)
