@@ -25,8 +25,7 @@ from scipy.spatial import cKDTree
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
-from ms3d_model.cues import closest_point_on_triangles
-from ms3d_model.kernels import nearest_of_candidates
+from ms3d_model.kernels import closest_point_on_triangles, closest_points_numpy, nearest_of_candidates
 from tasks.repair.coarsen import MAX_GAP, flat_points, one_per_voxel
 from tasks.repair.fuse import pca_normals, thin_points
 
@@ -105,34 +104,8 @@ def flat_points_numpy(xyz: np.ndarray, coarse_m: float, tolerance_m: float, edge
 
 
 def closest_numpy(p: np.ndarray, tri: np.ndarray) -> np.ndarray:
-    """Ericson's closest point, vectorised with np.where (the code before the kernel; no degenerate faces)."""
-    a, b, c = tri[:, 0], tri[:, 1], tri[:, 2]
-    ab, ac = b - a, c - a
-
-    def dot(u, v):
-        return np.einsum("ij,ij->i", u, v)
-
-    d1, d2 = dot(ab, p - a), dot(ac, p - a)
-    d3, d4 = dot(ab, p - b), dot(ac, p - b)
-    d5, d6 = dot(ab, p - c), dot(ac, p - c)
-    va, vb, vc = d3 * d6 - d5 * d4, d5 * d2 - d1 * d6, d1 * d4 - d3 * d2
-    with np.errstate(divide="ignore", invalid="ignore"):
-        denom = va + vb + vc
-        v, w = vb / denom, vc / denom
-        t_bc = (d4 - d3) / ((d4 - d3) + (d5 - d6))
-        on_bc = (va <= 0) & (d4 - d3 >= 0) & (d5 - d6 >= 0)
-        v, w = np.where(on_bc, 1.0 - t_bc, v), np.where(on_bc, t_bc, w)
-        on_ac = (vb <= 0) & (d2 >= 0) & (d6 <= 0)
-        v, w = np.where(on_ac, 0.0, v), np.where(on_ac, d2 / (d2 - d6), w)
-        at_c = (d6 >= 0) & (d5 <= d6)
-        v, w = np.where(at_c, 0.0, v), np.where(at_c, 1.0, w)
-        on_ab = (vc <= 0) & (d1 >= 0) & (d3 <= 0)
-        v, w = np.where(on_ab, d1 / (d1 - d3), v), np.where(on_ab, 0.0, w)
-        at_b = (d3 >= 0) & (d4 <= d3)
-        v, w = np.where(at_b, 1.0, v), np.where(at_b, 0.0, w)
-        at_a = (d1 <= 0) & (d2 <= 0)
-        v, w = np.where(at_a, 0.0, v), np.where(at_a, 0.0, w)
-    return a + ab * v[:, None] + ac * w[:, None]
+    """The vectorised form the kernel replaced (:func:`ms3d_model.kernels.closest_points_numpy`), on (n, 3, 3)."""
+    return closest_points_numpy(p, tri[:, 0], tri[:, 1], tri[:, 2])
 
 
 def candidates_numpy(p, t, normals, radius, fi, dc):

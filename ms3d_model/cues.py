@@ -28,7 +28,7 @@ from scipy.spatial import cKDTree
 from .cue_kernels import run_covariances, run_starts, subset_runs
 from .features import edge_neighbours, pair_seed, vertex_ids_from_coords
 from .grid_search import nearest_distance_runs
-from .kernels import closest_points_on_triangles, nearest_of_candidates
+from .kernels import nearest_of_candidates
 from .segments import median_of_sorted, percentile_of_sorted, segment_max, segment_mean, sorted_segments
 
 CUE_NAMES = (
@@ -65,24 +65,6 @@ MAX_CUE_POINTS = 1024
 # density 1.0), the demo preset at its training density none (seed 7: 12,860 at most), so the shipped models'
 # cues are unchanged there.
 MAX_SHAPE_POINTS = 16384
-
-
-def closest_point_on_triangles(p: np.ndarray, tri: np.ndarray) -> np.ndarray:
-    """Closest points on triangles, row by row (Ericson, Real-Time Collision Detection §5.1.5; compiled:
-    :func:`ms3d_model.kernels.closest_points_on_triangles`).
-
-    p: (q, 3) float64 points; tri: (q, 3, 3) float64 triangles. Returns (q, 3) float64. A degenerate
-    triangle (zero area: a segment or a point) gives the closest point on its longest side.
-
-    >>> t = np.array([[[0., 0, 0], [1, 0, 0], [0, 1, 0]]] * 3)
-    >>> closest_point_on_triangles(np.array([[.2, .2, 1], [2, 2, 0], [-1, -1, 0]]), t).round(6).tolist()
-    [[0.2, 0.2, 0.0], [0.5, 0.5, 0.0], [0.0, 0.0, 0.0]]
-    >>> closest_point_on_triangles(np.array([[.5, 1, 0]]), np.array([[[0., 0, 0], [0, 0, 0], [2, 0, 0]]])).tolist()
-    [[0.5, 0.0, 0.0]]
-    """
-    tri = np.ascontiguousarray(tri, np.float64).reshape(-1, 3, 3)
-    return closest_points_on_triangles(np.ascontiguousarray(p, np.float64).reshape(-1, 3), tri,
-                                       np.arange(len(tri), dtype=np.int64))
 
 
 def _dot(u: np.ndarray, v: np.ndarray) -> np.ndarray:

@@ -164,15 +164,6 @@ class NeighbourMean:
         return np.column_stack([self(x[:, k]) for k in range(x.shape[1])])
 
 
-def vertex_normals(vertices: np.ndarray, faces: np.ndarray) -> np.ndarray:
-    """Area-weighted unit vertex normals (n, 3)."""
-    t = vertices[faces]
-    fn = np.cross(t[:, 1] - t[:, 0], t[:, 2] - t[:, 0])
-    vn = np.column_stack([sum(np.bincount(faces[:, k], weights=fn[:, c], minlength=len(vertices)) for k in range(3))
-                          for c in range(3)])
-    return vn / np.maximum(np.linalg.norm(vn, axis=1, keepdims=True), 1e-12)
-
-
 def random_edge_flips(vertices: np.ndarray, faces: np.ndarray, group: np.ndarray, fraction: float,
                       rng: np.random.Generator) -> np.ndarray:
     """Flip about ``fraction`` of the interior edges (between two faces of the same ``group``), each

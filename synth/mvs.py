@@ -31,10 +31,12 @@ from dataclasses import dataclass, field
 import numpy as np
 import open3d as o3d
 
+from tasks.geometry.triangles import vertex_normals
+
 from .buildings import charts_of
 from .defects import DefectParams, inject_defects, wall_records
 from .envelope import Chart, insert_points
-from .lattice import NeighbourMean, random_edge_flips, strip_chart, vertex_normals
+from .lattice import NeighbourMean, random_edge_flips, strip_chart
 from .passages import passage_charts
 from .scene import CLASS_COLOR, FaceClass, Mesh, Scene
 
@@ -271,7 +273,7 @@ def make_mvs_mesh(rng: np.random.Generator, scene: Scene, params: MvsParams = Mv
     def add_noise(x):
         off = _smooth_noise(rng, x, params.noise_lf_m, params.noise_lf_wavelength_m)
         off = off + rng.normal(0.0, params.noise_hf_m, len(x))
-        return x + vertex_normals(x, faces) * off[:, None]
+        return x + vertex_normals(x, faces, order="corner_sums", eps=1e-12, undefined=None) * off[:, None]
 
     mesh = Mesh(v, faces, face_class, face_building, face_color)
     if params.defects is None:

@@ -26,6 +26,7 @@ from functools import lru_cache
 import numpy as np
 
 from tasks.export.vertex_split import split_by_feature
+from tasks.geometry.triangles import vertex_normals
 
 GLB_MAGIC, CHUNK_JSON, CHUNK_BIN = 0x46546C67, 0x4E4F534A, 0x004E4942
 MAX_GLB_BYTES = 1 << 30  # far below the uint32 length field and what viewers load
@@ -89,19 +90,9 @@ class GltfMesh:
     images: list[GltfImage] = field(default_factory=list)
 
 
-def vertex_normals(positions: np.ndarray, faces: np.ndarray) -> np.ndarray:
-    """(n, 3) float32 unit area-weighted vertex normals; (0, 1, 0) (up) where undefined."""
-    p = positions.astype(np.float64)
-    fn = np.cross(p[faces[:, 1]] - p[faces[:, 0]], p[faces[:, 2]] - p[faces[:, 0]])
-    acc = np.zeros((len(p), 3))
-    corners = faces.reshape(-1)
-    for d in range(3):
-        acc[:, d] = np.bincount(corners, weights=np.repeat(fn[:, d], 3), minlength=len(p))
-    norm = np.linalg.norm(acc, axis=1)
-    ok = norm > 1e-20
-    out = np.tile(np.array([0.0, 1.0, 0.0]), (len(p), 1))
-    out[ok] = acc[ok] / norm[ok, None]
-    return out.astype(np.float32)
+# The export's vertex normals (:func:`tasks.geometry.triangles.vertex_normals`): faces summed face by face,
+# (0, 1, 0) (up) where undefined; written as float32.
+EXPORT_NORMALS = {"order": "faces", "eps": 1e-20, "undefined": (0.0, 1.0, 0.0)}
 
 
 def _srgb_table() -> np.ndarray:
@@ -281,7 +272,7 @@ def glb_parts(mesh: GltfMesh, compression: str = "none") -> list:
             uv = None
             rgb = mesh.vertex_colors[src] if mesh.vertex_colors is not None else np.full((len(src), 3), 180, np.uint8)
             colors = srgb_to_linear_u8(rgb)
-            normals = vertex_normals(pos, faces)
+            normals = vertex_normals(pos, faces, **EXPORT_NORMALS).astype(np.float32)
             doc["materials"].append({"name": "vertex_colour", "doubleSided": True,
                                      "pbrMetallicRoughness": {"metallicFactor": 0.0, "roughnessFactor": 1.0}})
         primitives.append(_primitive(b, pos, faces, normals, uv, colors, fid, len(doc["materials"]) - 1, compression))

@@ -1,6 +1,6 @@
 """Pure geometry several stages share (not a stage: it reads and writes no files).
 
-- :mod:`tasks.geometry.triangles`: per-face unit normals and areas;
+- :mod:`tasks.geometry.triangles`: per-face unit normals and areas, area-weighted vertex normals;
 - :mod:`tasks.geometry.sampling`: area-weighted, stratified, deterministic surface samples;
 - :mod:`tasks.geometry.distance`: exact point-to-mesh distances;
 - :mod:`tasks.geometry.cells`: rows grouped by patch cell (a stable sort by patch key);

@@ -13,33 +13,8 @@ from __future__ import annotations
 import numpy as np
 import open3d as o3d
 
+from ms3d_model.kernels import closest_points_numpy
 from tasks.geometry.triangles import face_normals as unit_face_normals
-
-
-def closest_points_on_triangles(p, a, b, c) -> np.ndarray:
-    """Closest point of each triangle (a, b, c) to p, all (n, 3) float64 -> (n, 3) float64.
-
-    Vectorised form of the Voronoi-region test in Ericson, Real-Time Collision Detection, 5.1.5.
-    """
-    dot = lambda x, y: np.einsum("ij,ij->i", x, y)
-    ab, ac, ap, bp, cp = b - a, c - a, p - a, p - b, p - c
-    d1, d2, d3, d4, d5, d6 = dot(ab, ap), dot(ac, ap), dot(ab, bp), dot(ac, bp), dot(ab, cp), dot(ac, cp)
-    va, vb, vc = d3 * d6 - d5 * d4, d5 * d2 - d1 * d6, d1 * d4 - d3 * d2
-    with np.errstate(divide="ignore", invalid="ignore"):
-        den = va + vb + vc
-        v, w = vb / den, vc / den  # interior
-        regions = [  # first match wins, as in the scalar original
-            ((d1 <= 0) & (d2 <= 0), 0.0, 0.0),
-            ((d3 >= 0) & (d4 <= d3), 1.0, 0.0),
-            ((vc <= 0) & (d1 >= 0) & (d3 <= 0), d1 / (d1 - d3), 0.0),
-            ((d6 >= 0) & (d5 <= d6), 0.0, 1.0),
-            ((vb <= 0) & (d2 >= 0) & (d6 <= 0), 0.0, d2 / (d2 - d6)),
-        ]
-        t = (d4 - d3) / ((d4 - d3) + (d5 - d6))
-        regions.append(((va <= 0) & (d4 - d3 >= 0) & (d5 - d6 >= 0), 1.0 - t, t))
-        for cond, rv, rw in reversed(regions):
-            v, w = np.where(cond, rv, v), np.where(cond, rw, w)
-    return a + v[:, None] * ab + w[:, None] * ac
 
 
 class MeshDistance:
@@ -72,7 +47,7 @@ class MeshDistance:
         d[~ok] = np.inf
         if exact and ok.any():
             tri = self.vertices[self.faces[prim[ok]]]
-            q = closest_points_on_triangles(p[ok], tri[:, 0], tri[:, 1], tri[:, 2])
+            q = closest_points_numpy(p[ok], tri[:, 0], tri[:, 1], tri[:, 2])
             d64 = np.linalg.norm(p[ok] - q, axis=1)
             d[ok] = np.where(np.isfinite(d64), d64, d[ok])  # degenerate faces keep the float32 value
         return d, np.where(ok, prim, -1)
@@ -101,4 +76,4 @@ def point_to_mesh_distance(points, vertices, faces, *, return_faces=False, exact
     return (d, fid) if return_faces else d
 
 
-__all__ = ["MeshDistance", "closest_points_on_triangles", "point_to_mesh_distance", "unit_face_normals"]
+__all__ = ["MeshDistance", "point_to_mesh_distance", "unit_face_normals"]

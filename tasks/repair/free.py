@@ -17,6 +17,8 @@ from __future__ import annotations
 import numpy as np
 from scipy.spatial import cKDTree
 
+from tasks.geometry.triangles import face_areas
+
 
 def far_points(pts: np.ndarray, xyz: np.ndarray, faces: np.ndarray, reach_m: float) -> np.ndarray:
     """(k,) bool: points (k, 3) farther than reach_m from the surface (xyz (n, 3), faces (m, 3))."""
@@ -68,7 +70,7 @@ def free_surface(pts: np.ndarray, *, min_points: int = 50, normal_k: int = 12, d
     """
     import open3d as o3d
 
-    from tasks.repair.mesh import poisson_depth_for, triangle_areas
+    from tasks.repair.mesh import poisson_depth_for
 
     stats = {"points": len(pts)}
     empty = np.zeros((0, 3)), np.zeros((0, 3), np.int64)
@@ -99,7 +101,7 @@ def free_surface(pts: np.ndarray, *, min_points: int = 50, normal_k: int = 12, d
     used, inv = np.unique(f, return_inverse=True)
     v, f = v[used], inv.reshape(-1, 3).astype(np.int64)
     stats |= {"spacing_m": spacing, "depth": d, "faces": len(f),
-              "area_m2": float(triangle_areas(v, f).sum()) if len(f) else 0.0}
+              "area_m2": float(face_areas(v, f, np.float64).sum()) if len(f) else 0.0}
     return v, f, stats
 
 

@@ -16,6 +16,7 @@ import numpy as np
 from scipy.spatial import cKDTree
 
 from storage.vertex_ids import local_ids
+from tasks.geometry.triangles import face_areas, vertex_normals
 from tasks.repair.chart import zone_charts
 from tasks.repair.coarsen import coarsen_flat, thin_with_detail
 from tasks.repair.defect_types import DefectEvidence, classify_evidence, repair_plan
@@ -28,7 +29,6 @@ from tasks.repair.fuse import (
     orient_like,
     pca_normals,
     thin_points,
-    vertex_normals,
 )
 from tasks.repair.keep import (
     covered_along_normal,
@@ -48,7 +48,6 @@ from tasks.repair.mesh import (
     poisson_depth_for,
     poisson_surface,
     rebuild_charts,
-    triangle_areas,
 )
 from tasks.repair.support import unsupported_share
 
@@ -240,7 +239,7 @@ def _finish_stats(stats: dict, data: RegionInput, mesh: RebuiltMesh, replaced: n
     bord_used = border_edges(data.zone_faces[replaced], data.context_faces, len(data.xyz))
     stats["border"] = border_gap(data.xyz[bord_used], data.vertex_id[bord_used], mesh)
     stats["rebuilt_faces"] = mesh.n_faces
-    stats["rebuilt_area_m2"] = float(triangle_areas(mesh.xyz, mesh.faces).sum()) if mesh.n_faces else 0.0
+    stats["rebuilt_area_m2"] = float(face_areas(mesh.xyz, mesh.faces, np.float64).sum()) if mesh.n_faces else 0.0
     stats["zone_area_m2"] = zone_area
     stats["mesh"] = mesh.stats
 
@@ -252,7 +251,8 @@ def repair_region_geometry(data: RegionInput, cfg) -> RegionGeometry:
     mesh first; the rest is rebuilt and stitched to them. ``replaced`` is over all zone faces."""
     t0 = time.perf_counter()
     fc, mc = cfg.fusion, cfg.mesh
-    vn = vertex_normals(data.xyz, np.concatenate([data.zone_faces, data.context_faces]), data.face_normals)
+    vn = vertex_normals(data.xyz, np.concatenate([data.zone_faces, data.context_faces]),
+                        stored_normals=data.face_normals, order="corners")
     thinned = _thinned_mls(data, fc, np.unique(data.zone_faces), vn)
     keep = np.zeros(len(data.zone_faces), bool)
     if mc.keep_unseen_m > 0 and len(data.zone_faces):
@@ -299,7 +299,7 @@ def _repair(data: RegionInput, cfg, vn: np.ndarray, thinned: tuple) -> RegionGeo
     t1 = time.perf_counter()
     # evidence (typed repair) from the MLS surface over zone + context
     covered, offset = coverage_offsets(data.xyz[zone_v], both, nrm, tree, fc.point_depth_m, 1.5 * fc.mls_spacing_m)
-    zone_area = float(triangle_areas(data.xyz, data.zone_faces).sum())
+    zone_area = float(face_areas(data.xyz, data.zone_faces, np.float64).sum())
     topo = zone_charts(data.xyz, data.zone_faces, data.context_faces, data.near_zone, mc.max_hole_loop_m)
     ev = classify_evidence(covered, offset, offset_m=tc.offset_m,
                            hole_area_m2=_hole_area_m2(data, zone_v, mls, mls_n, fc.mls_spacing_m),

@@ -66,12 +66,6 @@ def empty_mesh() -> RebuiltMesh:
 
 # ------------------------------------------------------------------------------------- geometry kernels
 
-def triangle_areas(xyz: np.ndarray, faces: np.ndarray) -> np.ndarray:
-    """(n, 3), (m, 3) -> (m,) float64 m²."""
-    a, b, c = (np.asarray(xyz, np.float64)[faces[:, k]] for k in range(3))
-    return 0.5 * np.linalg.norm(np.cross(b - a, c - a), axis=1)
-
-
 class ClosestPoint:
     """Closest points on a triangle set (open3d's RaycastingScene, float32 around a local centre)."""
 

@@ -14,12 +14,12 @@ from ms3d_model.cues import (
     MAX_SHAPE_POINTS,
     PAIR_CUE_NAMES,
     batch_cues,
-    closest_point_on_triangles,
     open_edge_flags,
     pair_cues,
 )
 from ms3d_model.features import edge_neighbours, pair_seed, vertex_ids_from_coords
 from ms3d_model.hashing import order_free_subset
+from ms3d_model.kernels import closest_point_on_triangles
 
 
 def grid_wall(nx: int = 8, nz: int = 4, cell_m: float = 0.25, hole: tuple[int, int] | None = None):
@@ -166,7 +166,7 @@ def test_a_roof_counts_as_horizontal():
 
 def _reference_pair_cues(points, tris, open_edges=None, seed=0) -> np.ndarray:
     """The per-pair implementation before vectorisation (ms3d_model/cues.py before commit 01223df), verbatim
-    maths; its closest_point_on_triangles is the module's, which no longer gives NaN on a zero-area face."""
+    maths; its closest_point_on_triangles is ms3d_model.kernels', which no longer gives NaN on a zero-area face."""
     p_all = np.asarray(points, np.float64).reshape(-1, 3)
     t = np.asarray(tris, np.float64).reshape(-1, 3, 3)
     n, m = len(p_all), len(t)

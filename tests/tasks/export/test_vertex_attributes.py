@@ -3,8 +3,9 @@ undefined), the sRGB table on every 8-bit value, the feature split's two paths."
 
 import numpy as np
 
-from tasks.export.gltf import srgb_to_linear_u8, vertex_normals
+from tasks.export.gltf import EXPORT_NORMALS, srgb_to_linear_u8
 from tasks.export.vertex_split import split_by_feature
+from tasks.geometry.triangles import vertex_normals
 
 
 def _numpy_vertex_normals(positions, faces):
@@ -22,10 +23,10 @@ def test_vertex_normals_equal_the_bincount_sums_and_point_up_where_undefined():
     pos = rng.normal(size=(2000, 3)).astype(np.float32)
     faces = rng.integers(0, 1990, size=(5000, 3)).astype(np.int32)  # the last 10 vertices are unused
     faces[:3] = [[0, 0, 1], [4, 5, 4], [7, 7, 7]]  # degenerate faces add nothing
-    got = vertex_normals(pos, faces)
+    got = vertex_normals(pos, faces, **EXPORT_NORMALS).astype(np.float32)
     np.testing.assert_array_equal(got, _numpy_vertex_normals(pos, faces))
     np.testing.assert_array_equal(got[-10:], np.tile(np.float32([0, 1, 0]), (10, 1)))
-    flat = vertex_normals(np.float32([[0, 0, 0], [1, 0, 0], [0, 1, 0]]), np.array([[0, 1, 2]]))
+    flat = vertex_normals(np.float32([[0, 0, 0], [1, 0, 0], [0, 1, 0]]), np.array([[0, 1, 2]]), **EXPORT_NORMALS)
     np.testing.assert_allclose(flat, np.tile([0, 0, 1], (3, 1)))  # counter-clockwise in xy: +z
 
 

@@ -4,10 +4,11 @@ kept, and the vertex-id namespace (split vertices are campus ids, new vertices n
 import numpy as np
 
 from storage.vertex_ids import is_campus_id
+from tasks.geometry.triangles import face_areas
 from tasks.repair.chart import zone_charts
 from tasks.repair.conformal import conformal_uv, constrained_triangles, signed_areas
 from tasks.repair.fill import unseen_samples
-from tasks.repair.mesh import rebuild_charts, triangle_areas
+from tasks.repair.mesh import rebuild_charts
 
 
 def _band(length=30.0, height=3.0, nx=60, nz=6, y=0.0):
@@ -73,7 +74,7 @@ def test_new_vertices_never_weld_onto_split_vertex_ids():
                           max_map_distance_m=0.5, border_margin_m=0.02, max_edge_m=0.8)
     assert not is_campus_id(mesh.vertex_id[mesh.source == 1]).any()
     assert _longest_edges(mesh.xyz, mesh.faces).max() < 1.5
-    assert abs(triangle_areas(mesh.xyz, mesh.faces).sum() - 90.0) < 1.0
+    assert abs(face_areas(mesh.xyz, mesh.faces, np.float64).sum() - 90.0) < 1.0
 
 
 def test_unseen_half_of_a_zone_keeps_the_input_surface():
@@ -106,7 +107,7 @@ def test_points_far_from_every_face_are_meshed_on_their_own():
                        ctx_xyz=np.zeros((0, 3)), face_normals=np.asarray(block.face_normals, np.float32))
     geo = repair_region_geometry(data, RepairConfig())
     m = geo.mesh
-    area = triangle_areas(m.xyz, m.faces).sum()
+    area = face_areas(m.xyz, m.faces, np.float64).sum()
     assert 0.8 * 6 * 2.6 < area < 1.2 * 6 * 2.6
     assert np.abs(m.xyz[:, 1] - 4.0).max() < 0.05
     assert not is_campus_id(m.vertex_id).any() and not geo.replaced.any()

@@ -3,8 +3,9 @@
 import numpy as np
 import pytest
 
+from tasks.geometry.triangles import face_areas
 from tasks.repair.chart import boundary_edges, disc_parameterisation, split_fans, trace_loops, zone_charts
-from tasks.repair.mesh import border_gap, poisson_surface, rebuild_charts, triangle_areas
+from tasks.repair.mesh import border_gap, poisson_surface, rebuild_charts
 
 
 def _grid_box(n: int = 4, closed: bool = False):
@@ -65,7 +66,7 @@ def test_delaunay_in_chart_recovers_the_open_box_area():
     pts, _ = _box_samples(0.02, bottom=False)
     m = rebuild_charts(topo.charts, np.arange(len(v)), pts, np.ones(len(pts), np.int8), np.full(len(pts), -1),
                        max_map_distance_m=0.5, border_margin_m=0.01, max_edge_m=0.3)
-    area = triangle_areas(m.xyz, m.faces).sum()
+    area = face_areas(m.xyz, m.faces, np.float64).sum()
     assert area == pytest.approx(5.0, rel=0.02)
     rim = boundary_edges(m.faces, len(m.xyz))
     assert set(m.vertex_id[rim.ravel()]) <= set(range(len(v))) and len(rim) == 16  # the rim is the zone's own
@@ -74,7 +75,7 @@ def test_delaunay_in_chart_recovers_the_open_box_area():
 def test_poisson_recovers_the_closed_box_area():
     pts, nrm = _box_samples(0.02, bottom=True)
     v, f, _ = poisson_surface(pts, nrm, depth=7, trim_quantile=0.0)
-    assert triangle_areas(v, f).sum() == pytest.approx(6.0, rel=0.02)
+    assert face_areas(v, f, np.float64).sum() == pytest.approx(6.0, rel=0.02)
 
 
 def test_disc_parameterisation_is_an_embedding():
@@ -96,7 +97,7 @@ def test_band_with_two_loops_is_cut_into_one_disc():
     pts = pts[pts[:, 2] < 0.999]
     m = rebuild_charts(topo.charts, np.arange(len(v)), pts, np.ones(len(pts), np.int8), np.full(len(pts), -1),
                        max_map_distance_m=0.5, border_margin_m=0.01, max_edge_m=0.3)
-    assert triangle_areas(m.xyz, m.faces).sum() == pytest.approx(4.0, rel=0.02)
+    assert face_areas(m.xyz, m.faces, np.float64).sum() == pytest.approx(4.0, rel=0.02)
     # welded back along the seam: the only open edges are the two rims (16 each)
     assert len(boundary_edges(m.faces, len(m.xyz))) == 32
 
@@ -134,4 +135,4 @@ def test_closed_surface_is_cut_open_and_rebuilt():
     m = rebuild_charts(topo.charts, np.arange(len(v)), pts, np.ones(len(pts), np.int8), np.full(len(pts), -1),
                        max_map_distance_m=0.5, border_margin_m=0.01, max_edge_m=0.3)
     assert len(boundary_edges(m.faces, len(m.xyz))) == 0  # closed again once the cut is welded back
-    assert triangle_areas(m.xyz, m.faces).sum() == pytest.approx(6.0, rel=0.03)
+    assert face_areas(m.xyz, m.faces, np.float64).sum() == pytest.approx(6.0, rel=0.03)
