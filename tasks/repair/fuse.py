@@ -114,21 +114,6 @@ def orient_like(normals: np.ndarray, xyz: np.ndarray, ref_xyz: np.ndarray, ref_n
     return out
 
 
-def vertex_normals(vertices: np.ndarray, faces: np.ndarray, face_normals: np.ndarray | None = None) -> np.ndarray:
-    """Area-weighted vertex normals: vertices (n, 3), faces (m, 3) int -> (n, 3) float64 unit."""
-    v = np.asarray(vertices, np.float64)
-    cross = np.cross(v[faces[:, 1]] - v[faces[:, 0]], v[faces[:, 2]] - v[faces[:, 0]])
-    if face_normals is not None:  # stored normals are computed in float64 world: keep their direction
-        area2 = np.linalg.norm(cross, axis=1, keepdims=True)
-        fn = np.nan_to_num(np.asarray(face_normals, np.float64))
-        cross = np.where(np.isfinite(face_normals).all(1, keepdims=True), fn * area2, cross)
-    out = np.zeros_like(v)
-    for c in range(3):
-        np.add.at(out, faces[:, c], cross)
-    nrm = np.linalg.norm(out, axis=1, keepdims=True)
-    return np.where(nrm > 0, out / np.maximum(nrm, 1e-30), [0.0, 0.0, 1.0])
-
-
 def thin_points(xyz: np.ndarray, voxel_m: float) -> np.ndarray:
     """Indices of one point per voxel (the one nearest its voxel's centroid, the first row on a tie),
     sorted. xyz: (n, 3).
