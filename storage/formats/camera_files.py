@@ -107,9 +107,33 @@ def _floats(path: Path, lineno: int, tokens: list[str]) -> list[float]:
     return vals
 
 
-def _colmap_files(path: Path) -> tuple[Path, Path]:
+COLMAP_FILES = ("images.txt", "cameras.txt")  # a COLMAP text model's files ms3d reads (and fingerprints)
+
+
+def is_colmap(path: str | Path) -> bool:
+    """Whether a camera path names a COLMAP text model: its folder, its cameras.txt or its images.txt."""
+    p = Path(path)
+    return p.is_dir() or p.name.lower() in COLMAP_FILES
+
+
+def camera_files(path: str | Path) -> list[Path]:
+    """The files a camera path stands for: a COLMAP model's images.txt and cameras.txt (in that order, from
+    its folder), else the file itself.
+
+    >>> [p.name for p in camera_files("sparse/0/cameras.txt")], [p.name for p in camera_files("cams.json")]
+    (['images.txt', 'cameras.txt'], ['cams.json'])
+    """
+    p = Path(path)
+    return _colmap_model(p) if is_colmap(p) else [p]
+
+
+def _colmap_model(path: Path) -> list[Path]:
     folder = path if path.is_dir() else path.parent
-    cams, imgs = folder / "cameras.txt", folder / "images.txt"
+    return [folder / name for name in COLMAP_FILES]
+
+
+def _colmap_files(path: Path) -> tuple[Path, Path]:
+    imgs, cams = _colmap_model(path)
     for p in (cams, imgs):
         if not p.is_file():
             binary = " (a binary model: convert it with `colmap model_converter --output_type TXT`)" \
@@ -303,7 +327,7 @@ def write_blocks_exchange(path: Path, cams: list[Camera], crs: str | None = None
 def camera_format(path: str | Path) -> str:
     """'colmap' (a folder, cameras.txt or images.txt), 'blocksexchange' (.xml) or 'cameras.json' (.json)."""
     p = Path(path)
-    if p.is_dir() or p.name.lower() in ("cameras.txt", "images.txt"):
+    if is_colmap(p):
         return "colmap"
     if p.suffix.lower() == ".xml":
         return "blocksexchange"

@@ -29,6 +29,7 @@ from storage.contracts.region_plan import (
     read_plan,
     region_dir,
 )
+from storage.formats.camera_files import camera_files
 from storage.ids import TileId
 from storage.patches.schema import PATCHES_FILE
 from storage.patches.state import store_fingerprint
@@ -85,10 +86,7 @@ def camera_fingerprint(cfg: CampusConfig) -> str | None:
     _, cams = camera_paths(cfg)
     if not cfg.repair.texture.enabled or cams is None or not cams.exists():
         return None
-    folder = cams if cams.is_dir() else cams.parent
-    colmap = cams.is_dir() or cams.name.lower() in ("cameras.txt", "images.txt")
-    files = [folder / "images.txt", folder / "cameras.txt"] if colmap else [cams]
-    return combine_fingerprints([f"{f.name}:{file_fingerprint(f)}" for f in files if f.is_file()])
+    return combine_fingerprints([f"{f.name}:{file_fingerprint(f)}" for f in camera_files(cams) if f.is_file()])
 
 
 def region_fingerprint(region: Region, wd: WorkDir, cfg: CampusConfig, memo: dict | None = None) -> str:

@@ -20,7 +20,7 @@ import numpy as np
 
 from storage.atomic import atomic_path
 from storage.errors import InputError
-from storage.formats.camera_files import read_cameras
+from storage.formats.camera_files import camera_files, read_cameras
 from storage.formats.cameras import Camera, CameraSet
 from storage.inputs.remote import readable
 from storage.patches.read import PatchStore
@@ -42,7 +42,7 @@ def camera_paths(cfg: CampusConfig) -> tuple[Path | None, Path | None]:
         cams = str(Path(images) / "cameras.json")
     cam_path = Path(cams) if cams else None
     if cam_path is not None and cam_path.is_dir():
-        cam_path = cam_path / "images.txt"
+        cam_path = camera_files(cam_path)[0]  # a COLMAP folder: its images.txt
     return (Path(images) if images else None), cam_path
 
 
@@ -127,10 +127,8 @@ def _read_cameras_once(path: Path) -> CameraSet:
 
 def _stamp(path: Path) -> tuple:
     """(size, mtime) of the camera file, or of a COLMAP model's images.txt and cameras.txt."""
-    folder = path if path.is_dir() else path.parent
-    colmap = path.is_dir() or path.name.lower() in ("cameras.txt", "images.txt")
     out = []
-    for f in ([folder / "images.txt", folder / "cameras.txt"] if colmap else [path]):
+    for f in camera_files(path):
         try:
             st = f.stat()
             out.append((st.st_size, st.st_mtime_ns))
