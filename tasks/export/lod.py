@@ -17,6 +17,7 @@ from pathlib import Path
 import numpy as np
 
 from storage.atomic import atomic_path
+from storage.errors import InputError
 
 
 @dataclass(frozen=True, eq=False)
@@ -171,8 +172,11 @@ def _quadric_fqmr(lod: LodMesh, target_faces: int) -> tuple[np.ndarray, np.ndarr
 
 
 def _quadric_pymeshlab(lod: LodMesh, target_faces: int) -> tuple[np.ndarray, np.ndarray]:
-    import pymeshlab
-
+    try:
+        import pymeshlab
+    except ImportError:
+        raise InputError(None, "decimator 'pymeshlab' needs pymeshlab (GPL), which is not installed: "
+                               "pip install 'ms3d[gpl]', or set decimator to 'auto' (pyfqmr)") from None
     ms = pymeshlab.MeshSet()
     ms.add_mesh(pymeshlab.Mesh(vertex_matrix=lod.positions.astype(np.float64), face_matrix=lod.faces))
     ms.meshing_decimation_quadric_edge_collapse(targetfacenum=int(target_faces), preserveboundary=True,
@@ -182,11 +186,8 @@ def _quadric_pymeshlab(lod: LodMesh, target_faces: int) -> tuple[np.ndarray, np.
 
 
 def quadric_backend() -> str:
-    """"fqmr" (pyfqmr, Fast Quadric Mesh Simplification) when installed, else "pymeshlab"."""
-    try:
-        import pyfqmr  # noqa: F401
-    except ImportError:
-        return "pymeshlab"
+    """The default decimator: "fqmr" (pyfqmr, Fast Quadric Mesh Simplification, MIT; a dependency).
+    "pymeshlab" (VCG through pymeshlab, GPL) is optional: the ``gpl`` extra."""
     return "fqmr"
 
 
@@ -224,7 +225,8 @@ def decimate(lod: LodMesh, target_faces: int, samples: int = 50_000, backend: st
     """Quadric edge-collapse decimation to about ``target_faces``, open boundaries kept (tile borders
     stay where the neighbour expects them).
 
-    backend: "fqmr" (pyfqmr, ~6x faster here) or "pymeshlab" (VCG); default ``quadric_backend()``.
+    backend: "fqmr" (pyfqmr, ~6x faster here) or "pymeshlab" (VCG; the optional ``gpl`` extra: without it
+    a one-line :class:`InputError`); default ``quadric_backend()``.
     A new vertex takes the colour of the nearest input vertex; a new face the provenance of the input face
     whose centroid is nearest its centroid. The deviation is measured both ways
     (open3d ray-casting distances) at ``samples`` area-uniform points on each surface plus the
@@ -257,6 +259,8 @@ def _decimate_block(lod: LodMesh, target_faces: int, samples: int, backend: str 
     if lod.n_faces <= target_faces or lod.n_faces < 4:
         return Decimation(lod, 0.0, 0.0)
     backend = backend or quadric_backend()
+    if backend not in ("fqmr", "pymeshlab"):
+        raise ValueError(f"unknown decimator {backend!r}: 'fqmr' or 'pymeshlab'")
     positions, faces = (_quadric_fqmr if backend == "fqmr" else _quadric_pymeshlab)(lod, target_faces)
     if len(faces) == 0:
         return Decimation(lod, 0.0, 0.0)

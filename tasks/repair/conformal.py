@@ -5,13 +5,14 @@ elongated chart (a 30 m x 3 m band of a facade) into a circle: distances along t
 times more than across it, and a Delaunay triangulation in the disc then joins points that are metres
 apart on the building with thin chords. A least-squares conformal map (LSCM, Lévy et al. 2002) keeps
 angles, hence the local shape of triangles, with a free boundary. Its boundary is no longer convex, so
-the triangulation is a *constrained* Delaunay triangulation (Shewchuk's Triangle) whose segments are
-the chart's boundary edges: every border edge is still a rebuilt edge, and nothing is triangulated
-outside the chart.
+the triangulation is a *constrained* Delaunay triangulation (PythonCDT, the CDT library's bindings: exact
+orientation and in-circle predicates) whose constraint edges are the chart's boundary edges: every border
+edge is still a rebuilt edge, and nothing is triangulated outside the chart.
 
 :func:`conformal_uv` returns None when the map folds (a face flips) or the boundary crosses itself;
-:func:`constrained_triangles` returns None when Triangle would have to insert a point. The caller
-then falls back to the disc map.
+:func:`constrained_triangles` returns None when the triangulation would need a point that is not given
+(boundary edges that cross) or cannot be built (coincident points). The caller then falls back to the
+disc map.
 
 Frames and units: chart vertices in campus-local metres (float64); uv in metres (up to scale).
 """
@@ -123,19 +124,36 @@ def conformal_uv(xyz: np.ndarray, faces: np.ndarray, loop: np.ndarray) -> np.nda
 
 def constrained_triangles(uv: np.ndarray, n_loop: int) -> np.ndarray | None:
     """Constrained Delaunay triangles (t, 3) int64 of uv (q, 2), whose first n_loop rows are the chart's
-    boundary polygon in order; points outside it are left out. None when Triangle inserted a point."""
-    import triangle
+    boundary polygon in order; points outside it are left out. None when the boundary crosses itself, two
+    points coincide or a coordinate is not finite.
 
+    The triangles are in a canonical order (each one's smallest index first, orientation kept, rows
+    sorted): the same triangulation gives the same array, whatever order the library builds it in.
+
+    >>> sq = np.array([[0, 0], [2, 0], [2, 2], [0, 2], [1, 1.2], [5, 5]], float)  # the last one outside
+    >>> constrained_triangles(sq, 4).tolist()
+    [[0, 1, 4], [0, 4, 3], [1, 2, 4], [2, 3, 4]]
+    """
+    import pythoncdt as cdt
+
+    uv = np.ascontiguousarray(uv, np.float64)
     if len(uv) < 3:
         return np.zeros((0, 3), np.int64)
-    seg = np.c_[np.arange(n_loop), np.roll(np.arange(n_loop), -1)]
+    if not np.isfinite(uv).all():  # the library does not check: a NaN exhausts memory
+        return None
+    seg = np.ascontiguousarray(np.c_[np.arange(n_loop), np.roll(np.arange(n_loop), -1)], np.uintc)
+    t = cdt.Triangulation(cdt.VertexInsertionOrder.AUTO, cdt.IntersectingConstraintEdges.NOT_ALLOWED, 0.0)
     try:
-        out = triangle.triangulate({"vertices": np.asarray(uv, np.float64), "segments": seg}, "pQ")
-    except (RuntimeError, ValueError):
+        t.insert_vertices(uv)
+        t.insert_edges(seg)
+        t.erase_outer_triangles_and_holes()
+    except (RuntimeError, ValueError, MemoryError):  # crossing boundary edges, coincident points
         return None
-    if len(out.get("vertices", [])) != len(uv) or "triangles" not in out:
+    if t.vertices_count() != len(uv):
         return None
-    return np.asarray(out["triangles"], np.int64)
+    tri = np.asarray(t.triangles_array()["vertices"], np.int64).reshape(-1, 3)
+    tri = np.take_along_axis(tri, (np.argmin(tri, axis=1)[:, None] + np.arange(3)) % 3, axis=1)
+    return tri[np.lexsort(tri.T[::-1])]
 
 
 __all__ = ["conformal_uv", "constrained_triangles", "signed_areas"]

@@ -7,8 +7,8 @@ labelled L is *accepted* (kept in it). The energy
 
     E(l) = sum_v D_v(l_v) + sum_p D_p(l_p) + sum_{(i,j) in kNN} w_ij [l_i != l_j]
 
-is minimised exactly by an s-t min-cut (PyMaxflow): binary labels with a Potts smoothness term are
-submodular. The terms:
+is minimised exactly by an s-t min-cut (:func:`tasks.repair.mincut.min_cut`): binary labels with a Potts
+smoothness term are submodular. The terms:
 
 - similarity of a vertex v and a point p: ``s = exp(-d²/2σd² - θ²/2σθ²)`` with d the Euclidean
   distance and θ the angle between their (unsigned) normals; ``s_v`` is the best over the points
@@ -37,11 +37,11 @@ from __future__ import annotations
 
 from dataclasses import dataclass
 
-import maxflow
 import numpy as np
 from scipy.spatial import cKDTree
 
 from ms3d_model.kernels import knn_pca, nearest_to_centroid
+from tasks.repair.mincut import min_cut
 
 _BIG = 1e6
 
@@ -227,8 +227,8 @@ def graph_cut_fuse(mesh_xyz: np.ndarray, mesh_n: np.ndarray, mls_xyz: np.ndarray
         jj = np.where(ok, j, 0)
         off = np.einsum("ij,ij->i", mp - mv[jj], mesh_n[jj])
         compatible = ok & (off <= p.point_reach_m) & (off >= -p.point_depth_m)
-    # unaries: source side = L (MLS), sink side = M (mesh). tedge(i, cap_source, cap_sink): a node on the
-    # sink side pays cap_source, on the source side cap_sink. So cap_source = D(M), cap_sink = D(L).
+    # unaries: source side = L (MLS), sink side = M (mesh). A node on the sink side pays its source capacity,
+    # on the source side its sink capacity. So cap_source = D(M), cap_sink = D(L).
     dv_l = w * np.clip(tau - s_v, 0, None) / tau
     dv_m = w * np.clip(s_v - tau, 0, None) / (1 - tau)
     if forced is not None:
@@ -240,21 +240,15 @@ def graph_cut_fuse(mesh_xyz: np.ndarray, mesh_n: np.ndarray, mls_xyz: np.ndarray
     dp_l = np.where(compatible, 0.0, 10.0 * w)
     dp_m = np.where(compatible, np.where(s_p > tau, w, 0.25 * w), 0.0)
     n = nv + npt
-    g = maxflow.Graph[float](n, n * p.k_neighbours)
-    g.add_nodes(n)
     cap_src = np.r_[dv_m, dp_m]
     cap_snk = np.r_[dv_l, dp_l]
-    g.add_grid_tedges(np.arange(n), cap_src, cap_snk)
     allxyz = np.concatenate([mv, mp]) if n else np.zeros((0, 3))
     a, b, d = _knn_edges(allxyz, p.k_neighbours)
     wij = p.smoothness * np.exp(-0.5 * (d / p.sigma_distance_m) ** 2)
     keep = wij > 1e-9
     a, b, wij = a[keep], b[keep], wij[keep]
-    if len(a):
-        g.add_edges(a.astype(np.int32), b.astype(np.int32), wij, wij)
-    flow = g.maxflow() if n else 0.0
-    seg = g.get_grid_segments(np.arange(n)).astype(np.int8) if n else np.zeros(0, np.int8)
-    label_l = seg == 0  # source side
+    flow, sink = min_cut(cap_src, cap_snk, a, b, wij, wij)
+    label_l = ~sink  # source side
     energy = float(np.where(label_l, cap_snk, cap_src).sum() + wij[label_l[a] != label_l[b]].sum())
     return FusionResult(replaced=label_l[:nv], accepted=label_l[nv:], vertex_similarity=s_v,
                         point_similarity=s_p, compatible=compatible, energy=energy, flow=float(flow))

@@ -1,4 +1,5 @@
-"""Seam-aware view labels for the faces of a rebuilt mesh: alpha-expansion over s-t min-cuts (PyMaxflow).
+"""Seam-aware view labels for the faces of a rebuilt mesh: alpha-expansion over s-t min-cuts
+(:func:`tasks.repair.mincut.min_cut`).
 
 The data costs are sparse: a camera sees a small part of a region (on the demo's largest region, 777 k
 candidate (face, view) pairs of 203 k faces x 51 labels, 7.5 %), so they are kept as (face, label, cost)
@@ -9,14 +10,16 @@ tests compare both).
 
 from __future__ import annotations
 
-import maxflow
 import numpy as np
 
+from tasks.repair.mincut import min_cut
 
-def _add_unary(g, nodes, cost0: np.ndarray, cost1: np.ndarray) -> None:
-    """Unary cost of x=0 (source side) and x=1 (sink side)."""
+
+def _unary(cost0: np.ndarray, cost1: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """(source, sink) capacities of the unary costs of x=0 (source side) and x=1 (sink side), less their
+    minimum."""
     m = np.minimum(cost0, cost1)
-    g.add_grid_tedges(nodes, cost1 - m, cost0 - m)
+    return cost1 - m, cost0 - m
 
 
 class _Incidence:
@@ -71,12 +74,8 @@ def _expansion_move(cur: np.ndarray, lab: np.ndarray, alpha: int, faces: np.ndar
     # E = e00 + (e10 - e00) x_a + (0 - e10) x_b + (e01 + e10 - e00) (1 - x_a) x_b
     switch += np.bincount(na, e10 - e00, nc) + np.bincount(nb, -e10, nc)
     node[cand] = -1
-    g = maxflow.Graph[float](nc, len(na))
-    nodes = g.add_nodes(nc)
-    _add_unary(g, nodes, keep, switch)  # x = 1 (sink): switch to alpha; x = 0 (source): keep
-    g.add_edges(na.astype(np.int32), nb.astype(np.int32), np.maximum(e01 + e10 - e00, 0), np.zeros(len(na)))
-    g.maxflow()
-    moved = g.get_grid_segments(nodes)
+    cap_source, cap_sink = _unary(keep, switch)  # x = 1 (sink): switch to alpha; x = 0 (source): keep
+    _, moved = min_cut(cap_source, cap_sink, na, nb, np.maximum(e01 + e10 - e00, 0), np.zeros(len(na)))
     new, new_cur = lab.copy(), cur.copy()
     new[cand[moved]] = alpha
     new_cur[cand[moved]] = cost[sel][moved]

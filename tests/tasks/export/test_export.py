@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import json
 import shutil
+import sys
 
 import numpy as np
 import pytest
@@ -254,10 +255,22 @@ def test_nodes_mapped_in_batches_give_the_same_tileset_and_record_each_node(tiny
         node_records([{"status": "failed", "error": "worker lost"}], 1)
 
 
+def test_the_pymeshlab_decimator_missing_is_one_line_and_auto_is_pyfqmr(monkeypatch):
+    from tasks.export.lod import LodMesh, decimate, quadric_backend
+
+    monkeypatch.setitem(sys.modules, "pymeshlab", None)  # as if not installed: its import fails
+    pos = np.array([[0, 0, 0], [1, 0, 0], [0, 1, 0], [1, 1, 0], [2, 0, 0], [2, 1, 0]], np.float32)
+    faces = np.array([[0, 1, 2], [1, 3, 2], [1, 4, 3], [4, 5, 3]], np.int32)
+    lod = LodMesh(pos, faces, np.zeros((6, 3), np.uint8), *(np.zeros(4, t) for t in (np.int8, np.int8, np.int32)))
+    with pytest.raises(InputError, match=r"^decimator 'pymeshlab' needs pymeshlab \(GPL\), which is not installed"):
+        decimate(lod, 2, samples=100, backend="pymeshlab")
+    assert quadric_backend() == "fqmr"
+
+
 @pytest.mark.parametrize("backend", ["fqmr", "pymeshlab"])
 def test_decimate_measures_its_deviation_and_keeps_borders(backend):
-    if backend == "fqmr":
-        pytest.importorskip("pyfqmr", reason="pyfqmr not installed (pip install pyfqmr)")
+    if backend == "pymeshlab":
+        pytest.importorskip("pymeshlab", reason="pymeshlab (GPL, the gpl extra) not installed")
     from tasks.export.lod import LodMesh, decimate
 
     n = 61  # a 60 x 60 grid of 1 m cells with a 2 m bump: 7,200 faces

@@ -4,6 +4,7 @@ import numpy as np
 
 from synth.cameras import look_rotation
 from tasks.config.repair import TextureConfig
+from tasks.repair.mincut import min_cut
 from tasks.repair.texture import (
     NO_VIEW,
     CameraView,
@@ -97,8 +98,6 @@ def test_cameras_follow_the_registration():
 def _reference_select_views(cost, adjacency, w, cycles=3):
     """Alpha-expansion with every face a graph node (what select_views did before its moves were cut
     down to the faces that may switch)."""
-    import maxflow
-
     m, nl = cost.shape
     c = np.where(np.isfinite(cost), cost, 1e9)
     lab = np.argmin(c, axis=1)
@@ -108,17 +107,14 @@ def _reference_select_views(cost, adjacency, w, cycles=3):
     for _ in range(cycles):
         improved = False
         for alpha in [x for x in range(nl) if np.isfinite(cost[:, x]).any()]:
-            g = maxflow.Graph[float](m, len(a))
-            nodes = g.add_nodes(m)
             la, lb = lab[a], lab[b]
             e00, e01, e10 = w * (la != lb), w * (la != alpha), w * (lb != alpha)
             un1 = c[:, alpha] - c[np.arange(m), lab]
             np.add.at(un1, a, e10 - e00)
             np.add.at(un1, b, -e10)
-            g.add_grid_tedges(nodes, np.maximum(un1, 0), np.maximum(-un1, 0))
-            g.add_edges(a.astype(np.int32), b.astype(np.int32), np.maximum(e01 + e10 - e00, 0), np.zeros(len(a)))
-            g.maxflow()
-            new = np.where(g.get_grid_segments(nodes), alpha, lab)
+            _, sink = min_cut(np.maximum(un1, 0), np.maximum(-un1, 0), a, b, np.maximum(e01 + e10 - e00, 0),
+                              np.zeros(len(a)))
+            new = np.where(sink, alpha, lab)
             if energy(new) < best - 1e-9:
                 best, lab, improved = energy(new), new, True
         if not improved:
