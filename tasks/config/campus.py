@@ -251,5 +251,5 @@ class ExportConfig(_Model):
     jpeg_quality: int = Field(85, ge=10, le=100, description="quality of re-encoded JPEG textures")
     lod_reduction: float = Field(4.0, gt=1.0, description="each quadtree level keeps 1/lod_reduction of its children's faces")
     hausdorff_samples: int = Field(20_000, ge=1000, description="points sampled per direction to measure a decimation's deviation")
-    decimator: Literal["auto", "fqmr", "pymeshlab"] = Field("auto", description="quadric decimation: pyfqmr (Fast Quadric Mesh Simplification, ~6x faster) or pymeshlab; auto = fqmr when installed")
+    decimator: Literal["auto", "fqmr", "pymeshlab"] = Field("auto", description="quadric decimation: pyfqmr (Fast Quadric Mesh Simplification, ~6x faster) or pymeshlab (GPL: the optional gpl extra, pip install 'ms3d[gpl]'); auto = fqmr")
     overview_max_faces: int = Field(300_000, ge=1000, description="faces of output/overview.glb (whole campus, decimated)")
