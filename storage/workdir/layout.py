@@ -14,6 +14,9 @@
     tiles/{ix}_{iy}/{labels,outliers,grades}.parquet  side tables, one row per patch
     tiles/{ix}_{iy}/stale.json      the store is the last good one; its inputs now fail (see the error)
     report/                         figures for the run report (histograms, ...)
+    export/lod/{node}.npz           the export's decimated mesh per tileset node (its cache)
+    output/                         what a user opens: tileset.json, georef.json, overview.glb, content/, points/,
+                                    report.html
     prefect/                        the embedded Prefect server's database (run history)
 
 Tile keys are world-anchored (``tasks.config.CampusConfig.grid``): tile (ix, iy) covers
@@ -64,6 +67,28 @@ class WorkDir:
     @property
     def prefect_dir(self) -> Path:
         return self.root / "prefect"
+
+    @property
+    def output_dir(self) -> Path:
+        """What a user opens: the 3D Tiles, their georeference and the run report."""
+        return self.root / "output"
+
+    @property
+    def tileset_json(self) -> Path:
+        return self.output_dir / "tileset.json"
+
+    @property
+    def georef_json(self) -> Path:
+        return self.output_dir / "georef.json"
+
+    @property
+    def report_html(self) -> Path:
+        return self.output_dir / "report.html"
+
+    @property
+    def lod_cache_dir(self) -> Path:
+        """The export's decimated mesh per tileset node."""
+        return self.root / "export" / "lod"
 
     def tile_dir(self, tile: TileId) -> Path:
         return self.root / "tiles" / tile.key

@@ -140,7 +140,7 @@ def run_export(work_dir: str | Path, config: ExportConfig | None = None, tiles: 
     t0 = time.perf_counter()
     cfg = config or ExportConfig()
     wd = WorkDir(work_dir)
-    out, cache = wd.root / "output", wd.root / "export" / "lod"
+    out, cache = wd.output_dir, wd.lod_cache_dir
     campus = read_campus(wd)
     frame = campus_frame(campus)
     if frame.crs is None:
