@@ -25,7 +25,7 @@ from tasks.config import CampusConfig
 from tasks.geometry.cells import partition_cells
 from tasks.geometry.tiling import group_by_tile
 from tasks.geometry.triangles import face_normals
-from tasks.ingest.columns import (
+from tasks.ingest.kernels import (
     face_columns,
     point_columns,
     split_mesh_faces,

@@ -2,7 +2,7 @@
 
 An ordinary mesh file takes ``inputs.mesh_offset`` (and ``inputs.crs``). A file of a ContextCapture
 production (:mod:`storage.formats.production`) takes the production's ``metadata.xml``: SRSOrigin is the offset
-and SRS the CRS, and its tile seams are welded (:func:`tasks.ingest.columns.vertex_ids`). The config
+and SRS the CRS, and its tile seams are welded (:func:`tasks.ingest.kernels.vertex_ids`). The config
 and the metadata must agree:
 
 - ``inputs.mesh_offset`` left at its default (0, 0, 0): SRSOrigin is used.

@@ -15,7 +15,7 @@ from storage.formats.production import finest_lod, production_key, production_of
 from storage.inputs.identity import discover
 from synth.production import cluster_decimate, split_tiles, write_production
 from synth.scene import Mesh
-from tasks.ingest.columns import open_boundary_vertices, vertex_ids, weld_vertex_index
+from tasks.ingest.kernels import open_boundary_vertices, vertex_ids, weld_vertex_index
 
 
 def grid_plane(n: int = 12, size_m: float = 96.0) -> Mesh:

@@ -11,7 +11,7 @@ from flows.campus import InlineExecutor, run_campus
 from storage.grid import PatchGrid
 from storage.patches.read import PatchStore
 from tasks.config import CampusConfig
-from tasks.ingest.columns import vertex_ids, weld_vertex_index
+from tasks.ingest.kernels import vertex_ids, weld_vertex_index
 
 
 def test_weld_gives_seam_split_vertices_one_index():

@@ -15,7 +15,7 @@ from storage.formats.meshes import read_mesh
 from storage.formats.obj import write_obj
 from storage.inputs.identity import assign_source_ids, discover
 from tasks.config import CampusConfig
-from tasks.ingest.columns import SEAM_ID_BIT, open_boundary_vertices, vertex_ids, weld_vertex_index
+from tasks.ingest.kernels import SEAM_ID_BIT, open_boundary_vertices, vertex_ids, weld_vertex_index
 from tasks.scan import mesh_placement
 from tasks.scan.placement import check_productions
 
