@@ -73,9 +73,11 @@ class CameraParams:
 
 
 @dataclass
-class Camera:
-    """One exposure. K: (3, 3); R: (3, 3) world-to-camera; t: (3,) metres (recorded pose);
-    error_m: (3,) recorded minus true camera centre (not written to cameras.json)."""
+class Exposure:
+    """One exposure of a vehicle camera: its recorded pinhole pose and when, on which trajectory and mount it
+    fired. K: (3, 3); R: (3, 3) world-to-camera; t: (3,) metres (recorded pose); error_m: (3,) recorded
+    minus true camera centre (not written to cameras.json). Its cameras.json entry (:meth:`to_json`) reads
+    back as a :class:`storage.formats.cameras.Camera` (no distortion)."""
 
     image: str
     K: np.ndarray
@@ -108,7 +110,7 @@ def look_rotation(yaw_rad: float, pitch_rad: float) -> np.ndarray:
     return np.stack([x, np.cross(z, x), z])
 
 
-def place_cameras(trajectories: list[Trajectory], params: CameraParams = CameraParams()) -> list[Camera]:
+def place_cameras(trajectories: list[Trajectory], params: CameraParams = CameraParams()) -> list[Exposure]:
     """Exposures every ``params.every_m`` along each trajectory, for every mount, in time order
     per trajectory. Names: ``t{traj_id:03d}_{index:05d}_{mount}{image_ext}``."""
     cams = []
@@ -124,12 +126,12 @@ def place_cameras(trajectories: list[Trajectory], params: CameraParams = CameraP
                 mx, my, mz = m.position_m
                 centre = p + np.array([mx * c - my * sn, mx * sn + my * c, mz]) + e
                 R = look_rotation(h + np.radians(m.yaw_deg), np.radians(m.pitch_deg))
-                cams.append(Camera(f"t{tr.traj_id:03d}_{i:05d}_{m.name}{params.image_ext}", K, R, -R @ centre,
+                cams.append(Exposure(f"t{tr.traj_id:03d}_{i:05d}_{m.name}{params.image_ext}", K, R, -R @ centre,
                                    params.width, params.height, float(ts), tr.traj_id, m.name, e))
     return cams
 
 
-def project(points: np.ndarray, cam: Camera) -> tuple[np.ndarray, np.ndarray]:
+def project(points: np.ndarray, cam: Exposure) -> tuple[np.ndarray, np.ndarray]:
     """Project world points (n, 3) float64 with the recorded pose.
 
     Returns uv (n, 2) float64 pixels (OpenCV convention above; pixel [round(v), round(u)]) and
@@ -164,7 +166,7 @@ def _pixel_rays(k_key: tuple, w: int, h: int) -> np.ndarray:
     return np.hstack([d / norm, 1.0 / norm]).astype(np.float32)
 
 
-def render(caster: SceneCaster, cam: Camera, params: CameraParams = CameraParams()) -> Render:
+def render(caster: SceneCaster, cam: Exposure, params: CameraParams = CameraParams()) -> Render:
     """Ray cast every pixel of ``cam`` from its true pose (recorded centre minus ``cam.error_m``)."""
     h, w = cam.height, cam.width
     pix = _pixel_rays(tuple(cam.K.ravel()), w, h)
@@ -190,8 +192,8 @@ def render(caster: SceneCaster, cam: Camera, params: CameraParams = CameraParams
 
 
 def render_images(
-    scene: Scene, cameras: list[Camera], params: CameraParams = CameraParams()
-) -> Iterator[tuple[Camera, np.ndarray]]:
+    scene: Scene, cameras: list[Exposure], params: CameraParams = CameraParams()
+) -> Iterator[tuple[Exposure, np.ndarray]]:
     """Yield (camera, rgb (H, W, 3) uint8) for each camera; one BVH is built for all of them."""
     caster = SceneCaster(scene.truth, scene.occluders.mesh if scene.occluders else None)
     for cam in cameras:
@@ -205,7 +207,7 @@ def render_cameras(
     size: tuple[int, int] = (2048, 1536),
     rng: np.random.Generator | None = None,
     params: CameraParams = CameraParams(),
-) -> tuple[Iterator[np.ndarray], list[Camera]]:
+) -> tuple[Iterator[np.ndarray], list[Exposure]]:
     """Place cameras every ``every_m`` along the trajectories and render them lazily.
 
     size: (width, height) pixels, overriding ``params``. Returns (an iterator of rgb (H, W, 3)
@@ -226,7 +228,7 @@ def render_cameras(
     return images(), cams
 
 
-def transform_pose(cam: Camera, m: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+def transform_pose(cam: Exposure, m: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     """(R, t) of ``cam`` in the frame X' = m[:3, :3] X + m[:3, 3] (m: (4, 4) similarity s R_m | b).
 
     x_cam is unchanged up to the factor s (same pixels, depth x s): R' = R R_m^T, t' = s t - R' b.
@@ -240,7 +242,7 @@ def transform_pose(cam: Camera, m: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
 def write_images(
     folder: str | Path,
     images,
-    cameras: list[Camera],
+    cameras: list[Exposure],
     perturb: np.ndarray | None = None,
     origin=None,
     prefix: str = "",

@@ -12,8 +12,8 @@ from PIL import Image
 from synth.cameras import (
     LEFT,
     RIGHT,
-    Camera,
     CameraParams,
+    Exposure,
     place_cameras,
     project,
     render,
@@ -53,7 +53,7 @@ def scene() -> Scene:
 
 
 @pytest.fixture(scope="module")
-def cams(scene) -> list[Camera]:
+def cams(scene) -> list[Exposure]:
     return place_cameras(build_trajectories(scene.roads, NO_ERROR), PARAMS)
 
 
@@ -138,7 +138,7 @@ def test_recorded_pose_carries_the_trajectory_error(scene, tmp_path):
     cam = with_err[0]
     pts = np.array([[12.0, 8.0, 1.0], [3.0, 8.0, 6.0]])
     r_new, t_new = transform_pose(cam, m)
-    moved = Camera(cam.image, cam.K, r_new, t_new, cam.width, cam.height, cam.timestamp, 0, "left", cam.error_m)
+    moved = Exposure(cam.image, cam.K, r_new, t_new, cam.width, cam.height, cam.timestamp, 0, "left", cam.error_m)
     np.testing.assert_allclose(project(pts @ m[:3, :3].T + m[:3, 3], moved)[0], project(pts, cam)[0], atol=1e-9)
     # writing: files and cameras.json entries
     images, cams = render_cameras(scene, trajs, every_m=20.0, size=(48, 36), rng=np.random.default_rng(0),
