@@ -19,7 +19,7 @@ from storage.ids import TileId
 from storage.patches.read import PatchStore
 from storage.vertex_ids import MISSING, local_ids
 from tasks.regions import dilate
-from tasks.repair.geometry import RegionInput
+from tasks.repair.region_geometry import RegionInput
 
 FACE_COLUMNS = [*(f"{a}{v}" for v in range(3) for a in "xyz"), "vid0", "vid1", "vid2", "nx", "ny", "nz",
                 *(f"{a}{v}" for v in range(3) for a in "uv"), "texture", "red", "green", "blue"]

@@ -165,7 +165,7 @@ def run_region(region_id: str, cfg: CampusConfig, wd: WorkDir, plan: dict[str, R
     out_dir = region_dir(wd.root, region_id)
 
     def work() -> Done:
-        from tasks.repair.geometry import repair_region_geometry
+        from tasks.repair.region_geometry import repair_region_geometry
 
         t0 = time.perf_counter()
         doc = read_campus(wd)

@@ -75,7 +75,7 @@ def test_far_from_the_origin_the_decision_is_the_same():
 def _wall_region():
     """A 16 m x 6 m wall mesh at 0.5 m, its 10 m x 3 m middle to rebuild; MLS points every 2 cm on the true wall 10 cm
     behind it (4 mm noise). Returns (RegionInput, the MLS points (p, 3))."""
-    from tasks.repair.geometry import RegionInput
+    from tasks.repair.region_geometry import RegionInput
 
     xs, zs = np.linspace(0, 16, 33), np.linspace(0, 6, 13)  # a 16 m x 6 m wall at 0.5 m
     v = np.array([[x, 0.0, z] for x in xs for z in zs])
@@ -100,7 +100,7 @@ def _wall_region():
 
 def test_a_region_rebuilds_with_fewer_faces_and_the_same_surface():
     from tasks.config.repair import RepairConfig
-    from tasks.repair.geometry import repair_region_geometry
+    from tasks.repair.region_geometry import repair_region_geometry
 
     data, seen = _wall_region()
     full = repair_region_geometry(data, RepairConfig.model_validate({"mesh": {"flat_spacing_m": 0}}))
@@ -122,7 +122,7 @@ def test_a_region_rebuilds_with_fewer_faces_and_the_same_surface():
 
 def test_without_thinning_every_point_is_fused_and_the_wall_is_the_same():
     from tasks.config.repair import RepairConfig
-    from tasks.repair.geometry import repair_region_geometry
+    from tasks.repair.region_geometry import repair_region_geometry
 
     data, _ = _wall_region()
     cfg = {"mesh": {"flat_spacing_m": 0}}
@@ -175,7 +175,7 @@ def test_detail_thinning_keeps_the_fine_points_only_where_the_surface_is_not_fla
 def test_the_hole_area_does_not_grow_with_the_points_density():
     from types import SimpleNamespace
 
-    from tasks.repair.geometry import _hole_area_m2
+    from tasks.repair.region_geometry import _hole_area_m2
 
     x, z = np.meshgrid(np.arange(0, 1, 0.025), np.arange(0, 1, 0.025))  # 1 m² of scanned wall at 2.5 cm
     mls = np.c_[x.ravel(), np.zeros(x.size), z.ravel()]

@@ -95,7 +95,7 @@ def test_points_far_from_every_face_are_meshed_on_their_own():
     import trimesh
 
     from tasks.config.repair import RepairConfig
-    from tasks.repair.geometry import RegionInput, repair_region_geometry
+    from tasks.repair.region_geometry import RegionInput, repair_region_geometry
 
     block = trimesh.creation.box(extents=(20.0, 12.0, 9.0))
     block.apply_translation((10.0, 6.0, 4.5))
@@ -117,7 +117,7 @@ def test_points_far_from_every_face_are_meshed_on_their_own():
 
 def _half_seen_region():
     """A 10 m x 3 m wall zone whose left half the MLS sees 0.5 m behind it (a recess), right half unseen."""
-    from tasks.repair.geometry import RegionInput
+    from tasks.repair.region_geometry import RegionInput
 
     v, f = _band(length=10.0, height=3.0, nx=20, nz=6)
     seen = np.array([[x, 0.5, z] for x in np.arange(0.02, 5, 0.04) for z in np.arange(0.02, 3, 0.04)])
@@ -128,7 +128,7 @@ def _half_seen_region():
 
 def test_unseen_part_keeps_the_input_and_unsupported_rebuilds_fall_back():
     from tasks.config.repair import RepairConfig
-    from tasks.repair.geometry import repair_region_geometry
+    from tasks.repair.region_geometry import repair_region_geometry
 
     data = _half_seen_region()
     cfg = RepairConfig.model_validate({"mesh": {"keep_unseen_m": 0}})  # the fill path: every zone face rebuilt
@@ -153,7 +153,7 @@ def test_points_in_front_of_the_surface_are_never_meshed_freely():
     import trimesh
 
     from tasks.config.repair import RepairConfig
-    from tasks.repair.geometry import RegionInput, repair_region_geometry
+    from tasks.repair.region_geometry import RegionInput, repair_region_geometry
 
     block = trimesh.creation.box(extents=(20.0, 12.0, 9.0))
     block.apply_translation((10.0, 6.0, 4.5))
@@ -179,7 +179,7 @@ EDGE_IS_MESH_EDGE = _edge_is_mesh_edge()
 def test_unseen_zone_faces_stay_verbatim_and_the_rebuild_stitches_to_them():
     """The default: the unseen half of the zone is not rebuilt at all; its faces stay, and the rebuilt half
     welds to their vertices (no gap)."""
-    from tasks.repair.geometry import repair_region_geometry
+    from tasks.repair.region_geometry import repair_region_geometry
 
     data = _half_seen_region()
     geo = repair_region_geometry(data, EDGE_IS_MESH_EDGE)
@@ -199,7 +199,7 @@ def test_unseen_zone_faces_stay_verbatim_and_the_rebuild_stitches_to_them():
 def _wall_and_roof(seed: int):
     """A zone over a wall's top storey (x-z plane at y = 0, z in [0, 3]) and a flat roof behind it at z = 3,
     with street MLS points 15 cm in front of the wall only: (RegionInput, (m,) bool roof faces)."""
-    from tasks.repair.geometry import RegionInput
+    from tasks.repair.region_geometry import RegionInput
 
     wv, wf = _band(length=8.0, height=3.0, nx=16, nz=6)
     rv = np.array([[x, y, 3.0] for x in np.linspace(0, 8, 17) for y in np.linspace(0, 3, 7)])
@@ -218,7 +218,7 @@ def _wall_and_roof(seed: int):
 def test_a_roof_strip_in_a_facade_zone_is_never_rebuilt():
     """A zone over a wall's top storey takes a strip of the roof with it. The street MLS sees the wall
     only: the roof faces come out exactly as they went in, and no rebuilt triangle cuts across the eave."""
-    from tasks.repair.geometry import repair_region_geometry
+    from tasks.repair.region_geometry import repair_region_geometry
 
     data, roof = _wall_and_roof(seed=0)
     v, f = data.xyz, data.zone_faces
@@ -236,7 +236,7 @@ def test_a_roof_strip_in_a_facade_zone_is_never_rebuilt():
 
 def test_a_scanned_wall_top_beside_a_roof_edge_does_not_contradict_it():
     """Conflicts need the contradicting point on the vertex's normal line (a 45° cone), not off to the side."""
-    from tasks.repair.geometry import in_view
+    from tasks.repair.region_geometry import in_view
 
     wall = np.array([[x, 0.0, z] for x in np.arange(0, 2, 0.05) for z in np.arange(2.0, 2.9, 0.05)])  # y = 0 wall top
     roof_edge = np.array([[1.0, 0.3, 3.0]])  # 0.3 m behind the wall plane, 0.1 m above its top: normal up
@@ -254,7 +254,7 @@ def test_front_rule_runs_and_cuts_only_what_stands_in_front():
     from dataclasses import replace
 
     from tasks.config.repair import RepairConfig
-    from tasks.repair.geometry import repair_region_geometry
+    from tasks.repair.region_geometry import repair_region_geometry
 
     data = _half_seen_region()  # the mesh (normal towards -y, the street) stands 0.5 m in front of the scan
     cfg = RepairConfig.model_validate({"typed": {"front_m": 0.3}, "mesh": {"keep_unseen_m": 0}})
@@ -267,7 +267,7 @@ def test_front_rule_runs_and_cuts_only_what_stands_in_front():
 def test_a_wall_facing_away_does_not_contradict_a_roof_vertex_above_it():
     """A roof edge flush with the wall: the wall's points lie straight below it, in the cone, but face the
     street, not the sky. Only a parallel surface displaced contradicts a vertex (typed.conflict_min_cos)."""
-    from tasks.repair.geometry import in_view
+    from tasks.repair.region_geometry import in_view
 
     wall = np.array([[x, 0.0, z] for x in np.arange(0, 2, 0.05) for z in np.arange(2.5, 2.95, 0.05)])
     wall_n = np.tile([0, -1.0, 0], (len(wall), 1))

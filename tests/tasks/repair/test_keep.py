@@ -93,7 +93,7 @@ def _eave_region():
     """A wall (x-z plane at y = 0, z 0..6, street at y < 0) under a flat roof at z = 6 that overhangs the
     street by 0.6 m; the MLS sees the wall (15 cm off the mesh: a misregistered storey) and the eave's
     soffit 25 cm under the roof's top, never the top. Returns (RegionInput, (m,) bool overhang roof faces)."""
-    from tasks.repair.geometry import RegionInput
+    from tasks.repair.region_geometry import RegionInput
 
     xs, zs = np.linspace(0, 8, 33), np.linspace(0, 6, 25)
     wv = np.array([[x, 0.0, z] for x in xs for z in zs])
@@ -116,7 +116,7 @@ def _eave_region():
 def test_the_roof_over_an_eave_stays_while_the_wall_under_it_is_rebuilt():
     """The default keeps every roof face over the overhang and rebuilds the wall onto its scan; with the
     rule off (overhead_min_height_m 0, the code before it) the soffit takes the roof's faces."""
-    from tasks.repair.geometry import repair_region_geometry
+    from tasks.repair.region_geometry import repair_region_geometry
 
     data, overhang = _eave_region()
     base = {"mesh": {"max_hole_loop_m": 5.0}}
@@ -138,7 +138,7 @@ def test_the_roof_over_an_eave_stays_while_the_wall_under_it_is_rebuilt():
 def test_a_roof_seen_only_through_its_soffit_is_kept_whole_and_says_so():
     """A region whose zone is the overhanging roof alone: every face is kept (the soffit is no evidence of
     it), nothing is replaced, and the region's plan says the input mesh was kept, not re-triangulated."""
-    from tasks.repair.geometry import RegionInput, repair_region_geometry
+    from tasks.repair.region_geometry import RegionInput, repair_region_geometry
 
     v, f = _grid(0, 8, -0.6, 2.0, 6.0, n=32)
     rng = np.random.default_rng(5)
@@ -194,7 +194,7 @@ def _slab_region(with_top_points: bool = True):
     """A wall (y = 0, street at y < 0) under a roof slab that overhangs by 0.6 m: soffit at z = 5.75, fascia,
     top at z = 6.0. The MLS sees the wall (15 cm off the mesh), the soffit and, sloping towards the street as a
     pitched roof does, part of the top over the overhang. Returns (RegionInput, (m,) bool overhang top faces)."""
-    from tasks.repair.geometry import RegionInput
+    from tasks.repair.region_geometry import RegionInput
 
     prof, outs = [], []
     for (y0, z0), (y1, z1), out, step in (((0, 0), (0, 5.75), (0, -1, 0), 0.25), ((0, 5.75), (-0.6, 5.75), (0, 0, -1), 0.1),
@@ -229,7 +229,7 @@ def test_points_on_a_kept_roofs_top_are_not_folded_into_the_soffit_under_it():
     eave; the top is kept, so those points were mapped onto the nearest chart (the soffit 25 cm under it) and
     triangulated into it, a zigzag through the slab. The retained surface explains them now; without the rule
     (retained_point_m 0) the slab fills with rebuilt faces, so the test can fail."""
-    from tasks.repair.geometry import repair_region_geometry
+    from tasks.repair.region_geometry import repair_region_geometry
 
     data, top = _slab_region()
     geo = repair_region_geometry(data, RepairConfig())

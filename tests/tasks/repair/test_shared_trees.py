@@ -5,8 +5,8 @@ import numpy as np
 from scipy.spatial import cKDTree
 
 from tasks.repair.fuse import FusionParams, graph_cut_fuse
-from tasks.repair.geometry import in_view
 from tasks.repair.keep import covered_along_normal, unseen_faces
+from tasks.repair.region_geometry import in_view
 from tasks.repair.support import unsupported_share
 
 
