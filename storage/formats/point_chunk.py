@@ -118,4 +118,11 @@ def crs_to_string(crs) -> str | None:
     return f"EPSG:{epsg}" if epsg is not None else crs.to_string()
 
 
-__all__ = ["CloudInfo", "PointChunk", "check_cloud_file", "check_finite_points", "crs_to_string"]
+def rgb_to_uint16(rgb: np.ndarray, eight_bit: bool) -> np.ndarray:
+    if rgb.dtype.kind == "f":
+        return np.clip(np.round(rgb * 65535.0), 0, 65535).astype(np.uint16)
+    if eight_bit:
+        return rgb.astype(np.uint16) * 257  # 255 -> 65535
+    return np.clip(rgb, 0, 65535).astype(np.uint16)
+
+__all__ = ["rgb_to_uint16", "CloudInfo", "PointChunk", "check_cloud_file", "check_finite_points", "crs_to_string"]
