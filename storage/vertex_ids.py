@@ -5,7 +5,8 @@
   (:func:`tasks.geometry.split.split_vertex_id`): a campus id like the others, shared by every tile;
 - ``-1`` (:data:`MISSING`): a store written without ids (corners then weld by exact position);
 - ``<= LOCAL_BASE``: ids local to one region or one merge (new MLS vertices, seam vertices moved,
-  position keys), in blocks of 2**58 so the kinds never meet: :func:`local_ids`.
+  position keys, a merge's keys of a rebuilt region's own vertices: ``(rank of the region in the merge) << 32
+  | index``), in blocks of 2**58 so the kinds never meet: :func:`local_ids`.
 
 A campus id welds across tiles and regions; a local id never leaves the unit that made it.
 
@@ -22,7 +23,7 @@ MISSING = -1
 SPLIT_MIN = -(1 << 62) - 1
 LOCAL_BASE = -(1 << 62) - 2
 _BLOCK = 1 << 58
-BLOCKS = {"rebuilt": 0, "seam": 1, "region_position": 2, "merge_position": 3, "free": 4}
+BLOCKS = {"rebuilt": 0, "seam": 1, "region_position": 2, "merge_position": 3, "free": 4, "merge_own": 5}
 
 
 def is_campus_id(ids: np.ndarray) -> np.ndarray:

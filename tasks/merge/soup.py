@@ -88,15 +88,15 @@ def store_soup(cols: dict[str, np.ndarray], grade: np.ndarray, rows: np.ndarray 
                     region=np.full(m, NO_REGION, np.int32))  # fmt: skip
 
 
-def region_soup(r: RegionMesh, texture_index: int) -> FaceSoup:
+def region_soup(r: RegionMesh, texture_index: int, rank: int = 0) -> FaceSoup:
     """The soup of one rebuilt region's faces. texture_index: its atlas in the merge's texture list
-    (ignored without an atlas). Vertices without a campus id (:mod:`storage.vertex_ids`: new
-    ones) get keys ``-1 - (region << 32 | index)``: negative, never an input vertex id (``source << 32 |
-    index``), distinct per region (a split vertex's hashed id could meet one only by a 2**-62 chance)."""
+    (ignored without an atlas). Vertices without a campus id (:mod:`storage.vertex_ids`: new ones) get
+    keys of the merge's own block, ``local_ids(rank << 32 | index, "merge_own")``, rank: the region's place
+    among the merge's regions (distinct per region, never a campus id)."""
     f = r.faces
     m = len(f)
     ids = np.full(len(r.vertices), -1, np.int64) if r.vertex_ids is None else r.vertex_ids
-    own = -1 - ((np.int64(r.region) << 32) | np.arange(len(r.vertices), dtype=np.int64))
+    own = local_ids((np.int64(rank) << 32) | np.arange(len(r.vertices), dtype=np.int64), "merge_own")
     keys = np.where(is_campus_id(ids), ids, own)[f]
     uv = np.zeros((m, 3, 2), np.float32) if r.corner_uv is None else r.corner_uv
     textured = np.full(m, r.atlas is not None) & np.isfinite(uv).all(axis=(1, 2))

@@ -102,13 +102,13 @@ def rebuilt_parts(tile: TileId, regions: Sequence[RegionMesh], textures: Sequenc
         raise InputError(None, f"tile {tile.key}: two rebuilt regions with one region number")
     all_textures = list(textures)
     parts, rebuilt, overlap = [], 0, 0
-    for r in regions:
+    for rank, r in enumerate(regions):
         index = -1
         if r.atlas is not None:
             if r.atlas not in all_textures:
                 all_textures.append(r.atlas)
             index = all_textures.index(r.atlas)
-        soup = region_soup(r, index)
+        soup = region_soup(r, index, rank)
         own, face_patch = faces_in_tile(soup.xyz, grid, origin, tile)
         if own.any():
             rows = np.flatnonzero(own)
