@@ -153,6 +153,9 @@ def constrained_triangles(uv: np.ndarray, n_loop: int) -> np.ndarray | None:
         return None
     tri = np.asarray(t.triangles_array()["vertices"], np.int64).reshape(-1, 3)
     tri = np.take_along_axis(tri, (np.argmin(tri, axis=1)[:, None] + np.arange(3)) % 3, axis=1)
+    q = len(uv)
+    if q < (1 << 21):  # one int64 key per row, ordered like the rows (a, b, c)
+        return tri[np.argsort((tri[:, 0] * q + tri[:, 1]) * q + tri[:, 2], kind="stable")]
     return tri[np.lexsort(tri.T[::-1])]
 
 
