@@ -42,8 +42,8 @@ def s3_env(tmp_path, monkeypatch):
     import boto3
     from moto.server import ThreadedMotoServer
 
-    from storage.inputs.identity import remote as remote_inputs
-    from storage.objstore.store import mirror as remote_workdir
+    from storage.inputs import remote as remote_inputs
+    from storage.objstore import mirror as remote_workdir
 
     server = ThreadedMotoServer(ip_address="127.0.0.1", port=0, verbose=False)
     server.start()

@@ -30,7 +30,7 @@ def s3(s3_server, monkeypatch, tmp_path):
     that returns the object's URL."""
     import boto3
 
-    from storage.inputs.identity import remote as remote_inputs
+    from storage.inputs import remote as remote_inputs
 
     for k in ("AWS_PROFILE", "AWS_ENDPOINT_URL_S3", "AWS_SESSION_TOKEN"):
         monkeypatch.delenv(k, raising=False)

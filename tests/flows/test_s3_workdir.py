@@ -33,8 +33,8 @@ def s3_server(moto_s3):
 @pytest.fixture
 def s3(s3_server, monkeypatch, tmp_path):
     """AWS environment on the local server, a fresh cache; yields the test's URL prefix."""
-    from storage.inputs.identity import remote as remote_inputs
-    from storage.objstore.store import mirror as remote_workdir
+    from storage.inputs import remote as remote_inputs
+    from storage.objstore import mirror as remote_workdir
 
     for k in ("AWS_PROFILE", "AWS_ENDPOINT_URL_S3", "AWS_SESSION_TOKEN"):
         monkeypatch.delenv(k, raising=False)
@@ -48,8 +48,8 @@ def s3(s3_server, monkeypatch, tmp_path):
 
 def fresh_process(monkeypatch, cache: Path) -> None:
     """Look at the bucket as another process would: an empty cache and no mirror in memory."""
-    from storage.inputs.identity import remote as remote_inputs
-    from storage.objstore.store import mirror as remote_workdir
+    from storage.inputs import remote as remote_inputs
+    from storage.objstore import mirror as remote_workdir
 
     monkeypatch.setenv("MS3D_CACHE", str(cache))
     monkeypatch.setattr(remote_inputs, "_STORES", {})
