@@ -21,7 +21,7 @@ from ms3d_model.context import with_context
 from ms3d_model.cues import CUE_NAMES, batch_cues, open_edge_flags
 from ms3d_model.dataset import PairSet
 from ms3d_model.features import PairFeatures, featurise_pairs
-from storage.atomic import atomic_path
+from storage.formats.arrays import read_arrays, write_arrays
 from storage.patches.read import PatchStore
 from storage.patches.state import store_fingerprint
 
@@ -206,12 +206,6 @@ def _cache_name(cache_dir, campus_name: str, tile: str, kind: str, spec: dict) -
     return Path(cache_dir) / f"{campus_name}_{tile}_{kind}_{h}.npz"
 
 
-def _save_npz(path: Path, arrays: dict) -> None:
-    path.parent.mkdir(parents=True, exist_ok=True)
-    with atomic_path(path) as tmp, open(tmp, "wb") as fh:
-        np.savez(fh, **arrays)
-
-
 def tile_pair_set(tile_dir: str | Path, campus_name: str, max_points: int, max_faces: int, k_centre: int,
                   seed: int, cache_dir: str | Path | None = None, min_faces: int = 1, min_points: int = 1,
                   chunk: int = 256, labelled_only: bool = True, max_pairs: int | None = None) -> PairSet:
@@ -226,16 +220,14 @@ def tile_pair_set(tile_dir: str | Path, campus_name: str, max_points: int, max_f
     c_path = _cache_name(cache_dir, campus_name, tile_dir.name, "cues", base | {"cues": list(CUE_NAMES)})
     f_ok, c_ok = (f_path is not None and f_path.exists()), (c_path is not None and c_path.exists())
     if f_ok and c_ok:
-        with np.load(f_path) as d, np.load(c_path) as c:
-            return PairSet.from_arrays({**d, "cues": c["cues"]})
+        return PairSet.from_arrays({**read_arrays(f_path), "cues": read_arrays(c_path)["cues"]})
     tp = read_tile_pairs(tile_dir, min_faces, min_points)
     keep = np.flatnonzero(tp.labels >= 0) if labelled_only else np.arange(len(tp))
     if max_pairs is not None and len(keep) > max_pairs:
         keep = np.sort(np.random.default_rng(seed).choice(keep, max_pairs, replace=False))
     if f_ok:  # features cached, cues new (a new cue set): cues only, the tile's pairs in the cached order
-        with np.load(f_path) as d:
-            ps = PairSet.from_arrays({**d, "cues": tp.cues(seed)[keep]})
-        _save_npz(c_path, {"cues": ps.cues})
+        ps = PairSet.from_arrays({**read_arrays(f_path), "cues": tp.cues(seed)[keep]})
+        write_arrays(c_path, {"cues": ps.cues})
         return ps
     parts = []
     for s in range(0, len(keep), chunk):
@@ -245,8 +237,8 @@ def tile_pair_set(tile_dir: str | Path, campus_name: str, max_points: int, max_f
     ps = PairSet.concat(parts) if parts else empty_pair_set(max_points, max_faces, k_centre, campus_name)
     if f_path is not None:
         arrays = ps.to_arrays()
-        _save_npz(c_path, {"cues": arrays.pop("cues")})
-        _save_npz(f_path, arrays | {"cues": np.zeros((len(ps), 0), np.float32)})
+        write_arrays(c_path, {"cues": arrays.pop("cues")})
+        write_arrays(f_path, arrays | {"cues": np.zeros((len(ps), 0), np.float32)})
     return ps
 
 

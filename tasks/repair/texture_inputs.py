@@ -18,11 +18,11 @@ from pathlib import Path
 
 import numpy as np
 
-from storage.atomic import atomic_path
 from storage.errors import InputError
+from storage.formats.arrays import read_arrays, write_arrays
 from storage.formats.camera_files import camera_files, read_cameras
 from storage.formats.cameras import Camera, CameraSet
-from storage.inputs.remote import readable
+from storage.formats.images import read_rgb, read_rgb_reduced
 from storage.patches.read import PatchStore
 from storage.patches.state import store_fingerprint
 from tasks.config import CampusConfig
@@ -166,9 +166,9 @@ def occupancy(tile_dir: Path, cache: Path, voxel_m: float) -> np.ndarray:
     if key in _OCCUPANCY:  # the regions of a batch share tiles: each tile's voxels are read once per process
         return _OCCUPANCY[key]
     if cache.exists():
-        with np.load(cache) as z:
-            if str(z["fingerprint"]) == fp and float(z["voxel_m"]) == voxel_m:
-                return _remember(key, z["centres"])
+        z = read_arrays(cache)
+        if str(z["fingerprint"]) == fp and float(z["voxel_m"]) == voxel_m:
+            return _remember(key, z["centres"])
     store = PatchStore(tile_dir)
     parts = []
     for lo in range(0, store.n_points, OCCUPANCY_WINDOW):  # bounded memory at any MLS density
@@ -177,8 +177,7 @@ def occupancy(tile_dir: Path, cache: Path, voxel_m: float) -> np.ndarray:
         del xyz
     cells = voxel_cells(np.concatenate(parts)) if parts else np.zeros((0, 3), np.int64)
     centres = ((cells + 0.5) * voxel_m).astype(np.float32)
-    with atomic_path(cache) as tmp:
-        np.savez(tmp, centres=centres, fingerprint=np.array(fp), voxel_m=np.array(voxel_m))
+    write_arrays(cache, {"centres": centres, "fingerprint": np.array(fp), "voxel_m": np.array(voxel_m)})
     return _remember(key, centres)
 
 
@@ -201,9 +200,7 @@ def image_loader(cams: list) -> Callable[[int], np.ndarray]:
 
     def load_image(i: int) -> np.ndarray:
         if i not in images:
-            from PIL import Image
-
-            images[i] = np.asarray(Image.open(cams[i].image).convert("RGB"))
+            images[i] = read_rgb(cams[i].image)
         return images[i]
 
     return load_image
@@ -214,13 +211,9 @@ _CACHE: dict = {}
 
 def reduced_texture(path: str, max_side: int = 2048):
     """An original mesh texture decoded at reduced size (JPEG DCT scaling), cached per process."""
-    from PIL import Image
-
     if path not in _CACHE:
         try:
-            im = Image.open(readable(path))
-            im.draft("RGB", (max_side, max_side))
-            _CACHE[path] = np.asarray(im.convert("RGB"))
+            _CACHE[path] = read_rgb_reduced(path, max_side)
         except (OSError, InputError):  # unreadable, or a texture URL that cannot be staged: no colour from it
             _CACHE[path] = None
         while len(_CACHE) > 4:
