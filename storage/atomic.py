@@ -10,7 +10,7 @@ import hashlib
 import json
 import os
 import tempfile
-from collections.abc import Iterator
+from collections.abc import Iterable, Iterator
 from pathlib import Path
 
 _UMASK = os.umask(0)
@@ -43,6 +43,15 @@ def atomic_path(path: str | Path, suffix: str | None = None) -> Iterator[Path]:
 def write_bytes_atomic(path: str | Path, data: bytes) -> None:
     with atomic_path(path) as tmp:
         tmp.write_bytes(data)
+
+
+def write_parts_atomic(path: str | Path, parts: Iterable) -> int:
+    """Write bytes-like ``parts`` one after the other (never joined in memory) atomically; returns the bytes."""
+    n = 0
+    with atomic_path(path) as tmp, open(tmp, "wb") as f:
+        for part in parts:
+            n += f.write(part)
+    return n
 
 
 def write_json_atomic(path: str | Path, obj, indent: int = 2) -> None:

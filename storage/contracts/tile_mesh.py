@@ -26,7 +26,7 @@ from pathlib import Path
 
 import numpy as np
 
-from storage.atomic import atomic_path, file_fingerprint, write_json_atomic
+from storage.atomic import atomic_path, file_fingerprint, file_sha256, write_json_atomic
 from storage.errors import InputError
 from storage.inputs.location import is_url
 from storage.inputs.remote import url_fingerprint
@@ -129,6 +129,14 @@ def texture_refs(tile_dir: str | Path, recorded: list[str]) -> list[str]:
 def texture_fingerprint(ref: str) -> str:
     """Content fingerprint of a texture reference: a URL's ETag and size, a file's size and mtime."""
     return url_fingerprint(ref) if is_url(ref) else file_fingerprint(ref)
+
+
+def tile_mesh_content(tile_dir: str | Path) -> tuple[str, bytes, list[str]]:
+    """What a merged tile's content is, for fingerprints: (SHA-256 of merged.npz, merged.json's bytes, the
+    content fingerprint of each of its textures)."""
+    npz, meta = tile_mesh_paths(tile_dir)
+    doc = json.loads(meta.read_text())
+    return file_sha256(npz), meta.read_bytes(), [texture_fingerprint(t) for t in texture_refs(tile_dir, doc["textures"])]
 
 
 def read_tile_mesh(tile_dir: str | Path) -> TileMesh:

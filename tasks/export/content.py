@@ -3,14 +3,10 @@ tile or a decimated mesh as glTF (y-up) content."""
 
 from __future__ import annotations
 
-import io
-import math
-from pathlib import Path
-
 import numpy as np
 
 from storage.contracts.tile_mesh import TileMesh
-from storage.inputs.remote import readable
+from storage.formats.images import embedded_texture
 from tasks.config import ExportConfig
 from tasks.export.georef import EnuProjector, enu_to_gltf
 from tasks.export.gltf import GltfImage, GltfMesh, split_by_feature
@@ -46,49 +42,10 @@ def box_from_bounds(lo, hi) -> list[float]:
 
 
 def prepare_texture(path: str, uv: np.ndarray, max_px: int, quality: int) -> tuple[GltfImage, np.ndarray, np.ndarray]:
-    """Crop an atlas to the pixels ``uv`` (k, 2) (glTF convention) use, downscale to ``max_px``.
-
-    Returns (encoded image, its pixels (H, W, 3) uint8, uv remapped to the new image (k, 2) float32).
-    The file's own bytes are embedded when neither crop nor downscale is needed.
-    """
-    from PIL import Image
-
-    path = readable(path)  # a texture of an input named by URL: staged in this process's cache
-    with Image.open(path) as im:
-        fmt, (w0, h0) = im.format, im.size
-        x0 = max(0, math.floor(float(uv[:, 0].min()) * w0) - 2) if len(uv) else 0
-        x1 = min(w0, math.ceil(float(uv[:, 0].max()) * w0) + 2) if len(uv) else w0
-        y0 = max(0, math.floor(float(uv[:, 1].min()) * h0) - 2) if len(uv) else 0
-        y1 = min(h0, math.ceil(float(uv[:, 1].max()) * h0) + 2) if len(uv) else h0
-        cw, ch = max(1, x1 - x0), max(1, y1 - y0)
-        scale = min(1.0, max_px / max(cw, ch))
-        whole = (x0, y0, x1, y1) == (0, 0, w0, h0)
-        if fmt == "JPEG" and scale < 1.0:
-            im.draft("RGB", (math.ceil(w0 * scale), math.ceil(h0 * scale)))  # decode at 1/2, 1/4.. directly
-        f = im.size[0] / w0
-        rgb = im if im.mode == "RGB" else im.convert("RGB")  # no full-size copy of an RGB atlas
-        if not whole:
-            rgb = rgb.crop((math.floor(x0 * f), math.floor(y0 * f), math.ceil(x1 * f), math.ceil(y1 * f)))
-        if rgb is not im:
-            im.close()  # frees the decoded atlas now, not at the end of the block
-        size = (max(1, round(cw * scale)), max(1, round(ch * scale)))
-        if rgb.size != size:
-            rgb = rgb.resize(size, Image.BILINEAR)
-        if whole and scale == 1.0 and fmt in ("JPEG", "PNG"):
-            data, mime = Path(path).read_bytes(), "image/jpeg" if fmt == "JPEG" else "image/png"
-        else:
-            buf = io.BytesIO()
-            if fmt == "PNG":
-                rgb.save(buf, format="PNG", compress_level=3)
-                mime = "image/png"
-            else:
-                rgb.save(buf, format="JPEG", quality=quality)
-                mime = "image/jpeg"
-            data = buf.getvalue()
-        pixels = np.asarray(rgb)
-    new_uv = np.empty_like(uv, dtype=np.float32)
-    new_uv[:, 0] = (uv[:, 0] * w0 - x0) / cw
-    new_uv[:, 1] = (uv[:, 1] * h0 - y0) / ch
+    """An atlas cropped to the pixels ``uv`` (k, 2) (glTF convention) use and downscaled to ``max_px``
+    (:func:`storage.formats.images.embedded_texture`): (encoded image, its pixels (H, W, 3) uint8, uv
+    remapped to the new image (k, 2) float32)."""
+    data, mime, pixels, new_uv = embedded_texture(path, uv, max_px, quality)
     return GltfImage(data, mime), pixels, new_uv
 
 

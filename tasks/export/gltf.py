@@ -221,15 +221,6 @@ def build_glb(mesh: GltfMesh, compression: str = "none") -> bytes:
     return b"".join(glb_parts(mesh, compression))
 
 
-def write_glb(path, mesh: GltfMesh, compression: str = "none") -> int:
-    """Write ``mesh``'s glb to ``path`` (a file name) piece by piece, never holding it whole; returns bytes."""
-    n = 0
-    with open(path, "wb") as f:
-        for part in glb_parts(mesh, compression):
-            n += f.write(part)
-    return n
-
-
 def glb_parts(mesh: GltfMesh, compression: str = "none") -> list:
     """The glb of ``mesh`` as a list of bytes-like pieces (header, JSON, the binary chunk's views)."""
     if compression not in ("none", "draco"):

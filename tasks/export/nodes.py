@@ -16,12 +16,12 @@ from pathlib import Path
 
 import numpy as np
 
-from storage.atomic import atomic_path, file_sha256
-from storage.contracts.tile_mesh import read_tile_mesh, texture_fingerprint, texture_refs, tile_mesh_paths
+from storage.atomic import write_parts_atomic
+from storage.contracts.tile_mesh import read_tile_mesh, tile_mesh_content
 from tasks.config import ExportConfig
 from tasks.export.content import box_from_bounds, leaf_content, lod_gltf
 from tasks.export.georef import EnuProjector, GeoRef
-from tasks.export.gltf import GltfMesh, write_glb
+from tasks.export.gltf import GltfMesh, glb_parts
 from tasks.export.lod import concat_lods, decimate, load_lod, save_lod, weld
 from tasks.export.tree import QuadNode
 
@@ -37,16 +37,12 @@ def content_hash(*parts) -> str:
 def leaf_fingerprint(tile_dir: Path, base: str) -> str:
     """A leaf's fingerprint: ``base`` (version, parameters, georeference) and the merged tile's content
     (``merged.npz``, ``merged.json`` and its textures)."""
-    npz, meta = tile_mesh_paths(tile_dir)
-    doc = json.loads(meta.read_text())
-    textures = [texture_fingerprint(t) for t in texture_refs(tile_dir, doc["textures"])]
-    return content_hash(base, file_sha256(npz), meta.read_bytes(), textures)
+    return content_hash(base, *tile_mesh_content(tile_dir))
 
 
 def _write_glb(out: Path, uri: str, mesh: GltfMesh, compression: str) -> int:
     """Stream the glb to a temporary name and rename it into place (never the whole glb in memory)."""
-    with atomic_path(out / uri) as tmp:
-        return write_glb(tmp, mesh, compression)
+    return write_parts_atomic(out / uri, glb_parts(mesh, compression))
 
 
 def _backend(cfg: ExportConfig) -> str | None:

@@ -10,25 +10,15 @@ grades by eye.
 The points are the tile stores' (``tiles/*/points.parquet``: registered, campus-local), thinned to about
 ``budget`` in all: each tile keeps a seeded random subset in proportion to its points (the same subset on
 every run). The overlay is rewritten only when a store, its grades, the georeference or the budget
-changed (``fingerprints.json`` beside it); with no store it is removed.
+changed (``fingerprints.json`` beside it); with no store it is removed. This module makes the overlay's
+content from arrays; :func:`tasks.export.stage.write_points_overlay` reads the stores and writes it.
 """
 
 from __future__ import annotations
 
-import hashlib
-import json
-import shutil
-import zlib
-from pathlib import Path
-
 import numpy as np
 
-from storage.atomic import write_bytes_atomic, write_json_atomic
-from storage.patches.read import PatchStore
-from storage.patches.schema import PATCHES_FILE, POINTS_FILE
-from storage.patches.state import patch_grades, store_fingerprint
 from tasks.export.content import box_from_bounds
-from tasks.export.georef import EnuProjector, GeoRef, enu_to_gltf
 from tasks.export.gltf import ARRAY_BUFFER, FLOAT, UBYTE, _Builder, _pack
 
 POINTS_VERSION = 1
@@ -96,57 +86,3 @@ def points_tileset_json(boxes: dict[str, list[float]], transform: list[float]) -
                          for k, box in sorted(boxes.items())]}  # fmt: skip
     return {"asset": {"version": "1.1", "generator": f"ms3d export points v{POINTS_VERSION}"},
             "geometricError": diagonal, "root": root}
-
-
-def _digest(parts: list[str]) -> str:
-    return hashlib.sha256("|".join(parts).encode()).hexdigest()[:32]
-
-
-def _tile_points(tile_dir: Path, keep: int, seed: int, grades_mode: str) -> tuple[np.ndarray, np.ndarray]:
-    """(xyz (k, 3) float32 campus-local, status (k,) int8) of a seeded subset of a tile's points, coloured by
-    the grades repair acted on (``repair.grades``: :func:`storage.patches.state.patch_grades`). Columns are
-    read one at a time, so memory is one column of the tile plus the subset."""
-    import pyarrow.parquet as pq
-
-    store = PatchStore(tile_dir)
-    p = store.patches()
-    _, grade, _ = patch_grades(store, grades_mode)
-    idx = thin_indices(pq.ParquetFile(tile_dir / POINTS_FILE).metadata.num_rows, keep, seed)
-    xyz = np.empty((len(idx), 3), np.float32)
-    for j, c in enumerate("xyz"):
-        xyz[:, j] = pq.read_table(tile_dir / POINTS_FILE, columns=[c]).column(0).to_numpy()[idx]
-    return xyz, point_status(p["point_stop"], grade, p["n_faces"], idx)
-
-
-def write_points_overlay(tiles_dir: Path, out_dir: Path, tiles: list[str], georef: GeoRef,
-                         budget: int = POINTS_BUDGET, seed: int = 0, grades_mode: str = "auto") -> dict:
-    """Write (or keep, when unchanged) ``out_dir/tileset.json`` and ``out_dir/{key}.glb`` from the stores of
-    ``tiles`` under ``tiles_dir`` (see the module docstring). Returns {"tiles", "points", "written", "tileset"}."""
-    with_points = [k for k in tiles if (tiles_dir / k / PATCHES_FILE).exists() and (tiles_dir / k / POINTS_FILE).exists()]
-    counts = {k: int(PatchStore(tiles_dir / k).patches()["n_points"].sum()) for k in with_points}
-    counts = {k: n for k, n in counts.items() if n}
-    if not counts:
-        shutil.rmtree(out_dir, ignore_errors=True)
-        return {"tiles": 0, "points": 0, "written": False, "tileset": None}
-    fp = _digest([str(POINTS_VERSION), str(budget), str(seed), grades_mode, json.dumps(georef.to_json(), sort_keys=True)]
-                              + [f"{k}:{store_fingerprint(tiles_dir / k, sides=('grades', 'labels'))}" for k in sorted(counts)])
-    state = out_dir / "fingerprints.json"
-    if state.exists() and json.loads(state.read_text()).get("fingerprint") == fp and (out_dir / "tileset.json").exists():
-        old = json.loads(state.read_text())
-        return {"tiles": len(counts), "points": old["points"], "written": False, "tileset": str(out_dir / "tileset.json")}
-    total = sum(counts.values())
-    projector = EnuProjector(georef)
-    boxes, kept = {}, 0
-    for k in sorted(counts):
-        keep = max(1, round(budget * counts[k] / total)) if total > budget else counts[k]
-        xyz, status = _tile_points(tiles_dir / k, keep, seed + zlib.crc32(k.encode()), grades_mode)
-        enu = projector.local_to_enu(xyz)
-        boxes[k] = box_from_bounds(enu.min(axis=0), enu.max(axis=0))
-        write_bytes_atomic(out_dir / f"{k}.glb", build_points_glb(enu_to_gltf(enu), status))
-        kept += len(xyz)
-    for stale in out_dir.glob("*.glb"):
-        if stale.stem not in boxes:
-            stale.unlink()
-    write_json_atomic(out_dir / "tileset.json", points_tileset_json(boxes, georef.tileset_transform()))
-    write_json_atomic(state, {"fingerprint": fp, "points": kept, "tiles": sorted(boxes)})
-    return {"tiles": len(boxes), "points": kept, "written": True, "tileset": str(out_dir / "tileset.json")}

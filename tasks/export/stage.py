@@ -25,8 +25,11 @@ changed: one changed tile rewrites that tile's content and its ancestors, nothin
 
 from __future__ import annotations
 
+import hashlib
 import json
+import shutil
 import time
+import zlib
 from collections.abc import Callable
 from dataclasses import replace
 from functools import partial
@@ -36,12 +39,23 @@ import numpy as np
 
 from storage.atomic import write_bytes_atomic, write_json_atomic
 from storage.errors import InputError
+from storage.patches.read import PatchStore
+from storage.patches.schema import PATCHES_FILE, POINTS_FILE
+from storage.patches.state import patch_grades, store_fingerprint
 from storage.workdir.layout import WorkDir, campus_frame, read_campus
 from tasks.batches import balanced_batches
 from tasks.config import ExportConfig
-from tasks.export.georef import GeoRef, make_georef
+from tasks.export.content import box_from_bounds
+from tasks.export.georef import EnuProjector, GeoRef, enu_to_gltf, make_georef
 from tasks.export.nodes import NodeJob, build_node, content_hash, leaf_fingerprint
-from tasks.export.points import write_points_overlay
+from tasks.export.points import (
+    POINTS_BUDGET,
+    POINTS_VERSION,
+    build_points_glb,
+    point_status,
+    points_tileset_json,
+    thin_indices,
+)
 from tasks.export.tree import EXPORT_VERSION, QuadNode, QuadTree, plan_quadtree, tileset_json
 from tasks.units import record_step
 
@@ -177,6 +191,60 @@ def run_export(work_dir: str | Path, config: ExportConfig | None = None, tiles: 
         "tileset": str(tileset), "overview": str(out / "overview.glb"), "georef": str(out / "georef.json"),
         "points": points,
     }  # fmt: skip
+
+
+# ------------------------------------------------------------------------------------- the points overlay
+
+def _digest(parts: list[str]) -> str:
+    return hashlib.sha256("|".join(parts).encode()).hexdigest()[:32]
+
+
+def _tile_points(tile_dir: Path, keep: int, seed: int, grades_mode: str) -> tuple[np.ndarray, np.ndarray]:
+    """(xyz (k, 3) float32 campus-local, status (k,) int8) of a seeded subset of a tile's points, coloured by
+    the grades repair acted on (``repair.grades``: :func:`storage.patches.state.patch_grades`). Columns are
+    read one at a time, so memory is one column of the tile plus the subset."""
+    store = PatchStore(tile_dir)
+    p = store.patches()
+    _, grade, _ = patch_grades(store, grades_mode)
+    idx = thin_indices(store.n_points, keep, seed)
+    xyz = np.empty((len(idx), 3), np.float32)
+    for j, c in enumerate("xyz"):
+        xyz[:, j] = store.read_all_stacked("points", [c], np.float32)[idx, 0]
+    return xyz, point_status(p["point_stop"], grade, p["n_faces"], idx)
+
+
+def write_points_overlay(tiles_dir: Path, out_dir: Path, tiles: list[str], georef: GeoRef,
+                         budget: int = POINTS_BUDGET, seed: int = 0, grades_mode: str = "auto") -> dict:
+    """Write (or keep, when unchanged) ``out_dir/tileset.json`` and ``out_dir/{key}.glb`` from the stores of
+    ``tiles`` under ``tiles_dir`` (see :mod:`tasks.export.points`). Returns {"tiles", "points", "written", "tileset"}."""
+    with_points = [k for k in tiles if (tiles_dir / k / PATCHES_FILE).exists() and (tiles_dir / k / POINTS_FILE).exists()]
+    counts = {k: int(PatchStore(tiles_dir / k).patches()["n_points"].sum()) for k in with_points}
+    counts = {k: n for k, n in counts.items() if n}
+    if not counts:
+        shutil.rmtree(out_dir, ignore_errors=True)
+        return {"tiles": 0, "points": 0, "written": False, "tileset": None}
+    fp = _digest([str(POINTS_VERSION), str(budget), str(seed), grades_mode, json.dumps(georef.to_json(), sort_keys=True)]
+                              + [f"{k}:{store_fingerprint(tiles_dir / k, sides=('grades', 'labels'))}" for k in sorted(counts)])
+    state = out_dir / "fingerprints.json"
+    if state.exists() and json.loads(state.read_text()).get("fingerprint") == fp and (out_dir / "tileset.json").exists():
+        old = json.loads(state.read_text())
+        return {"tiles": len(counts), "points": old["points"], "written": False, "tileset": str(out_dir / "tileset.json")}
+    total = sum(counts.values())
+    projector = EnuProjector(georef)
+    boxes, kept = {}, 0
+    for k in sorted(counts):
+        keep = max(1, round(budget * counts[k] / total)) if total > budget else counts[k]
+        xyz, status = _tile_points(tiles_dir / k, keep, seed + zlib.crc32(k.encode()), grades_mode)
+        enu = projector.local_to_enu(xyz)
+        boxes[k] = box_from_bounds(enu.min(axis=0), enu.max(axis=0))
+        write_bytes_atomic(out_dir / f"{k}.glb", build_points_glb(enu_to_gltf(enu), status))
+        kept += len(xyz)
+    for stale in out_dir.glob("*.glb"):
+        if stale.stem not in boxes:
+            stale.unlink()
+    write_json_atomic(out_dir / "tileset.json", points_tileset_json(boxes, georef.tileset_transform()))
+    write_json_atomic(state, {"fingerprint": fp, "points": kept, "tiles": sorted(boxes)})
+    return {"tiles": len(boxes), "points": kept, "written": True, "tileset": str(out_dir / "tileset.json")}
 
 
 # ------------------------------------------------------------------------------------- in the flow

@@ -5,8 +5,9 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
+from storage.atomic import write_parts_atomic
 from tasks.export import vertex_split
-from tasks.export.gltf import GltfMesh, build_glb, split_by_feature, write_glb
+from tasks.export.gltf import GltfMesh, build_glb, glb_parts, split_by_feature
 from tasks.export.lod import LodMesh, decimate, split_blocks
 
 
@@ -73,13 +74,13 @@ def test_decimation_in_blocks_welds_its_seams_and_bounds_its_deviation():
     assert set(np.unique(blocks.mesh.region).tolist()) == {-1, 3}
 
 
-def test_write_glb_streams_the_bytes_build_glb_returns(tmp_path):
+def test_glb_parts_stream_the_bytes_build_glb_returns(tmp_path):
     positions = np.array([[0, 0, 0], [1, 0, 0], [1, 0, -1], [0, 0, -1], [2, 0, 0]], np.float32)
     mesh = GltfMesh(positions=positions, faces=np.array([[0, 1, 2], [0, 2, 3], [1, 4, 2]]),
                     feature=np.array([0, 0, 1]), grade=np.array([0, 1], np.int8), source=np.array([0, 1], np.int8),
                     region=np.array([-1, 7], np.int32), face_texture=np.full(3, -1, np.int16),
                     vertex_colors=np.full((5, 3), 200, np.uint8))
-    n = write_glb(tmp_path / "a.glb", mesh)
+    n = write_parts_atomic(tmp_path / "a.glb", glb_parts(mesh))
     data = (tmp_path / "a.glb").read_bytes()
     assert n == len(data) and data == build_glb(mesh) and len(data) % 4 == 0
 

@@ -15,7 +15,8 @@ from synth.corner_scene import write_campus_workdir
 from tasks.export.check import check_tileset, node_tools, validate_glbs
 from tasks.export.georef import EnuProjector, gltf_to_enu, make_georef
 from tasks.export.gltf import glb_primitives, srgb_to_linear_u8
-from tasks.export.points import STATUS_COLOURS, write_points_overlay
+from tasks.export.points import STATUS_COLOURS
+from tasks.export.stage import write_points_overlay
 
 
 @pytest.fixture
