@@ -171,6 +171,12 @@ def las_info(path: Path) -> CloudInfo:
         )
 
 
+def las_header_bounds(path: Path) -> tuple[np.ndarray, np.ndarray]:
+    """(mins, maxs) (3,) float64 of a LAS/LAZ header, its points unread (a file whose points fail)."""
+    with laspy.open(path) as f:
+        return np.asarray(f.header.mins, float), np.asarray(f.header.maxs, float)
+
+
 def _check_las_complete(path: Path, h: laspy.LasHeader) -> None:
     if h.point_count == 0:
         raise InputError(path, "no points (the header's point count is 0)")
@@ -376,4 +382,5 @@ def write_points(path: str | Path, chunk: PointChunk, crs: str | None = None, **
     return Path(path)
 
 
-__all__ = ["LAS_INT32_MAX", "LasChunkWriter", "choose_offset", "iter_las", "las_info", "write_points"]
+__all__ = ["LAS_INT32_MAX", "LasChunkWriter", "choose_offset", "iter_las", "las_header_bounds", "las_info",
+           "write_points"]

@@ -157,6 +157,26 @@ def texture_image(mesh: MeshData, index: int) -> np.ndarray:
         return np.asarray(image.convert("RGB"))
 
 
+def raw_vertices(path: str | Path) -> np.ndarray:
+    """Vertex positions of a mesh file that failed validation: the ``v`` lines of an OBJ (whatever its
+    faces say), else whatever trimesh can load. (n, 3) float64, possibly empty."""
+    path = Path(path)
+    if path.suffix.lower() == ".obj":
+        rows = []
+        with open(path, errors="replace") as f:
+            for line in f:  # the error path only: a Python loop is fine here
+                if line.startswith("v "):
+                    parts = line.split()[1:4]
+                    try:
+                        rows.append([float(p) for p in parts])
+                    except ValueError:
+                        continue
+        return np.asarray(rows, np.float64).reshape(-1, 3)
+    import trimesh
+
+    return np.asarray(trimesh.load(path, process=False, force="mesh").vertices, np.float64)
+
+
 __all__ = [
     "DEGENERATE_AREA_M2",
     "READERS",
@@ -166,6 +186,7 @@ __all__ = [
     "duplicate_faces",
     "iter_meshes",
     "mesh_files",
+    "raw_vertices",
     "read_mesh",
     "read_mesh_dir",
     "texture_image",

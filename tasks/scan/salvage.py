@@ -9,26 +9,9 @@ from pathlib import Path
 
 import numpy as np
 
+from storage.formats.las import las_header_bounds
+from storage.formats.meshes import raw_vertices
 from tasks.config import CampusConfig
-
-
-def raw_vertices(path: Path) -> np.ndarray:
-    """Vertex positions of a mesh file that failed validation: the ``v`` lines of an OBJ (whatever its
-    faces say), else whatever trimesh can load. (n, 3) float64, possibly empty."""
-    if path.suffix.lower() == ".obj":
-        rows = []
-        with open(path, errors="replace") as f:
-            for line in f:  # the error path only: a Python loop is fine here
-                if line.startswith("v "):
-                    parts = line.split()[1:4]
-                    try:
-                        rows.append([float(p) for p in parts])
-                    except ValueError:
-                        continue
-        return np.asarray(rows, np.float64).reshape(-1, 3)
-    import trimesh
-
-    return np.asarray(trimesh.load(path, process=False, force="mesh").vertices, np.float64)
 
 
 def salvage_mesh_bounds(path: Path, cfg: CampusConfig, offset=None) -> tuple[list, list]:
@@ -48,10 +31,7 @@ def salvage_mesh_bounds(path: Path, cfg: CampusConfig, offset=None) -> tuple[lis
 def salvage_cloud_bounds(path: Path, cfg: CampusConfig) -> tuple[list, list]:
     """The header bounds of a LAS/LAZ file whose points are unreadable (to know which tiles it hits)."""
     try:
-        import laspy
-
-        with laspy.open(path) as f:
-            lo, hi = np.asarray(f.header.mins, float), np.asarray(f.header.maxs, float)
+        lo, hi = las_header_bounds(path)
         if np.isfinite(lo).all() and np.isfinite(hi).all() and (hi >= lo).all() and (hi > lo).any():
             return (lo * cfg.inputs.units_scale).tolist(), (hi * cfg.inputs.units_scale).tolist()
     except Exception:  # noqa: BLE001 - best effort
