@@ -120,7 +120,7 @@ def _n_records(store) -> int:
 def test_no_shared_disk_cluster_survives_a_killed_worker_and_a_killed_run(tmp_path, s3_env, dask_cluster):
     import yaml
 
-    from flows.campus import InlineExecutor
+    from flows.campus import InlineExecutor, run_campus
     from flows.remote import mirror_for
     from storage.objstore.store import open_store
     from tasks.config import CampusConfig
@@ -137,8 +137,8 @@ def test_no_shared_disk_cluster_survives_a_killed_worker_and_a_killed_run(tmp_pa
     remote_yaml.write_text(yaml.safe_dump(doc))
 
     over = {k: (v == "true") if v in ("true", "false") else int(v) for k, v in OVERRIDES.items()}
-    reprocess(CampusConfig.from_yaml(campus, {**over, "work_dir": str(tmp_path / "local"), "runner": "inline"}),
-              InlineExecutor())
+    run_campus(CampusConfig.from_yaml(campus, {**over, "work_dir": str(tmp_path / "local"), "runner": "inline"}),
+               executor=InlineExecutor())
 
     work = prefix + "/work"
     store = open_store(work)

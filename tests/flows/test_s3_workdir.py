@@ -306,11 +306,13 @@ def test_a_run_that_lost_its_lease_starts_no_more_tasks(tmp_path):
 
 
 def test_tasks_pull_what_they_read(s3, tmp_path, monkeypatch):
-    """classify pulls only its tiles' stores; repair pulls everything but the ingest runs and export's
+    """As the stages declare (``STAGE.reads`` / ``skips``): classify pulls only its tiles' stores; repair pulls everything but the ingest runs and export's
     outputs; the files it leaves in the bucket are not taken for deletions when it pushes."""
     from flows.remote import mirror_for, synced
     from storage.objstore.mirror import Mirror
     from storage.objstore.store import open_store
+    from tasks.classify import STAGE as CLASSIFY
+    from tasks.repair import STAGE as REPAIR
 
     work = s3 + "/work"
     a = Mirror(open_store(work), tmp_path / "writer")
@@ -332,10 +334,10 @@ def test_tasks_pull_what_they_read(s3, tmp_path, monkeypatch):
         (root / "regions" / "r1.npz").write_text("new")
 
     fresh_process(monkeypatch, tmp_path / "cache-w1")
-    synced(classify_task)(["1_1"], cj)
+    synced(CLASSIFY)(classify_task)(["1_1"], cj)
     assert seen["classify"] == ["manifest.d/classify/1_1.json", "tiles/1_1/points.parquet"]
     fresh_process(monkeypatch, tmp_path / "cache-w2")
-    synced(repair_task)(["r1"], cj)
+    synced(REPAIR)(repair_task)(["r1"], cj)
     assert seen["repair"] == ["manifest.d/classify/1_1.json", "regions/plan.json", "tiles/1_1/points.parquet",
                               "tiles/2_1/points.parquet"]
     fresh_process(monkeypatch, tmp_path / "cache-reader")
