@@ -29,227 +29,173 @@ _INF_D = 1 << 40
 
 
 @njit(cache=True, nogil=True)
-def _bk(tr_cap, first, nxt, head, rcap, flow):
-    """Max flow of the residual graph (tr_cap: (n,) source minus sink residual of each node; arcs in
-    (first, nxt) lists, head, rcap: (2e,) with arc ^ 1 its sister), changed in place; flow: the flow through
-    both terminals already. Returns (max flow, (n,) bool sink side)."""
+def _init_trees(tr_cap):
+    """The two trees' roots: every node with residual source (sink) capacity is a child of the source
+    (sink), active in node order. Returns (parent, is_sink, ts, dist, qnext, q): parent arc per node (or
+    _NONE, _TERMINAL, _ORPHAN), its tree, its time stamp and distance to the terminal (the heuristics of
+    the paper), and the active list (qnext[j] -1: not active, j: the last one; q: [first, last])."""
     n = len(tr_cap)
     parent = np.full(n, _NONE, np.int64)
     is_sink = np.zeros(n, np.bool_)
     ts = np.zeros(n, np.int64)
     dist = np.zeros(n, np.int64)
-    qnext = np.full(n, -1, np.int64)  # the active list: -1 not active, i itself: the last one
-    q_first, q_last = -1, -1
-    orphans = np.empty(n, np.int64)  # an augmentation's orphans, newest first (a stack)
-    fifo = np.empty(n + 1, np.int64)  # the orphans adoption makes, first in first out
-    time = 0
+    qnext = np.full(n, -1, np.int64)
+    q = np.full(2, -1, np.int64)
     for i in range(n):
         if tr_cap[i] > 0 or tr_cap[i] < 0:
             is_sink[i] = tr_cap[i] < 0
             parent[i] = _TERMINAL
             dist[i] = 1
-            if qnext[i] < 0:
-                if q_last >= 0:
-                    qnext[q_last] = i
-                else:
-                    q_first = i
-                q_last = i
-                qnext[i] = i
-    current = -1
+            if q[1] >= 0:
+                qnext[q[1]] = i
+            else:
+                q[0] = i
+            q[1] = i
+            qnext[i] = i
+    return parent, is_sink, ts, dist, qnext, q
+
+
+@njit(cache=True, nogil=True, inline="always")
+def _adopt(orphans, n_orph, time, first, nxt, head, rcap, parent, is_sink, ts, dist, qnext, q, fifo):
+    """Each orphan of an augmentation (newest first), then the orphans it leaves, first in first out: the
+    nearest parent in its own tree whose path reaches the terminal without an orphan, else free (its tree
+    neighbours become active again, its children orphans)."""
+    for oi in range(n_orph - 1, -1, -1):
+        f_head, f_tail = 0, 1
+        fifo[0] = orphans[oi]
+        while f_head < f_tail:
+            o = fifo[f_head]
+            f_head += 1
+            sink = is_sink[o]
+            best, d_min = -1, _INF_D
+            a0 = first[o]
+            while a0 >= 0:
+                if (rcap[a0] if sink else rcap[a0 ^ 1]) != 0.0:
+                    j = head[a0]
+                    if is_sink[j] == sink and parent[j] != _NONE:
+                        d = 0  # the origin of j: a terminal (a tree path), or an orphan
+                        while True:
+                            if ts[j] == time:
+                                d += dist[j]
+                                break
+                            e = parent[j]
+                            d += 1
+                            if e == _TERMINAL:
+                                ts[j] = time
+                                dist[j] = 1
+                                break
+                            if e == _ORPHAN:
+                                d = _INF_D
+                                break
+                            j = head[e]
+                        if d < _INF_D:
+                            if d < d_min:
+                                best, d_min = a0, d
+                            j = head[a0]  # mark the path checked: its distances for this time
+                            while ts[j] != time:
+                                ts[j] = time
+                                dist[j] = d
+                                d -= 1
+                                j = head[parent[j]]
+                a0 = nxt[a0]
+            if best >= 0:
+                parent[o] = best
+                ts[o] = time
+                dist[o] = d_min + 1
+                continue
+            parent[o] = _NONE
+            a0 = first[o]
+            while a0 >= 0:
+                j = head[a0]
+                e = parent[j]
+                if is_sink[j] == sink and e != _NONE:
+                    if (rcap[a0] if sink else rcap[a0 ^ 1]) != 0.0 and qnext[j] < 0:
+                        if q[1] >= 0:
+                            qnext[q[1]] = j
+                        else:
+                            q[0] = j
+                        q[1] = j
+                        qnext[j] = j
+                    if e != _TERMINAL and e != _ORPHAN and head[e] == o:
+                        parent[j] = _ORPHAN
+                        fifo[f_tail] = j
+                        f_tail += 1
+                a0 = nxt[a0]
+
+
+@njit(cache=True, nogil=True)
+def _bk(tr_cap, first, nxt, head, rcap, flow):
+    """Max flow of the residual graph (tr_cap: (n,) source minus sink residual of each node; arcs in
+    (first, nxt) lists, head, rcap: (2e,) with arc ^ 1 its sister), changed in place; flow: the flow through
+    both terminals already. Returns (max flow, parent, is_sink)."""
+    n = len(tr_cap)
+    parent, is_sink, ts, dist, qnext, q = _init_trees(tr_cap)
+    orphans, fifo = np.empty(n, np.int64), np.empty(n + 1, np.int64)
+    time, current = 0, -1
     while True:
         i = current
         if i >= 0:
             qnext[i] = -1
             if parent[i] == _NONE:
                 i = -1
-        if i < 0:  # the next active node that is still in a tree
-            while True:
-                i = q_first
-                if i < 0:
-                    break
-                if qnext[i] == i:
-                    q_first, q_last = -1, -1
-                else:
-                    q_first = qnext[i]
-                qnext[i] = -1
-                if parent[i] != _NONE:
-                    break
-            if i < 0:
-                break
-        # growth
-        mid = -1
+        while i < 0 and q[0] >= 0:  # the next active node still in a tree
+            i = q[0]
+            q[0] = qnext[i] if qnext[i] != i else -1
+            q[1] = q[1] if q[0] >= 0 else -1
+            qnext[i] = -1
+            i = i if parent[i] != _NONE else -1
+        if i < 0:
+            break
+        mid, sink = -1, is_sink[i]  # growth over i's unsaturated arcs, up to an arc into the other tree
         a = first[i]
-        if not is_sink[i]:
-            while a >= 0:
-                if rcap[a] != 0.0:
-                    j = head[a]
-                    if parent[j] == _NONE:
-                        is_sink[j] = False
-                        parent[j] = a ^ 1
-                        ts[j] = ts[i]
-                        dist[j] = dist[i] + 1
-                        if qnext[j] < 0:
-                            if q_last >= 0:
-                                qnext[q_last] = j
-                            else:
-                                q_first = j
-                            q_last = j
-                            qnext[j] = j
-                    elif is_sink[j]:
-                        mid = a
-                        break
-                    elif ts[j] <= ts[i] and dist[j] > dist[i]:
-                        parent[j] = a ^ 1
-                        ts[j] = ts[i]
-                        dist[j] = dist[i] + 1
-                a = nxt[a]
-        else:
-            while a >= 0:
-                if rcap[a ^ 1] != 0.0:
-                    j = head[a]
-                    if parent[j] == _NONE:
-                        is_sink[j] = True
-                        parent[j] = a ^ 1
-                        ts[j] = ts[i]
-                        dist[j] = dist[i] + 1
-                        if qnext[j] < 0:
-                            if q_last >= 0:
-                                qnext[q_last] = j
-                            else:
-                                q_first = j
-                            q_last = j
-                            qnext[j] = j
-                    elif not is_sink[j]:
-                        mid = a ^ 1
-                        break
-                    elif ts[j] <= ts[i] and dist[j] > dist[i]:
-                        parent[j] = a ^ 1
-                        ts[j] = ts[i]
-                        dist[j] = dist[i] + 1
-                a = nxt[a]
+        while a >= 0:
+            if (rcap[a ^ 1] if sink else rcap[a]) != 0.0:
+                j = head[a]
+                if parent[j] == _NONE:
+                    is_sink[j], parent[j], ts[j], dist[j] = sink, a ^ 1, ts[i], dist[i] + 1
+                    if qnext[j] < 0:
+                        if q[1] >= 0:
+                            qnext[q[1]] = j
+                        else:
+                            q[0] = j
+                        q[1], qnext[j] = j, j
+                elif is_sink[j] != sink:
+                    mid = a ^ 1 if sink else a
+                    break
+                elif ts[j] <= ts[i] and dist[j] > dist[i]:  # a shorter path to the terminal through i
+                    parent[j], ts[j], dist[j] = a ^ 1, ts[i], dist[i] + 1
+            a = nxt[a]
         time += 1
         if mid < 0:
             current = -1
             continue
-        qnext[i] = i  # stays active without a place in the list: it grows again next
-        current = i
-        # augmentation along source root -> ... -> tail(mid) -> head(mid) -> ... -> sink root
-        bottle = rcap[mid]
-        k = head[mid ^ 1]
+        qnext[i], current = i, i  # i stays active without a place in the list: it grows again next
+        bottle, k = rcap[mid], head[mid ^ 1]  # the bottleneck of source root -> mid -> sink root
         while parent[k] != _TERMINAL:
-            e = parent[k]
-            bottle = min(bottle, rcap[e ^ 1])
-            k = head[e]
-        bottle = min(bottle, tr_cap[k])
-        k = head[mid]
+            bottle, k = min(bottle, rcap[parent[k] ^ 1]), head[parent[k]]
+        bottle, k = min(bottle, tr_cap[k]), head[mid]
         while parent[k] != _TERMINAL:
-            e = parent[k]
-            bottle = min(bottle, rcap[e])
-            k = head[e]
+            bottle, k = min(bottle, rcap[parent[k]]), head[parent[k]]
         bottle = min(bottle, -tr_cap[k])
         rcap[mid ^ 1] += bottle
         rcap[mid] -= bottle
         n_orph = 0
-        k = head[mid ^ 1]
-        while parent[k] != _TERMINAL:
-            e = parent[k]
-            rcap[e] += bottle
-            rcap[e ^ 1] -= bottle
-            nk = head[e]
-            if rcap[e ^ 1] == 0.0:
-                parent[k] = _ORPHAN
-                orphans[n_orph] = k
-                n_orph += 1
-            k = nk
-        tr_cap[k] -= bottle
-        if tr_cap[k] == 0.0:
-            parent[k] = _ORPHAN
-            orphans[n_orph] = k
-            n_orph += 1
-        k = head[mid]
-        while parent[k] != _TERMINAL:
-            e = parent[k]
-            rcap[e ^ 1] += bottle
-            rcap[e] -= bottle
-            nk = head[e]
-            if rcap[e] == 0.0:
-                parent[k] = _ORPHAN
-                orphans[n_orph] = k
-                n_orph += 1
-            k = nk
-        tr_cap[k] += bottle
-        if tr_cap[k] == 0.0:
-            parent[k] = _ORPHAN
-            orphans[n_orph] = k
-            n_orph += 1
+        for side in range(2):  # 0: the source tree's path (the flow goes parent -> child), 1: the sink's
+            k = head[mid ^ 1] if side == 0 else head[mid]
+            while parent[k] != _TERMINAL:
+                e = parent[k]
+                down = e ^ 1 if side == 0 else e  # the arc the flow goes along
+                rcap[down ^ 1] += bottle
+                rcap[down] -= bottle
+                if rcap[down] == 0.0:
+                    parent[k], orphans[n_orph], n_orph = _ORPHAN, k, n_orph + 1
+                k = head[e]
+            tr_cap[k] += -bottle if side == 0 else bottle
+            if tr_cap[k] == 0.0:
+                parent[k], orphans[n_orph], n_orph = _ORPHAN, k, n_orph + 1
         flow += bottle
-        # adoption: each orphan of the augmentation (newest first), then the orphans it leaves, in turn
-        for oi in range(n_orph - 1, -1, -1):
-            f_head, f_tail = 0, 0
-            fifo[f_tail] = orphans[oi]
-            f_tail += 1
-            while f_head < f_tail:
-                o = fifo[f_head]
-                f_head += 1
-                sink = is_sink[o]
-                best, d_min = -1, _INF_D
-                a0 = first[o]
-                while a0 >= 0:
-                    if (rcap[a0] if sink else rcap[a0 ^ 1]) != 0.0:
-                        j = head[a0]
-                        if is_sink[j] == sink and parent[j] != _NONE:
-                            d = 0  # the origin of j: a terminal (a tree path), or an orphan
-                            while True:
-                                if ts[j] == time:
-                                    d += dist[j]
-                                    break
-                                e = parent[j]
-                                d += 1
-                                if e == _TERMINAL:
-                                    ts[j] = time
-                                    dist[j] = 1
-                                    break
-                                if e == _ORPHAN:
-                                    d = _INF_D
-                                    break
-                                j = head[e]
-                            if d < _INF_D:
-                                if d < d_min:
-                                    best, d_min = a0, d
-                                j = head[a0]
-                                while ts[j] != time:
-                                    ts[j] = time
-                                    dist[j] = d
-                                    d -= 1
-                                    j = head[parent[j]]
-                    a0 = nxt[a0]
-                if best >= 0:
-                    parent[o] = best
-                    ts[o] = time
-                    dist[o] = d_min + 1
-                    continue
-                parent[o] = _NONE  # free: its tree neighbours may grow into it, its children are orphans
-                a0 = first[o]
-                while a0 >= 0:
-                    j = head[a0]
-                    e = parent[j]
-                    if is_sink[j] == sink and e != _NONE:
-                        if (rcap[a0] if sink else rcap[a0 ^ 1]) != 0.0 and qnext[j] < 0:
-                            if q_last >= 0:
-                                qnext[q_last] = j
-                            else:
-                                q_first = j
-                            q_last = j
-                            qnext[j] = j
-                        if e != _TERMINAL and e != _ORPHAN and head[e] == o:
-                            parent[j] = _ORPHAN
-                            fifo[f_tail] = j
-                            f_tail += 1
-                    a0 = nxt[a0]
-    out = np.empty(n, np.bool_)
-    for i in range(n):
-        out[i] = parent[i] != _NONE and is_sink[i]
-    return flow, out
+        _adopt(orphans, n_orph, time, first, nxt, head, rcap, parent, is_sink, ts, dist, qnext, q, fifo)
+    return flow, parent, is_sink
 
 
 @njit(cache=True, nogil=True)
@@ -329,8 +275,8 @@ def min_cut(cap_source: np.ndarray, cap_sink: np.ndarray, a: np.ndarray, b: np.n
     first, nxt, head, rcap = _arc_lists(n, np.ascontiguousarray(a, np.int64), np.ascontiguousarray(b, np.int64),
                                         np.ascontiguousarray(cap, np.float64),
                                         np.ascontiguousarray(rev_cap, np.float64))
-    flow, sink = _bk(tr, first, nxt, head, rcap, flow)
-    return float(flow), sink
+    flow, parent, is_sink = _bk(tr, first, nxt, head, rcap, flow)
+    return float(flow), (parent != _NONE) & is_sink
 
 
 __all__ = ["min_cut"]
