@@ -15,6 +15,7 @@ and reused when it exists: the pipeline takes ~1.5 min on 'tiny', ~5 min on 'dem
 
 from __future__ import annotations
 
+import argparse
 import pickle
 import shutil
 import sys
@@ -73,6 +74,17 @@ def capture(preset: str, seed: int, work: Path, out: Path | None = None) -> dict
     rec = {"preset": preset, "seed": seed, "seconds": time.perf_counter() - t0, "charts": charts, "graphs": graphs}
     out.write_bytes(pickle.dumps(rec))
     return rec
+
+
+def capture_parser(description: str, repeat: int) -> argparse.ArgumentParser:
+    """The options every bench over a recorded repair shares: the campus (preset, seed), where the recording
+    is kept, and how many timed repeats."""
+    ap = argparse.ArgumentParser(description=description)
+    ap.add_argument("--preset", default="tiny")
+    ap.add_argument("--seed", type=int, default=1)
+    ap.add_argument("--work", type=Path, default=Path("/tmp/cdt-bench"))
+    ap.add_argument("--repeat", type=int, default=repeat)
+    return ap
 
 
 def best_of(fn, repeat: int) -> tuple[float, object]:

@@ -16,7 +16,6 @@ The largest charts are listed one by one. Always exits 0: it reports.
 
 from __future__ import annotations
 
-import argparse
 import sys
 from pathlib import Path
 
@@ -25,7 +24,7 @@ import numpy as np
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
 from benchmarks._common import machine
-from benchmarks._repair_capture import best_of, capture
+from benchmarks._repair_capture import best_of, capture, capture_parser
 from tasks.repair.conformal import constrained_triangles
 
 
@@ -73,11 +72,7 @@ def as_set(tri: np.ndarray) -> set:
 
 
 def main(argv: list[str] | None = None) -> int:
-    ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
-    ap.add_argument("--preset", default="tiny")
-    ap.add_argument("--seed", type=int, default=1)
-    ap.add_argument("--work", type=Path, default=Path("/tmp/cdt-bench"))
-    ap.add_argument("--repeat", type=int, default=5)
+    ap = capture_parser(__doc__.split("\n\n")[0], repeat=5)
     ap.add_argument("--show", type=int, default=8, help="the largest charts listed one by one")
     args = ap.parse_args(argv)
     rec = capture(args.preset, args.seed, args.work / args.preset)

@@ -22,7 +22,6 @@ graph (the nodes that reach the sink). Always exits 0: it reports.
 
 from __future__ import annotations
 
-import argparse
 import sys
 from pathlib import Path
 
@@ -31,7 +30,7 @@ import numpy as np
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
 from benchmarks._common import machine
-from benchmarks._repair_capture import best_of, capture
+from benchmarks._repair_capture import best_of, capture, capture_parser
 from tasks.repair.mincut import min_cut
 
 
@@ -75,11 +74,7 @@ def copies(g: tuple, k: int) -> tuple:
 
 
 def main(argv: list[str] | None = None) -> int:
-    ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
-    ap.add_argument("--preset", default="tiny")
-    ap.add_argument("--seed", type=int, default=1)
-    ap.add_argument("--work", type=Path, default=Path("/tmp/cdt-bench"))
-    ap.add_argument("--repeat", type=int, default=3)
+    ap = capture_parser(__doc__.split("\n\n")[0], repeat=3)
     ap.add_argument("--scipy", action="store_true", help="also SciPy's Dinic on integer-scaled capacities")
     ap.add_argument("--scale", type=int, default=0, help="add the largest fusion graph K times over")
     args = ap.parse_args(argv)
