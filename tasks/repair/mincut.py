@@ -28,6 +28,17 @@ _NONE, _TERMINAL, _ORPHAN = -1, -2, -3
 _INF_D = 1 << 40
 
 
+@njit(cache=True, nogil=True, inline="always")
+def _activate(i, q, qnext):
+    """Append node ``i`` to the active queue (``q``: [head, tail], -1 when empty; ``qnext[tail] == tail``)."""
+    if q[1] >= 0:
+        qnext[q[1]] = i
+    else:
+        q[0] = i
+    q[1] = i
+    qnext[i] = i
+
+
 @njit(cache=True, nogil=True)
 def _init_trees(tr_cap):
     """The two trees' roots: every node with residual source (sink) capacity is a child of the source
@@ -46,12 +57,7 @@ def _init_trees(tr_cap):
             is_sink[i] = tr_cap[i] < 0
             parent[i] = _TERMINAL
             dist[i] = 1
-            if q[1] >= 0:
-                qnext[q[1]] = i
-            else:
-                q[0] = i
-            q[1] = i
-            qnext[i] = i
+            _activate(i, q, qnext)
     return parent, is_sink, ts, dist, qnext, q
 
 
@@ -110,12 +116,7 @@ def _adopt(orphans, n_orph, time, first, nxt, head, rcap, parent, is_sink, ts, d
                 e = parent[j]
                 if is_sink[j] == sink and e != _NONE:
                     if (rcap[a0] if sink else rcap[a0 ^ 1]) != 0.0 and qnext[j] < 0:
-                        if q[1] >= 0:
-                            qnext[q[1]] = j
-                        else:
-                            q[0] = j
-                        q[1] = j
-                        qnext[j] = j
+                        _activate(j, q, qnext)
                     if e != _TERMINAL and e != _ORPHAN and head[e] == o:
                         parent[j] = _ORPHAN
                         fifo[f_tail] = j
