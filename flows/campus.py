@@ -146,7 +146,7 @@ def _run_stages(run: _Run) -> dict:
                         stages=run.stages, incomplete=inputs["incomplete"],
                         skipped_files=list(inputs["found"].skipped), registration=inputs["registration"])
     summary["task_runs"] = getattr(run.ex, "task_runs", 0)
-    summary["output"] = {"tileset": str(run.wd.root / "output" / "tileset.json")
+    summary["output"] = {"tileset": str(run.wd.tileset_json)
                          if exported["status"] == "done" else None, "report": report.get("report")}
     return summary
 

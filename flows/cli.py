@@ -125,7 +125,7 @@ def _cmd_view(a) -> int:
     from storage.workdir.layout import WorkDir
 
     wd = WorkDir(a.work_dir)
-    if not (wd.root / "output" / "tileset.json").exists():
+    if not wd.tileset_json.exists():
         raise InputError(wd.root, "no output/tileset.json: run `ms3d run CONFIG` first")
     serve_viewer(wd.root, port=a.port, label=a.label)
     return 0

@@ -65,7 +65,7 @@ class LabelApi:
         self.frame = campus_frame(doc)
         self.grid = PatchGrid(**doc["grid"]) if "grid" in doc else PatchGrid()
         self._projector = None
-        self._georef_path = wd.root / "output" / "georef.json"
+        self._georef_path = wd.georef_json
 
     @property
     def projector(self):

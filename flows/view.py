@@ -25,6 +25,7 @@ from http.server import SimpleHTTPRequestHandler, ThreadingHTTPServer
 from pathlib import Path
 
 from storage.errors import InputError
+from storage.workdir.layout import WorkDir
 
 VIEWER_DIR = Path(__file__).resolve().parents[1] / "viewer"
 PAGE = "/viewer/index.html?tileset=/output/tileset.json"
@@ -152,7 +153,7 @@ class ViewerServer:
 
 
 def _roots(work_dir: str | Path) -> dict[str, Path]:
-    output = Path(work_dir).absolute() / "output"
+    output = WorkDir(Path(work_dir).absolute()).output_dir
     if not (output / "tileset.json").is_file():
         raise InputError(output, "no tileset.json: run the pipeline (export stage) first")
     modules = VIEWER_DIR / "node_modules"

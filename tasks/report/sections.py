@@ -193,9 +193,9 @@ def quality_section(truth: Path | None, tiles: list[str], figures: Callable[[], 
     return sec
 
 
-def output_section(root: Path) -> Section:
-    """What the export wrote under ``root/output``, with links and the ``ms3d view`` command."""
-    out = root / "output"
+def output_section(out: Path) -> Section:
+    """What the export wrote in the work dir's ``output/`` folder ``out``, with links and the ``ms3d view``
+    command."""
     body = ""
     state = out / "tileset.fingerprints.json"
     if (out / "tileset.json").exists():
@@ -209,7 +209,7 @@ def output_section(root: Path) -> Section:
         body += "<p>" + " · ".join(f'<a href="{esc(h)}">{esc(t)}</a>' for t, h in links) + "</p>"
     else:
         body += "<p>No tileset yet (the export stage has not run).</p>"
-    body += (f"<p>Open the model in a browser: <code>ms3d view {esc(root)}</code> "
+    body += (f"<p>Open the model in a browser: <code>ms3d view {esc(out.parent)}</code> "
              "(serves this folder's <code>output/</code> on localhost with the viewer page; colour by grade, "
              "source or region and click a face for its provenance).</p>")
     return Section("Output: 3D Tiles", body)

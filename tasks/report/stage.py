@@ -147,11 +147,11 @@ def run_report(cfg, wd: WorkDir, truth_dir: str | Path | None = None, quality: b
         rebuilt = bool(regions and regions[0])
         sections.append(_guarded("Quality against the truth", lambda: quality_section(
             truth, tiles, lambda: ensure_quality(wd, truth, origin, tiles, rebuilt, cfg.report.quality_spacing_m), rebuilt)))
-    sections += [region_sec, _guarded("Output: 3D Tiles", lambda: output_section(wd.root))]
+    sections += [region_sec, _guarded("Output: 3D Tiles", lambda: output_section(wd.output_dir))]
     now = datetime.datetime.now(datetime.UTC).strftime("%Y-%m-%d %H:%M UTC")
     page = render_page(f"ms3d run report: {campus.get('name', cfg.name)}",
                        f"work dir {wd.root} · ms3d {campus.get('code_version', '?')} · written {now}", sections)
-    path = wd.root / "output" / "report.html"
+    path = wd.report_html
     write_bytes_atomic(path, page.encode())
     figures = [name for s in sections for name in s.figures]
     return {"report": str(path), "figures": figures, "sections": [s.title for s in sections],
@@ -180,7 +180,7 @@ def report_fingerprint(wd: WorkDir) -> str:
             continue
         secs = None if r.stage in _ALWAYS_RECORDED else r.seconds
         parts.append(json.dumps([r.stage, r.unit, r.status, r.fingerprint, r.params_hash, secs, r.error]))
-    parts += [_sha(wd.root / "output" / "tileset.json"), _sha(wd.report_dir / "quality.json")]
+    parts += [_sha(wd.tileset_json), _sha(wd.report_dir / "quality.json")]
     return combine_fingerprints(sorted(parts))
 
 
@@ -197,7 +197,7 @@ def run_report_unit(cfg, wd: WorkDir) -> dict:
     """The run report as one resumable unit ("report", "campus"): skipped while its fingerprint, its
     parameters and ``output/report.html`` stand; {"status", "report": path, ...}."""
     fp, ph = report_fingerprint(wd), params_hash(report_params(cfg))
-    page = wd.root / "output" / "report.html"
+    page = wd.report_html
     rec = is_done(wd, "report", "campus", fp, ph)
     if rec is not None and page.exists():
         return {**skipped_summary(rec), "report": str(page)}
