@@ -7,14 +7,15 @@ import pytest
 
 from storage.errors import InputError
 from storage.formats.camera_files import (
+    camera_format,
     quat_to_rot,
     read_blocks_exchange,
+    read_cameras,
     read_colmap,
     rot_to_quat,
     write_blocks_exchange,
     write_colmap,
 )
-from storage.formats.camera_files import camera_format, read_cameras
 from storage.formats.cameras import Camera, CameraSet, write_cameras_json
 
 WORLD_CENTRE = np.array([589123.40, 2712345.60, 32.10])  # a UTM-sized position: float64 throughout
