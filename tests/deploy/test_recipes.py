@@ -4,7 +4,7 @@ fail), workers are sized against ``partition.memory_budget_mb``, no recipe holds
 servers listen only inside the cluster network, and the SLURM job script renders (dask-jobqueue).
 
 ms3d's own local servers (embedded Prefect API, local Dask cluster, the S3 test server) are held to
-127.0.0.1 by tests/flows/test_signals.py and tests/storage/test_objstore.py; not repeated here.
+127.0.0.1 by tests/flows/test_signals.py and tests/storage/objstore/test_objstore.py; not repeated here.
 """
 
 from __future__ import annotations
