@@ -75,6 +75,7 @@ class LoadedModel:
     path: str
     uses_cues: bool
     threshold: float = 0.5  # the checkpoint's operating threshold (ms3d_model.train.checkpoint_threshold)
+    label: str = ""  # what graded: kind and file, e.g. "GBM trees (default.pt)" (ms3d_model.report.model_label)
 
 
 _MODELS: dict[tuple, LoadedModel] = {}
@@ -96,13 +97,15 @@ def load_model(path: str | None) -> LoadedModel:
         raise InputError(p, "model checkpoint not found (classify.model in the config)") from None
     key = (str(p), st.st_size, st.st_mtime_ns)
     if key not in _MODELS:
+        from ms3d_model.report import model_label
         from ms3d_model.train import checkpoint_threshold, load_checkpoint, model_hash, net_uses_cues
 
         try:
             net, profile, meta = load_checkpoint(p)
         except Exception as e:  # noqa: BLE001 - any unreadable checkpoint is the user's input problem
             raise InputError(p, f"not a loadable ms3d model checkpoint ({type(e).__name__}: {e})") from None
-        _MODELS[key] = LoadedModel(net, profile, model_hash(p), str(p), net_uses_cues(net), checkpoint_threshold(meta))
+        _MODELS[key] = LoadedModel(net, profile, model_hash(p), str(p), net_uses_cues(net), checkpoint_threshold(meta),
+                                   model_label(profile.net.to_json(), p))
     return _MODELS[key]
 
 
@@ -205,6 +208,7 @@ def run_classify_tile(tile: TileId, cfg, wd: WorkDir) -> dict | None:
         t_evidence = time.perf_counter() - t1 - t_grade
         write_side_table(tile_dir, "grades", {"patch": keys, "score": score, "grade": grade}, store.meta,
                          model_hash=model.hash, model=Path(model.path).name, profile=model.profile.name,
+                         grader=model.label + (" + the evidence rule" if ev is not None else ""),
                          threshold=threshold, user_labels=int((user >= 0).sum()))
         summary = {"tile": tile.key, "n_patches": len(keys), "n_pairs": int(np.isfinite(score).sum()), "n_bad": int((grade == 1).sum()),
                    "n_unknown": int((grade == -1).sum()), "model_hash": model.hash,

@@ -132,7 +132,7 @@ class CampusConfig(_Model):
     cluster: ClusterConfig = Field(default_factory=ClusterConfig)
     report: ReportConfig = Field(default_factory=ReportConfig)
     export: ExportConfig = Field(default_factory=lambda: ExportConfig(), description="3D Tiles output (merge has no parameters of its own)")
-    classify: ClassifyConfig = Field(default_factory=ClassifyConfig, description="grading of patch pairs (MS3DQE-Net)")
+    classify: ClassifyConfig = Field(default_factory=ClassifyConfig, description="grading of patch pairs (the checkpoint classify.model names: the shipped default is GBM trees)")
     repair: RepairConfig = Field(default_factory=RepairConfig)
     runner: Literal["dask", "local", "inline"] = Field(
         "dask", description="'local': Prefect tasks in the flow process; 'inline': no Prefect at all, one process (debugging, tests)")

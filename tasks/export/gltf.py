@@ -49,7 +49,7 @@ PROVENANCE_SCHEMA = {
             "name": "Face provenance",
             "properties": {
                 "grade": {"type": "ENUM", "enumType": "grade", "required": True,
-                          "description": "MS3DQE-Net grade of the patch the face came from"},
+                          "description": "the grade of the patch the face came from (the grader named in the run report)"},
                 "source": {"type": "ENUM", "enumType": "source", "required": True,
                            "description": "mesh: retained original mesh; rebuilt: regenerated from fused points"},
                 "region": {"type": "SCALAR", "componentType": "INT32", "required": True,

@@ -21,7 +21,7 @@ from pathlib import Path
 
 import numpy as np
 
-from storage.patches.read import PatchStore
+from storage.patches.read import PatchStore, read_side_table
 from storage.patches.state import patch_grades
 from tasks.report.figures import score_histogram_png
 from tasks.report.html import Section, esc, table
@@ -57,7 +57,8 @@ class GradeCensus:
     """Counts of patches by grade and unknown reason, and the histogram of the scores.
 
     score_counts: (SCORE_BINS,) int64 over [0, 1] (graded patches with a finite score); sources: the
-    tables the grades came from ("grades", "labels", "none"), sorted."""
+    tables the grades came from ("grades", "labels", "none"), sorted; graders: what graded the stores whose
+    grades came from classify (its ``grader`` metadata, e.g. "GBM trees (default.pt) + the evidence rule"), sorted."""
 
     patches: int
     good: int
@@ -66,6 +67,7 @@ class GradeCensus:
     reasons: dict[str, int]
     score_counts: tuple[int, ...]
     sources: tuple[str, ...] = field(default=())
+    graders: tuple[str, ...] = field(default=())
 
     @property
     def unknown_share(self) -> float:
@@ -77,7 +79,8 @@ class GradeCensus:
 
 
 def grade_census(n_faces: np.ndarray, n_points: np.ndarray, grade: np.ndarray, score: np.ndarray | None = None,
-                 min_faces: int = 1, min_points: int = 1, sources: tuple[str, ...] = ()) -> GradeCensus:
+                 min_faces: int = 1, min_points: int = 1, sources: tuple[str, ...] = (),
+                 graders: tuple[str, ...] = ()) -> GradeCensus:
     """The census of patches with these counts and grades ((u,) arrays; score (u,) float or None).
 
     >>> c = grade_census(np.array([0, 3, 2, 2]), np.array([5, 0, 9, 9]), np.array([-1, -1, 0, 1]),
@@ -94,17 +97,20 @@ def grade_census(n_faces: np.ndarray, n_points: np.ndarray, grade: np.ndarray, s
         hist = np.histogram(s[np.isfinite(s)], bins=SCORE_BINS, range=(0.0, 1.0))[0]
     return GradeCensus(len(grade), int((grade == 0).sum()), int((grade == 1).sum()), int((grade < 0).sum()),
                        {r: int(n) for r, n in zip(UNKNOWN_REASONS, counts)}, tuple(int(v) for v in hist),
-                       tuple(sorted(set(sources))))
+                       tuple(sorted(set(sources))), tuple(sorted(set(graders))))
 
 
 def census_of_stores(tile_dirs: list[Path], min_faces: int = 1, min_points: int = 1) -> GradeCensus:
     """The census over the stores in ``tile_dirs`` (grades as ``repair.grades: auto`` reads them)."""
-    nf, npt, gr, sc, sources = [], [], [], [], []
+    nf, npt, gr, sc, sources, graders = [], [], [], [], [], []
     for tile_dir in tile_dirs:
         store = PatchStore(tile_dir)
         p = store.patches()
         _, grade, source = patch_grades(store, "auto")
-        side = store.side("grades") if source == "grades" else None
+        got = read_side_table(tile_dir, "grades", p["patch"]) if source == "grades" else None
+        side = None if got is None else got[0]
+        if got is not None:  # stores graded before the grader was recorded name the checkpoint file
+            graders.append(got[1].get("grader") or got[1].get("model") or "the grader")
         nf.append(p["n_faces"])
         npt.append(p["n_points"])
         gr.append(grade)
@@ -113,7 +119,7 @@ def census_of_stores(tile_dirs: list[Path], min_faces: int = 1, min_points: int 
     if not gr:
         return grade_census(np.zeros(0), np.zeros(0), np.zeros(0, np.int8))
     cat = np.concatenate
-    return grade_census(cat(nf), cat(npt), cat(gr), cat(sc), min_faces, min_points, tuple(sources))
+    return grade_census(cat(nf), cat(npt), cat(gr), cat(sc), min_faces, min_points, tuple(sources), tuple(graders))
 
 
 def _share(n: int, total: int) -> str:
@@ -129,7 +135,8 @@ def grades_section(census: GradeCensus, min_faces: int, min_points: int, thresho
     if not n:
         sec.body = "<p>No patch stores.</p>"
         return sec
-    src = {"grades": "classify's grades (MS3DQE-Net)", "labels": "the labels (truth)", "none": "none"}
+    src = {"grades": f"classify's grades ({'; '.join(c.graders) or 'the grader'})", "labels": "the labels (truth)",
+           "none": "none"}
     sec.body = (f"<p>Grades from {esc(', '.join(src.get(s, s) for s in c.sources) or 'none')} over "
                 f"{n:,} patches.</p>")
     sec.body += table(["grade", "patches", "share"], [["good", c.good, _share(c.good, n)],

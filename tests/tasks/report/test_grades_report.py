@@ -32,7 +32,7 @@ def _cell_data(i: int, n_faces: int, n_points: int) -> tuple[np.ndarray, np.ndar
     return tri, pts
 
 
-def write_handmade_store(root: Path, with_scores: bool = True) -> WorkDir:
+def write_handmade_store(root: Path, with_scores: bool = True, **grades_meta) -> WorkDir:
     """One tile whose patches hold exactly CELLS, a grades table and no labels."""
     tris, pts = zip(*(_cell_data(i, f, p) for i, (f, p, _) in CELLS.items()))
     tri, xyz = np.concatenate(tris), np.concatenate(pts)
@@ -49,7 +49,8 @@ def write_handmade_store(root: Path, with_scores: bool = True) -> WorkDir:
     grade = np.array([CELLS[int(i)][2] for i in patches["i"]], np.int8)
     score = np.where(grade >= 0, np.where(grade == 1, 0.8, 0.1), np.nan).astype(np.float32)
     if with_scores:
-        write_side_table(tile_dir, "grades", {"patch": patches["patch"], "score": score, "grade": grade}, meta)
+        write_side_table(tile_dir, "grades", {"patch": patches["patch"], "score": score, "grade": grade}, meta,
+                         **grades_meta)
     wd = WorkDir(root)
     write_campus(wd, frame, {"matrix": np.eye(4).tolist(), "scale": 1.0}, {"name": "handmade"})
     return wd
@@ -128,3 +129,22 @@ def test_summary_warns_in_one_line_when_most_patches_are_unknown(tmp_path):
         if warned:
             assert "57% of the 7 patches" in lines[0] and "no faces 1, no points 1, too few 1, not graded 1" in lines[0]
     assert grades_summary(WorkDir(tmp_path / "empty")) == {}
+
+
+def test_the_grades_name_the_model_that_graded(tmp_path):
+    """The report credits the grader classify recorded (the shipped default is the trees), never a fixed name;
+    a store graded before the grader was recorded names its checkpoint file."""
+    wd = write_handmade_store(tmp_path / "trees", grader="GBM trees (default.pt) + the evidence rule",
+                              model="default.pt")
+    census = census_of_stores([wd.tile_dir(t) for t in wd.live_tiles()])
+    assert census.graders == ("GBM trees (default.pt) + the evidence rule",)
+    body = grades_section(census, 1, 1).body
+    assert "GBM trees (default.pt) + the evidence rule" in body and "MS3DQE" not in body
+    old = write_handmade_store(tmp_path / "old", model="ms3dqe_geo.pt")
+    assert census_of_stores([old.tile_dir(t) for t in old.live_tiles()]).graders == ("ms3dqe_geo.pt",)
+
+
+def test_classify_records_the_kind_and_file_of_its_checkpoint():
+    from tasks.classify import load_model
+
+    assert load_model(None).label == "GBM trees (default.pt)"  # the shipped default
