@@ -22,6 +22,7 @@ def run_demo(out: Path, work: Path, seed: int = 7, preset: str = "demo") -> int:
     from flows.summary import format_summary
     from storage.workdir.layout import WorkDir
     from synth.generate import generate
+    from tasks.classify import DEFAULT_MODEL_TRAINING_SEEDS
     from tasks.config import CampusConfig
 
     out, work = out.absolute(), work.absolute()
@@ -57,6 +58,9 @@ def run_demo(out: Path, work: Path, seed: int = 7, preset: str = "demo") -> int:
               f"{summary['wall_seconds']:.0f} s on {cfg.cluster.n_workers} workers "
               f"(parallel efficiency {summary['task_seconds'] / summary['wall_seconds'] / cfg.cluster.n_workers:.0%})")
     print("[3/3] quality of the model against the truth (from the run report):", flush=True)
+    if seed in DEFAULT_MODEL_TRAINING_SEEDS.get(preset, ()) and not cfg.classify.model:
+        print(f"      (seed {seed} is one of the shipped grader's training campuses: these figures are in-sample; "
+              "held-out figures: docs/benchmarks.md)")
     print(_quality_lines(work))
     print()
     print(format_status(campus_status(str(work))))

@@ -175,3 +175,17 @@ def test_the_shipped_default_beats_the_majority_class(shipped):
     # and the scores rank bad above good (area under the ROC curve)
     auc = float((scores[lab == 1][:, None] > scores[lab == 0][None, :]).mean())
     assert auc >= 0.8, f"AUC {auc:.2f} ({detail})"
+
+
+def test_the_training_seeds_the_demo_names_are_the_model_cards():
+    """The demo says when its campus is one the shipped default was trained on: that list is the one the model
+    card's retrain command for ``default.pt`` gives (``--seeds 7 11 ... 23@0.3 37:coarse``)."""
+    from pathlib import Path
+
+    from tasks.classify import DEFAULT_MODEL_TRAINING_SEEDS
+
+    card = (Path(__file__).resolve().parents[2] / "ms3d_model" / "weights" / "MODEL_CARD.md").read_text()
+    section = card.split("## `default.pt`", 1)[1]
+    retrain = section.split("**Retrain**:", 1)[1].split("--seeds", 1)[1].split("--", 1)[0]
+    seeds = tuple(int(t.split("@")[0].split(":")[0]) for t in retrain.split())
+    assert 7 in seeds and seeds == DEFAULT_MODEL_TRAINING_SEEDS["demo"], seeds
