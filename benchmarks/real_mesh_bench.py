@@ -1,0 +1,150 @@
+"""No harm on a good real mesh (issue 38): ``ms3d run`` on the zero-defect real-mesh case, per checkpoint.
+
+    .venv/bin/python benchmarks/real_mesh_bench.py [--case DIR] [--work-root DIR] [--models default,geo]
+
+The case (:mod:`benchmarks.real_cases`: the Sceaux castle MVS mesh scaled to metres in EPSG:2154 and an
+MLS ray-cast from it along a street) is built once and reused while its key holds. Each checkpoint runs the
+whole pipeline inline (``--set runner=inline``, ``classify.model`` set for the non-default ones) in its own
+work dir. Figures per checkpoint:
+
+- graded patches (grade good or bad in ``tiles/*/grades.parquet``; unknown apart) and the bad share;
+- F@5cm, precision and recall of the merged model against the input mesh: the run's own
+  ``report/quality.json`` (``tasks.quality``: both surfaces sampled every 10 cm, exact point-to-mesh
+  distances, 25 m quality tiles with distances capped at their 2 m buffer), the case's truth being the
+  input mesh itself;
+- the merged model's surface area against the input's (sum of triangle areas of the welded merged tiles
+  and of the input as ingest stored it), and the share of merged area that repair rebuilt.
+
+Goal of issue 38 on a zero-defect case: <= 3 % bad, F@5cm >= 0.98, area within +-3 %.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import shutil
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+import numpy as np
+import pandas as pd
+
+sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
+sys.path.insert(0, str(Path(__file__).resolve().parent))
+
+from real_cases import DEFAULT_MIRROR, build_zero_defect
+
+from storage.contracts.tile_mesh import SOURCE_REBUILT, read_tile_mesh
+from storage.workdir.layout import WorkDir
+from tasks.geometry.triangles import face_areas
+from tasks.quality.stage import ingested_surface, merged_tiles
+
+ROOT = Path(__file__).resolve().parents[1]
+WEIGHTS = ROOT / "ms3d_model" / "weights"
+MODELS = {"default": None, "geo": WEIGHTS / "ms3dqe_geo.pt", "ms3dqe": WEIGHTS / "ms3dqe.pt",
+          "plus": WEIGHTS / "ms3dqe_plus.pt"}
+GOAL = {"bad_share": 0.03, "f5": 0.98, "area_change": 0.03}
+
+
+def run_pipeline(case: Path, work: Path, model: Path | None, log: Path) -> float:
+    """``ms3d run`` on the case into ``work`` (inline runner); seconds. The log keeps its output."""
+    cmd = [str(ROOT / ".venv" / "bin" / "ms3d"), "run", str(case / "campus.yaml"), "--work-dir", str(work),
+           "--set", "runner=inline"]
+    if model is not None:
+        cmd += ["--set", f"classify.model={model}"]
+    t0 = time.perf_counter()
+    with open(log, "w") as fh:
+        r = subprocess.run(cmd, check=False, stdout=fh, stderr=subprocess.STDOUT, cwd=ROOT)
+    if r.returncode != 0:
+        raise SystemExit(f"ms3d run failed ({r.returncode}); see {log}")
+    return time.perf_counter() - t0
+
+
+def grade_counts(work: Path) -> dict:
+    """Patches by grade over every tile: good, bad, unknown; graded = good + bad."""
+    grades = np.concatenate([pd.read_parquet(p, columns=["grade"])["grade"].to_numpy()
+                             for p in sorted((work / "tiles").glob("*/grades.parquet"))])
+    good, bad = int((grades == 0).sum()), int((grades == 1).sum())
+    return {"graded": good + bad, "good": good, "bad": bad, "unknown": int((grades < 0).sum()),
+            "bad_share": bad / max(1, good + bad)}
+
+
+def areas(work: Path) -> dict:
+    """Surface area (m^2) of the input as ingested and of the merged model, and the rebuilt share."""
+    wd = WorkDir(work)
+    tiles = merged_tiles(wd)
+    v, f = ingested_surface(wd, tiles, np.zeros(3))
+    a_in = float(face_areas(v, f, np.float64).sum())
+    a_out = a_rebuilt = 0.0
+    for k in tiles:
+        tm = read_tile_mesh(work / "tiles" / k)
+        fa = face_areas(tm.vertices, tm.faces.astype(np.int64), np.float64)
+        a_out += float(fa.sum())
+        a_rebuilt += float(fa[tm.source == SOURCE_REBUILT].sum())
+    return {"area_in_m2": a_in, "area_out_m2": a_out, "area_change": a_out / a_in - 1.0,
+            "rebuilt_area_share": a_rebuilt / max(a_out, 1e-9)}
+
+
+def quality(work: Path) -> dict:
+    """F@5cm, precision, recall of the merged model against the truth (= the input mesh) from the run."""
+    path = work / "report" / "quality.json"
+    if not path.exists():
+        return {"f5": float("nan"), "p5": float("nan"), "r5": float("nan")}
+    row = json.loads(path.read_text())["rows"]["merged model"]
+    i = row["taus_m"].index(0.05)
+    return {"f5": row["fscore"][i], "p5": row["precision"][i], "r5": row["recall"][i],
+            "acc_p95_m": row["accuracy"]["p95_m"], "acc_max_m": row["accuracy"]["max_m"]}
+
+
+def bench_model(case: Path, work_root: Path, name: str, force: bool) -> dict:
+    """One checkpoint's row. ``ms3d run`` skips what its manifest says is done, so a repeat is quick; ``force``
+    starts from an empty work dir."""
+    work = work_root / f"work-{name}"
+    if force and work.exists():
+        shutil.rmtree(work)
+    work_root.mkdir(parents=True, exist_ok=True)
+    seconds = run_pipeline(case, work, MODELS[name], work_root / f"run-{name}.log")
+    row = {"checkpoint": name, "model": str(MODELS[name] or "default (ms3d_model/weights/default.pt)"),
+           **grade_counts(work), **quality(work), **areas(work), "run_s": seconds}
+    row["meets_goal"] = bool(row["bad_share"] <= GOAL["bad_share"] and row["f5"] >= GOAL["f5"]
+                             and abs(row["area_change"]) <= GOAL["area_change"])
+    return row
+
+
+def print_table(case_doc: dict, rows: list[dict]) -> None:
+    scan = case_doc["scan"]
+    print(f"zero-defect real mesh: {case_doc['mesh']} ({case_doc['faces']:,} faces, {case_doc['area_m2']:.1f} m^2, "
+          f"scale {case_doc['scale_factor_m_per_unit']} m/unit, {case_doc['crs']}); MLS {scan['points']:,} points, "
+          f"{scan['passes']} passes, street {abs(scan['street_y_m']):g} m off the facade")
+    print(f"goal: bad <= {GOAL['bad_share']:.0%}, F@5cm >= {GOAL['f5']}, area within +-{GOAL['area_change']:.0%}")
+    head = (f"{'checkpoint':<10} {'graded':>6} {'bad':>5} {'unk':>4} {'bad %':>6} {'F@5cm':>6} {'P@5':>6} "
+            f"{'R@5':>6} {'area in':>8} {'area out':>8} {'change':>7} {'rebuilt':>7} goal")
+    print(head)
+    for r in rows:
+        print(f"{r['checkpoint']:<10} {r['graded']:>6} {r['bad']:>5} {r['unknown']:>4} {100 * r['bad_share']:>5.1f}% "
+              f"{r['f5']:>6.3f} {r['p5']:>6.3f} {r['r5']:>6.3f} {r['area_in_m2']:>8.1f} {r['area_out_m2']:>8.1f} "
+              f"{100 * r['area_change']:>+6.1f}% {100 * r['rebuilt_area_share']:>6.1f}% "
+              f"{'met' if r['meets_goal'] else 'missed'}")
+
+
+def main(argv: list[str] | None = None) -> None:
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap.add_argument("--case", type=Path, default=ROOT / "ms3d-work" / "real-cases" / "sceaux-zero")
+    ap.add_argument("--work-root", type=Path, default=ROOT / "ms3d-work" / "real-mesh-bench")
+    ap.add_argument("--mirror", type=Path, default=DEFAULT_MIRROR, help="bare git folder of the fetched source")
+    ap.add_argument("--models", default="default,geo", help=f"checkpoints among {','.join(MODELS)}")
+    ap.add_argument("--force", action="store_true", help="empty the work dirs first (a clean run)")
+    a = ap.parse_args(argv)
+    case = build_zero_defect(a.case, a.mirror)
+    case_doc = json.loads((case / "case.json").read_text())
+    rows = [bench_model(case, a.work_root, name, a.force) for name in a.models.split(",")]
+    print_table(case_doc, rows)
+    out = a.work_root / "real_mesh_bench.json"
+    out.write_text(json.dumps({"case": str(case), "rows": rows}, indent=1))
+    print(f"rows: {out}")
+
+
+if __name__ == "__main__":
+    main()
