@@ -1,4 +1,4 @@
-"""Benchmark cases built from real photogrammetric meshes (issue 38, item 1): the zero-defect case.
+"""Benchmark cases built from real photogrammetric meshes: the zero-defect case.
 
 The source is fetched, never committed: the Sceaux castle MVS mesh of ``cdcseacave/openMVS_sample``
 (AGPL-3.0 repository, photos by P. Moulon for research use). Bring it here with the search tool's
@@ -33,6 +33,7 @@ import sys
 import time
 from pathlib import Path
 
+import laspy
 import numpy as np
 import yaml
 
@@ -45,6 +46,7 @@ from synth.frames import asprs_classes
 from synth.mls import MlsParams, simulate_mls, with_density
 from synth.scene import FaceClass, Mesh, Scene
 from synth.trajectory import TrajectoryParams, build_trajectories
+from tasks.geometry.distance import MeshDistance
 
 ROOT = Path(__file__).resolve().parents[1]
 SOURCE_REPO = "cdcseacave/openMVS_sample"
@@ -53,7 +55,7 @@ DEFAULT_MIRROR = Path("/work/.mirror/cdcseacave+openMVS_sample/repo")
 CRS = "EPSG:2154"  # RGF93 / Lambert-93
 WORLD_ORIGIN = (650_000.0, 6_857_000.0, 60.0)  # near Sceaux (Hauts-de-Seine); z: ground about 60 m
 FACADE_HEIGHT_M = 15.0
-CASE_VERSION = 1
+CASE_VERSION = 2
 
 
 def read_source(mirror: Path, name: str = SOURCE_FILE, cache: Path | None = None) -> Path:
@@ -164,6 +166,16 @@ def write_scan(out: Path, scene, trajs, density: float, seed: int) -> dict:
     return stats
 
 
+def scan_agreement(out: Path, world: np.ndarray, faces: np.ndarray, n: int = 200_000) -> dict:
+    """Distances (m) of up to ``n`` scan points (evenly taken) to the mesh: does the scan agree with it?"""
+    pts = np.concatenate([laspy.read(p).xyz for p in sorted((out / "mls").glob("*.laz"))])
+    pts = pts[:: max(1, len(pts) // n)]
+    d, _ = MeshDistance(world, faces).query(pts)
+    q = np.percentile(d, [50.0, 95.0, 99.0])
+    return {"scan_to_mesh_median_m": round(float(q[0]), 4), "scan_to_mesh_p95_m": round(float(q[1]), 4),
+            "scan_to_mesh_p99_m": round(float(q[2]), 4), "scan_within_5cm": round(float((d <= 0.05).mean()), 4)}
+
+
 def write_campus_yaml(out: Path, name: str) -> None:
     """campus.yaml: the mesh and the scan are co-registered in EPSG:2154 (registration off), no labels."""
     cfg = {"name": name, "work_dir": f"../../{name}-work",
@@ -199,6 +211,7 @@ def build_zero_defect(out: Path, mirror: Path = DEFAULT_MIRROR, street_m: float 
          "note": "zero-defect real-mesh case: the scan is simulated from the truth mesh, co-registered"}))
     scene, trajs = scan(local, faces, cls, street_m, seed)
     stats = write_scan(out, scene, trajs, density, seed)
+    stats.update(scan_agreement(out, world, faces))
     write_campus_yaml(out, "real-sceaux-zero")
     _, _, area = _face_geometry(local, faces)
     doc = {"key": key, "case": "zero-defect", "mesh": "Sceaux castle MVS mesh (OpenMVS sample)",

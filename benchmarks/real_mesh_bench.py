@@ -1,4 +1,4 @@
-"""No harm on a good real mesh (issue 38): ``ms3d run`` on the zero-defect real-mesh case, per checkpoint.
+"""No harm on a good real mesh: ``ms3d run`` on the zero-defect real-mesh case, per checkpoint.
 
     .venv/bin/python benchmarks/real_mesh_bench.py [--case DIR] [--work-root DIR] [--models default,geo]
 
@@ -15,7 +15,7 @@ work dir. Figures per checkpoint:
 - the merged model's surface area against the input's (sum of triangle areas of the welded merged tiles
   and of the input as ingest stored it), and the share of merged area that repair rebuilt.
 
-Goal of issue 38 on a zero-defect case: <= 3 % bad, F@5cm >= 0.98, area within +-3 %.
+The no-harm goal on a zero-defect case: <= 3 % bad, F@5cm >= 0.98, area within +-3 %.
 """
 
 from __future__ import annotations
@@ -48,12 +48,14 @@ MODELS = {"default": None, "geo": WEIGHTS / "ms3dqe_geo.pt", "ms3dqe": WEIGHTS /
 GOAL = {"bad_share": 0.03, "f5": 0.98, "area_change": 0.03}
 
 
-def run_pipeline(case: Path, work: Path, model: Path | None, log: Path) -> float:
+def run_pipeline(case: Path, work: Path, model: Path | None, log: Path, extra: tuple[str, ...] = ()) -> float:
     """``ms3d run`` on the case into ``work`` (inline runner); seconds. The log keeps its output."""
     cmd = [str(ROOT / ".venv" / "bin" / "ms3d"), "run", str(case / "campus.yaml"), "--work-dir", str(work),
            "--set", "runner=inline"]
     if model is not None:
         cmd += ["--set", f"classify.model={model}"]
+    for kv in extra:
+        cmd += ["--set", kv]
     t0 = time.perf_counter()
     with open(log, "w") as fh:
         r = subprocess.run(cmd, check=False, stdout=fh, stderr=subprocess.STDOUT, cwd=ROOT)
@@ -98,15 +100,15 @@ def quality(work: Path) -> dict:
             "acc_p95_m": row["accuracy"]["p95_m"], "acc_max_m": row["accuracy"]["max_m"]}
 
 
-def bench_model(case: Path, work_root: Path, name: str, force: bool) -> dict:
+def bench_model(case: Path, work_root: Path, name: str, force: bool, extra: tuple[str, ...] = ()) -> dict:
     """One checkpoint's row. ``ms3d run`` skips what its manifest says is done, so a repeat is quick; ``force``
     starts from an empty work dir."""
-    work = work_root / f"work-{name}"
+    work = work_root / (f"work-{name}" + "".join(f"-{kv.replace('=', '_')}" for kv in extra))
     if force and work.exists():
         shutil.rmtree(work)
     work_root.mkdir(parents=True, exist_ok=True)
-    seconds = run_pipeline(case, work, MODELS[name], work_root / f"run-{name}.log")
-    row = {"checkpoint": name, "model": str(MODELS[name] or "default (ms3d_model/weights/default.pt)"),
+    seconds = run_pipeline(case, work, MODELS[name], work.with_suffix(".log"), extra)
+    row = {"checkpoint": name, "sets": list(extra), "model": str(MODELS[name] or "default (ms3d_model/weights/default.pt)"),
            **grade_counts(work), **quality(work), **areas(work), "run_s": seconds}
     row["meets_goal"] = bool(row["bad_share"] <= GOAL["bad_share"] and row["f5"] >= GOAL["f5"]
                              and abs(row["area_change"]) <= GOAL["area_change"])
@@ -117,8 +119,11 @@ def print_table(case_doc: dict, rows: list[dict]) -> None:
     scan = case_doc["scan"]
     print(f"zero-defect real mesh: {case_doc['mesh']} ({case_doc['faces']:,} faces, {case_doc['area_m2']:.1f} m^2, "
           f"scale {case_doc['scale_factor_m_per_unit']} m/unit, {case_doc['crs']}); MLS {scan['points']:,} points, "
-          f"{scan['passes']} passes, street {abs(scan['street_y_m']):g} m off the facade")
-    print(f"goal: bad <= {GOAL['bad_share']:.0%}, F@5cm >= {GOAL['f5']}, area within +-{GOAL['area_change']:.0%}")
+          f"({scan['points'] / case_doc['area_m2']:,.0f} per m^2 of mesh), {scan['passes']} passes, street "
+          f"{abs(scan['street_y_m']):g} m off the facade; scan to mesh: median {scan['scan_to_mesh_median_m']} m, "
+          f"p99 {scan['scan_to_mesh_p99_m']} m")
+    print(f"goal: bad <= {GOAL['bad_share']:.0%}, F@5cm >= {GOAL['f5']}, area within +-{GOAL['area_change']:.0%}"
+          + (f"; runs with {' '.join(rows[0]['sets'])}" if rows and rows[0]["sets"] else ""))
     head = (f"{'checkpoint':<10} {'graded':>6} {'bad':>5} {'unk':>4} {'bad %':>6} {'F@5cm':>6} {'P@5':>6} "
             f"{'R@5':>6} {'area in':>8} {'area out':>8} {'change':>7} {'rebuilt':>7} goal")
     print(head)
@@ -134,14 +139,20 @@ def main(argv: list[str] | None = None) -> None:
     ap.add_argument("--case", type=Path, default=ROOT / "ms3d-work" / "real-cases" / "sceaux-zero")
     ap.add_argument("--work-root", type=Path, default=ROOT / "ms3d-work" / "real-mesh-bench")
     ap.add_argument("--mirror", type=Path, default=DEFAULT_MIRROR, help="bare git folder of the fetched source")
+    ap.add_argument("--mls-density", type=float, default=0.25, help="the case's synth.mls density_scale (give "
+                    "another --case and --work-root for another density)")
+    ap.add_argument("--street-m", type=float, default=12.0, help="the case's road distance from the facade")
     ap.add_argument("--models", default="default,geo", help=f"checkpoints among {','.join(MODELS)}")
     ap.add_argument("--force", action="store_true", help="empty the work dirs first (a clean run)")
+    ap.add_argument("--set", dest="sets", action="append", default=[], metavar="KEY=VALUE",
+                    help="extra config override for every run (a diagnosis, e.g. classify.evidence=false); "
+                         "its runs get their own work dirs")
     a = ap.parse_args(argv)
-    case = build_zero_defect(a.case, a.mirror)
+    case = build_zero_defect(a.case, a.mirror, street_m=a.street_m, density=a.mls_density)
     case_doc = json.loads((case / "case.json").read_text())
-    rows = [bench_model(case, a.work_root, name, a.force) for name in a.models.split(",")]
+    rows = [bench_model(case, a.work_root, name, a.force, tuple(a.sets)) for name in a.models.split(",")]
     print_table(case_doc, rows)
-    out = a.work_root / "real_mesh_bench.json"
+    out = a.work_root / ("real_mesh_bench" + "".join(f"-{kv.replace('=', '_')}" for kv in a.sets) + ".json")
     out.write_text(json.dumps({"case": str(case), "rows": rows}, indent=1))
     print(f"rows: {out}")
 
