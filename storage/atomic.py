@@ -13,6 +13,8 @@ import tempfile
 from collections.abc import Iterable, Iterator
 from pathlib import Path
 
+from storage.errors import InputError
+
 _UMASK = os.umask(0)
 os.umask(_UMASK)
 
@@ -79,3 +81,14 @@ def file_fingerprint(path: str | Path) -> str:
             f.seek(-(1 << 20), os.SEEK_END)
             h.update(f.read(1 << 20))
     return h.hexdigest()[:32]
+
+
+def read_json(path: Path, missing: str) -> dict:
+    """The JSON document at ``path``, as :func:`write_json_atomic` wrote it. InputError naming the file when
+    it does not exist (``missing``: the problem and what to do) or is not valid JSON."""
+    if not path.exists():
+        raise InputError(path, missing)
+    try:
+        return json.loads(path.read_text())
+    except json.JSONDecodeError as e:
+        raise InputError(path, f"corrupt JSON ({e})") from None

@@ -26,7 +26,7 @@ from pathlib import Path
 
 import numpy as np
 
-from storage.atomic import atomic_path, file_fingerprint, file_sha256, write_json_atomic
+from storage.atomic import atomic_path, file_fingerprint, file_sha256, read_json, write_json_atomic
 from storage.errors import InputError
 from storage.inputs.location import is_url
 from storage.inputs.remote import url_fingerprint
@@ -146,10 +146,7 @@ def read_tile_mesh(tile_dir: str | Path) -> TileMesh:
     npz, meta = tile_mesh_paths(tile_dir)
     if not meta.exists() or not npz.exists():
         raise InputError(tile_dir, "no merged mesh (merged.npz + merged.json): run the merge stage first")
-    try:
-        doc = json.loads(meta.read_text())
-    except json.JSONDecodeError as e:
-        raise InputError(meta, f"corrupt JSON ({e})") from None
+    doc = read_json(meta, "no merged mesh metadata: run the merge stage first")
     if doc.get("schema_version") != TILE_MESH_SCHEMA_VERSION:
         raise InputError(meta, f"schema_version {doc.get('schema_version')} is not {TILE_MESH_SCHEMA_VERSION}")
     textures = texture_refs(tile_dir, doc["textures"])

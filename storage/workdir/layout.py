@@ -25,14 +25,13 @@ Tile keys are world-anchored (``tasks.config.CampusConfig.grid``): tile (ix, iy)
 
 from __future__ import annotations
 
-import json
 from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
 
 from storage import __version__
-from storage.atomic import write_json_atomic
+from storage.atomic import read_json, write_json_atomic
 from storage.errors import InputError
 from storage.frame import CampusFrame
 from storage.ids import TileId
@@ -136,12 +135,7 @@ def write_campus(wd: WorkDir, frame: CampusFrame, registration: dict, config_sna
 
 def read_campus(wd: WorkDir) -> dict:
     path = wd.campus_json
-    if not path.exists():
-        raise InputError(path, "no campus.json: run the register stage first (ms3d run CONFIG)")
-    try:
-        doc = json.loads(path.read_text())
-    except json.JSONDecodeError as e:
-        raise InputError(path, f"corrupt campus.json ({e})") from None
+    doc = read_json(path, "no campus.json: run the register stage first (ms3d run CONFIG)")
     if doc.get("schema_version") != CAMPUS_SCHEMA_VERSION:
         raise InputError(path, f"campus.json schema_version {doc.get('schema_version')}, this ms3d reads "
                                f"{CAMPUS_SCHEMA_VERSION}: re-run `ms3d run` to rebuild the work dir")
