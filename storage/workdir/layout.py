@@ -40,6 +40,17 @@ CAMPUS_SCHEMA_VERSION = 2
 STALE_FILE = "stale.json"
 
 
+class _Under:
+    """A fixed path under a work dir's root, read as an attribute:
+    ``WorkDir(r).tileset_json == r / "output/tileset.json"``."""
+
+    def __init__(self, rel: str):
+        self.rel = rel
+
+    def __get__(self, wd, owner=None):
+        return self if wd is None else wd.root / self.rel
+
+
 @dataclass(frozen=True)
 class WorkDir:
     root: Path
@@ -47,47 +58,17 @@ class WorkDir:
     def __init__(self, root: str | Path):
         object.__setattr__(self, "root", Path(root).absolute())
 
-    @property
-    def campus_json(self) -> Path:
-        return self.root / "campus.json"
-
-    @property
-    def manifest(self) -> Path:
-        return self.root / "manifest.parquet"
-
-    @property
-    def manifest_dir(self) -> Path:
-        return self.root / "manifest.d"
-
-    @property
-    def report_dir(self) -> Path:
-        return self.root / "report"
-
-    @property
-    def prefect_dir(self) -> Path:
-        return self.root / "prefect"
-
-    @property
-    def output_dir(self) -> Path:
-        """What a user opens: the 3D Tiles, their georeference and the run report."""
-        return self.root / "output"
-
-    @property
-    def tileset_json(self) -> Path:
-        return self.output_dir / "tileset.json"
-
-    @property
-    def georef_json(self) -> Path:
-        return self.output_dir / "georef.json"
-
-    @property
-    def report_html(self) -> Path:
-        return self.output_dir / "report.html"
-
-    @property
-    def lod_cache_dir(self) -> Path:
-        """The export's decimated mesh per tileset node."""
-        return self.root / "export" / "lod"
+    # the fixed paths of the layout (module doc), each a read-only attribute: ``wd.tileset_json``
+    campus_json = _Under("campus.json")
+    manifest = _Under("manifest.parquet")
+    manifest_dir = _Under("manifest.d")
+    report_dir = _Under("report")
+    prefect_dir = _Under("prefect")
+    output_dir = _Under("output")  # what a user opens: the 3D Tiles, their georeference and the run report
+    tileset_json = _Under("output/tileset.json")
+    georef_json = _Under("output/georef.json")
+    report_html = _Under("output/report.html")
+    lod_cache_dir = _Under("export/lod")  # the export's decimated mesh per tileset node
 
     def tile_dir(self, tile: TileId) -> Path:
         return self.root / "tiles" / tile.key
