@@ -10,6 +10,7 @@ from tasks.config.campus import (
     ExportConfig,
     InputsConfig,
     PartitionConfig,
+    QualityConfig,
     RegistrationConfig,
     ReportConfig,
     TilingConfig,
@@ -25,5 +26,5 @@ from tasks.config.repair import (
 )
 
 __all__ = ["CampusConfig", "ClassifyConfig", "ClusterConfig", "ExportConfig", "FusionConfig", "InputsConfig",
-           "MeshConfig", "PartitionConfig", "RegionsConfig", "RegistrationConfig", "RepairConfig", "ReportConfig",
+           "MeshConfig", "PartitionConfig", "QualityConfig", "RegionsConfig", "RegistrationConfig", "RepairConfig", "ReportConfig",
            "TextureConfig", "TilingConfig", "TypedRepairConfig"]

@@ -16,6 +16,7 @@ from storage.grid import PatchGrid
 from storage.inputs.location import is_url
 from tasks.config.classify import ClassifyConfig
 from tasks.config.repair import RepairConfig
+from tasks.geometry.holdout import Holdout
 
 
 class _Model(BaseModel):
@@ -122,6 +123,19 @@ class ReportConfig(_Model):
     max_unknown_share: float = Field(0.5, ge=0.0, le=1.0, description="the run summary warns when more than this share of the patches could not be graded (unknown)")
 
 
+class QualityConfig(_Model):
+    """Accuracy without truth: a share of the MLS held out of the repair and measured against the models."""
+
+    holdout_share: float = Field(0.1, ge=0.0, lt=1.0, description="share of the MLS held out of the repair's fusion and meshing, in whole strips (GPS-time blocks of holdout_block_s seconds of one input file; points without a time: holdout_cell_m ground cells), to measure the input mesh and the merged model on points that shaped neither (report.html, the run summary); 0 turns it off. A patch never loses all its points, so a tile never does (tasks.geometry.holdout)")
+    holdout_block_s: float = Field(3.0, gt=0.0, description="length of one held-out strip in GPS seconds (27 m of track at 9 m/s); points of different input files or passes fall in different strips")
+    holdout_cell_m: float = Field(5.0, gt=0.0, description="ground cell (world metres) that stands in for a strip where the points carry no GPS time (gps_time 0)")
+    holdout_seed: int = Field(0, description="seed of the strip choice: the same seed, share and points always hold out the same strips")
+
+    def holdout(self) -> Holdout:
+        """The strip choice these fields make (:class:`tasks.geometry.holdout.Holdout`)."""
+        return Holdout(self.holdout_share, self.holdout_block_s, self.holdout_cell_m, self.holdout_seed)
+
+
 class CampusConfig(_Model):
     name: str = "campus"
     work_dir: str = "ms3d-work/campus"
@@ -131,6 +145,7 @@ class CampusConfig(_Model):
     partition: PartitionConfig = Field(default_factory=PartitionConfig)
     cluster: ClusterConfig = Field(default_factory=ClusterConfig)
     report: ReportConfig = Field(default_factory=ReportConfig)
+    quality: QualityConfig = Field(default_factory=QualityConfig, description="accuracy without truth: the held-out MLS strips")
     export: ExportConfig = Field(default_factory=lambda: ExportConfig(), description="3D Tiles output (merge has no parameters of its own)")
     classify: ClassifyConfig = Field(default_factory=ClassifyConfig, description="grading of patch pairs (the checkpoint classify.model names: the shipped default is GBM trees)")
     repair: RepairConfig = Field(default_factory=RepairConfig)

@@ -18,12 +18,13 @@ from storage.grid import PatchGrid
 from storage.ids import TileId
 from storage.patches.read import PatchStore
 from storage.vertex_ids import MISSING, local_ids
+from tasks.geometry.holdout import Holdout
 from tasks.regions import dilate
 from tasks.repair.region_geometry import RegionInput
 
 FACE_COLUMNS = [*(f"{a}{v}" for v in range(3) for a in "xyz"), "vid0", "vid1", "vid2", "nx", "ny", "nz",
                 *(f"{a}{v}" for v in range(3) for a in "uv"), "texture", "red", "green", "blue"]
-POINT_COLUMNS = ["x", "y", "z", "classification"]
+POINT_COLUMNS = ["x", "y", "z", "classification", "gps_time"]
 
 
 @dataclass
@@ -37,13 +38,25 @@ class RegionRead:
     tiles: list[str]
     textures: list[str]  # texture image paths (global index)
     seconds: float
+    held_out: int = 0  # MLS points of the region's patches held out of it (tasks.geometry.holdout)
 
 
-def read_region(region: Region, grid: PatchGrid, tile_dir: Callable[[TileId], Path], origin) -> RegionRead:
+def _kept_points(pd, holdout: Holdout | None, origin) -> tuple[np.ndarray, np.ndarray]:
+    """A patch's points without the held-out strips: ((k, 3) float32 campus-local, (k,) bool kept rows)."""
+    xyz = pd.xyz()
+    if holdout is None or not holdout.enabled or not len(xyz):
+        return xyz, np.ones(len(xyz), bool)
+    keep = ~holdout.mask(pd.points["gps_time"], xyz[:, :2].astype(np.float64) + np.asarray(origin, np.float64)[:2])
+    return xyz[keep], keep
+
+
+def read_region(region: Region, grid: PatchGrid, tile_dir: Callable[[TileId], Path], origin,
+                holdout: Holdout | None = None) -> RegionRead:
     """Read the region's rebuilt and context patches from every tile they lie in (and nothing else).
 
     grid: the campus patch grid; tile_dir(tile): the folder of a tile's store; origin: (3,) float64 world
-    origin of the campus frame.
+    origin of the campus frame; holdout: the MLS strips the repair must not see (``quality.holdout_*``),
+    left out of the zone's and the context's points (each patch is one patch of the rule).
     """
     t0 = time.perf_counter()
     want = np.concatenate([region.patches, region.context])
@@ -52,6 +65,7 @@ def read_region(region: Region, grid: PatchGrid, tile_dir: Callable[[TileId], Pa
     ztile, zrow, uv, tex, rgb = [], [], [], [], []
     textures: list[str] = []
     tile_keys = []
+    held_out = 0
     zone_set = frozenset(region.patches.tolist())
     for ti, (ix, iy) in enumerate(np.unique(tiles, axis=0).tolist()):
         tile = TileId(ix, iy)
@@ -64,13 +78,15 @@ def read_region(region: Region, grid: PatchGrid, tile_dir: Callable[[TileId], Pa
         textures += list(store.meta.textures)
         for pd in store.read_patches(sel.tolist(), POINT_COLUMNS, FACE_COLUMNS):
             f = pd.faces
+            xyz, keep = _kept_points(pd, holdout, origin)
+            held_out += int(len(keep) - keep.sum())
             if pd.key not in zone_set:
                 ctx_parts.append(f)
-                pts_ctx.append(pd.xyz())
+                pts_ctx.append(xyz)
                 continue
             zone_parts.append(f)
-            pts_zone.append(pd.xyz())
-            cls_zone.append(pd.points["classification"])
+            pts_zone.append(xyz)
+            cls_zone.append(pd.points["classification"][keep])
             if pd.n_faces:
                 row = int(p["face_start"][np.searchsorted(p["patch"], pd.key)])
                 ztile.append(np.full(pd.n_faces, ti, np.int16))
@@ -101,7 +117,7 @@ def read_region(region: Region, grid: PatchGrid, tile_dir: Callable[[TileId], Pa
     )
     return RegionRead(data, cat(ztile, (0,), np.int16), cat(zrow, (0,), np.int64),
                       {"uv": cat(uv, (0, 3, 2), np.float32), "texture": cat(tex, (0,), np.int64),
-                       "rgb": cat(rgb, (0, 3), np.uint8)}, tile_keys, textures, time.perf_counter() - t0)
+                       "rgb": cat(rgb, (0, 3), np.uint8)}, tile_keys, textures, time.perf_counter() - t0, held_out)
 
 
 def _concat_faces(parts: list[dict]) -> dict:

@@ -107,8 +107,11 @@ def region_fingerprint(region: Region, wd: WorkDir, cfg: CampusConfig, memo: dic
 
 
 def region_params(cfg: CampusConfig) -> dict:
-    """The parameters a region's record is keyed by: ``repair.*`` and the grid."""
-    return {"repair": cfg.repair.params(), "grid": cfg.grid().to_json()}
+    """The parameters a region's record is keyed by: ``repair.*``, the grid, and the MLS strips held out of
+    the repair (``quality.holdout_*``; none when the share is 0)."""
+    holdout = cfg.quality.holdout()
+    return {"repair": cfg.repair.params(), "grid": cfg.grid().to_json(),
+            **({"holdout": holdout.to_json()} if holdout.enabled else {})}
 
 
 def pending_regions(region_keys: list[str], cfg: CampusConfig, wd: WorkDir) -> tuple[list[str], list[dict]]:
@@ -170,7 +173,7 @@ def run_region(region_id: str, cfg: CampusConfig, wd: WorkDir, plan: dict[str, R
         t0 = time.perf_counter()
         doc = read_campus(wd)
         frame = campus_frame(doc)
-        rr = read_region(region, cfg.grid(), wd.tile_dir, frame.origin)
+        rr = read_region(region, cfg.grid(), wd.tile_dir, frame.origin, cfg.quality.holdout())
         geo = repair_region_geometry(rr.input, cfg.repair)
         t1 = time.perf_counter()
         clear_region(out_dir)
