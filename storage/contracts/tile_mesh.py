@@ -36,7 +36,8 @@ GRADE_GOOD, GRADE_BAD, GRADE_UNKNOWN = 0, 1, -1
 SOURCE_MESH, SOURCE_REBUILT = 0, 1
 NO_REGION = -1
 
-_ARRAYS = ("vertices", "faces", "uv", "face_texture", "vertex_colors", "grade", "source", "region")
+_ARRAYS = ("vertices", "faces", "uv", "face_texture", "vertex_colors", "grade", "source", "region",
+           "face_deviation", "face_score")
 
 
 @dataclass(frozen=True, eq=False)
@@ -47,7 +48,10 @@ class TileMesh:
     uv: (n, 2) float32 per vertex (OBJ convention) or None. face_texture: (m,) int16 index into
     ``textures``, -1 for an untextured face. textures: JPEG/PNG paths. vertex_colors: (n, 3) uint8 RGB
     (used by untextured faces) or None. grade: (m,) int8 (0 good, 1 bad, -1 unknown). source: (m,) int8
-    (0 original mesh, 1 rebuilt). region: (m,) int32 region number, -1 for none.
+    (0 original mesh, 1 rebuilt). region: (m,) int32 region number, -1 for none. face_deviation: (m,)
+    float32 metres, the signed scan-to-model distance of the MLS points nearest to each face (positive: the
+    scan in front of the face), NaN where no point is near, or None. face_score: (m,) float32 the grader's
+    p(bad) of the patch each face lies in, NaN where the patch was not graded, or None.
     """
 
     tile: str
@@ -60,6 +64,8 @@ class TileMesh:
     uv: np.ndarray | None = None
     textures: list[str] = field(default_factory=list)
     vertex_colors: np.ndarray | None = None
+    face_deviation: np.ndarray | None = None
+    face_score: np.ndarray | None = None
 
     def __post_init__(self):
         n, m = len(self.vertices), len(self.faces)
@@ -73,6 +79,8 @@ class TileMesh:
             (self.uv is None or (self.uv.shape == (n, 2) and self.uv.dtype == np.float32), "uv must be (n, 2) float32"),
             (self.vertex_colors is None or (self.vertex_colors.shape == (n, 3) and self.vertex_colors.dtype == np.uint8),
              "vertex_colors must be (n, 3) uint8"),
+            *((getattr(self, k) is None or (getattr(self, k).shape == (m,) and getattr(self, k).dtype == np.float32),
+               f"{k} must be (m,) float32") for k in ("face_deviation", "face_score")),
         ]  # fmt: skip
         for ok, problem in checks:
             if not ok:
@@ -175,7 +183,7 @@ def read_tile_arrays(tile_dir: str | Path, names: tuple[str, ...]) -> dict[str, 
             and (arrays["faces"].min() < 0 or arrays["faces"].max() >= len(arrays["vertices"])):
         raise InputError(npz, f"face indices out of range for {len(arrays['vertices'])} vertices")
     m = len(arrays["faces"]) if "faces" in arrays else None
-    for k in ("face_texture", "grade", "source", "region"):  # one value per face
+    for k in ("face_texture", "grade", "source", "region", "face_deviation", "face_score"):  # one value per face
         if k in arrays and m is not None and len(arrays[k]) != m:
             raise InputError(npz, f"{k} has {len(arrays[k])} values for {m} faces")
     return arrays

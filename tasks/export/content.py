@@ -77,7 +77,7 @@ def leaf_content(tm: TileMesh, projector: EnuProjector, cfg: ExportConfig) -> tu
     feature, g_rows, s_rows, r_rows = feature_rows(tm.grade, tm.source, tm.region)
     gltf = GltfMesh(positions=enu_to_gltf(enu), faces=faces, feature=feature, grade=g_rows, source=s_rows,
                     region=r_rows, face_texture=face_texture, uv=uv if images else None, vertex_colors=colors,
-                    images=images)  # fmt: skip
+                    images=images, face_deviation=tm.face_deviation, face_confidence=tm.face_score)  # fmt: skip
     lod = weld(LodMesh(enu, faces, colors, tm.grade, tm.source, tm.region))
     return gltf, lod
 

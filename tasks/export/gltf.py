@@ -8,7 +8,8 @@ vertex colours, one provenance row per feature) into glb bytes:
   texture, so the two never share a primitive;
 - feature ids per vertex (``_FEATURE_ID_0``, ``EXT_mesh_features``) index one
   ``EXT_structural_metadata`` property table (grade, source, region); a vertex used by faces of
-  different features is duplicated, so every face reads one feature;
+  different features is duplicated, so every face reads one feature; a mesh with per-face quality adds a
+  second set (``_FEATURE_ID_1``, one feature per face) and table (:mod:`tasks.export.face_quality`);
 - normals (lit primitives) are area-weighted per vertex; COLOR_0 is linear RGBA8 (input colours are sRGB);
 - ``compression="draco"`` encodes each primitive with ``KHR_draco_mesh_compression`` (DracoPy), positions
   quantized to ``DRACO_POSITION_STEP_M`` (bits chosen from the primitive's extent).
@@ -25,6 +26,7 @@ from functools import lru_cache
 
 import numpy as np
 
+from tasks.export.face_quality import FACE_QUALITY_CLASS, face_quality_table, feature_id_values, split_per_face
 from tasks.export.vertex_split import split_by_feature
 from tasks.geometry.triangles import vertex_normals
 
@@ -76,6 +78,7 @@ class GltfMesh:
     provenance rows ``grade`` (k,) int8, ``source`` (k,) int8, ``region`` (k,) int32.
     uv: (n, 2) float32 glTF convention (origin top-left) or None. face_texture: (m,) int16 index into
     ``images``, -1 for a vertex-coloured face. vertex_colors: (n, 3) uint8 sRGB or None (then grey).
+    face_deviation, face_confidence: (m,) float32 per-face quality (:mod:`tasks.export.face_quality`) or None.
     """
 
     positions: np.ndarray
@@ -88,6 +91,8 @@ class GltfMesh:
     uv: np.ndarray | None = None
     vertex_colors: np.ndarray | None = None
     images: list[GltfImage] = field(default_factory=list)
+    face_deviation: np.ndarray | None = None
+    face_confidence: np.ndarray | None = None
 
 
 # The export's vertex normals (:func:`tasks.geometry.triangles.vertex_normals`): faces summed face by face,
@@ -170,8 +175,10 @@ def _draco_unique_ids(has_uv: bool, has_color: bool, has_normals: bool) -> dict[
     return {name: by_type[t] for name, t in _DRACO_TYPES.items() if t in by_type}
 
 
-def _primitive(b: _Builder, pos, faces, normals, uv, colors, fid, material: int, compression: str) -> dict:
-    """Append one primitive's data; returns the primitive dict."""
+def _primitive(b: _Builder, pos, faces, normals, uv, colors, fid, material: int, compression: str,
+               fid1=None) -> dict:
+    """Append one primitive's data; returns the primitive dict. fid1: (n,) the face-quality feature id of each
+    vertex (uncompressed only), or None."""
     n = len(pos)
     idx_type, idx_dtype = (USHORT, np.uint16) if n < 65535 else (UINT, np.uint32)
     fid_u16 = fid.astype(np.uint16)
@@ -208,11 +215,17 @@ def _primitive(b: _Builder, pos, faces, normals, uv, colors, fid, material: int,
         padded = np.zeros((n, 2), np.uint16)  # vertex attribute elements must be 4-byte aligned
         padded[:, 0] = fid_u16
         attrs["_FEATURE_ID_0"] = b.accessor(padded, USHORT, "SCALAR", n, target=ARRAY_BUFFER, stride=4)
+        if fid1 is not None:
+            values, ctype = feature_id_values(fid1)
+            attrs["_FEATURE_ID_1"] = b.accessor(values, ctype, "SCALAR", n, target=ARRAY_BUFFER, stride=4)
         indices = b.accessor(faces.astype(idx_dtype).reshape(-1), idx_type, "SCALAR", faces.size,
                              target=ELEMENT_ARRAY_BUFFER)
         ext = {}
     ext["EXT_mesh_features"] = {"featureIds": [{"featureCount": len(np.unique(fid)),
                                                 "attribute": 0, "propertyTable": 0, "label": "provenance"}]}
+    if fid1 is not None:
+        ext["EXT_mesh_features"]["featureIds"].append({"featureCount": len(faces), "attribute": 1,
+                                                       "propertyTable": 1, "label": "face_quality"})
     return {"attributes": attrs, "indices": indices, "material": material, "mode": 4, "extensions": ext}
 
 
@@ -237,7 +250,12 @@ def glb_parts(mesh: GltfMesh, compression: str = "none") -> list:
     for name, arr, dtype in (("grade", mesh.grade, np.int8), ("source", mesh.source, np.int8),
                              ("region", mesh.region, np.int32)):
         table["properties"][name] = {"values": b.view(np.asarray(arr, dtype).tobytes(), align=8)}
-    doc["extensions"] = {"EXT_structural_metadata": {"schema": PROVENANCE_SCHEMA, "propertyTables": [table]}}
+    schema, tables = PROVENANCE_SCHEMA, [table]
+    quality = mesh.face_deviation is not None and mesh.face_confidence is not None and compression == "none"
+    if quality:
+        schema = {**schema, "classes": {**schema["classes"], "face_quality": FACE_QUALITY_CLASS}}
+        tables.append(face_quality_table(lambda data: b.view(data, align=8), mesh.face_deviation, mesh.face_confidence))
+    doc["extensions"] = {"EXT_structural_metadata": {"schema": schema, "propertyTables": tables}}
 
     if mesh.images:
         doc["samplers"] = [{"magFilter": 9729, "minFilter": 9987, "wrapS": 33071, "wrapT": 33071}]
@@ -247,7 +265,12 @@ def glb_parts(mesh: GltfMesh, compression: str = "none") -> list:
     groups = np.unique(mesh.face_texture) if len(mesh.faces) else np.zeros(0, np.int16)
     for g in groups.tolist():
         sel = np.flatnonzero(mesh.face_texture == g)
-        faces, src, fid = split_by_feature(mesh.faces[sel], mesh.feature[sel])
+        fid1 = None
+        if quality:  # a vertex per face corner (each face its own feature of the face_quality table)
+            faces, src, fid1 = split_per_face(mesh.faces[sel], sel)
+            fid = np.repeat(np.asarray(mesh.feature[sel], np.int64), 3)
+        else:
+            faces, src, fid = split_by_feature(mesh.faces[sel], mesh.feature[sel])
         pos = np.ascontiguousarray(mesh.positions[src], np.float32)
         normals = None  # unlit textured primitives need none
         if g >= 0:
@@ -266,7 +289,8 @@ def glb_parts(mesh: GltfMesh, compression: str = "none") -> list:
             normals = vertex_normals(pos, faces, **EXPORT_NORMALS).astype(np.float32)
             doc["materials"].append({"name": "vertex_colour", "doubleSided": True,
                                      "pbrMetallicRoughness": {"metallicFactor": 0.0, "roughnessFactor": 1.0}})
-        primitives.append(_primitive(b, pos, faces, normals, uv, colors, fid, len(doc["materials"]) - 1, compression))
+        primitives.append(_primitive(b, pos, faces, normals, uv, colors, fid, len(doc["materials"]) - 1, compression,
+                                     fid1))
     if compression == "draco":
         used.append("KHR_draco_mesh_compression")
         doc["extensionsRequired"] = ["KHR_draco_mesh_compression"]

@@ -1,10 +1,11 @@
 """The merge stage: per tile, the retained mesh and the rebuilt regions become one welded mesh.
 
-Reads a tile's store (``faces.parquet``, ``patches.parquet``), its grades under ``repair.grades``
+Reads a tile's store (``faces.parquet``, ``patches.parquet``, ``points.parquet`` for the faces' scan-to-model
+distance, ``grades.parquet``'s scores), its grades under ``repair.grades``
 (``grades.parquet`` / ``labels.parquet``, or every patch bad: :func:`storage.patches.state.patch_grades`, the
 regions stage's rule), ``campus.json`` (frame) and the rebuilt regions reaching into it (``regions/``:
 :mod:`storage.contracts.region_mesh`). Writes ``tiles/{ix}_{iy}/merged.npz`` + ``merged.json``
-(:mod:`storage.contracts.tile_mesh`). Invalidated by a change of the store, of the grade table it reads (or of
+(:mod:`storage.contracts.tile_mesh`). Invalidated by a change of the store (points too), of ``grades.parquet``, of the grade table it reads (or of
 ``repair.grades`` to one that reads another), of the frame, of a rebuilt region touching the tile, or of
 the grid.
 """

@@ -54,10 +54,11 @@ from storage.ids import TileId
 from storage.inputs.remote import input_exists
 from storage.objstore.store import redact
 from storage.patches.read import PatchStore
-from storage.patches.schema import FACES_FILE, PATCHES_FILE
+from storage.patches.schema import FACES_FILE, PATCHES_FILE, POINTS_FILE, side_table_path
 from storage.patches.state import grades_identity, patch_grades
 from storage.workdir.layout import STALE_FILE, WorkDir, campus_frame, read_campus
 from storage.workdir.manifest import combine_fingerprints
+from tasks.merge.face_quality import with_face_quality
 from tasks.merge.soup import FaceSoup, concat_soups
 from tasks.merge.tile import STORE_FACE_COLUMNS, rebuilt_parts, retained_soup, weld_tile
 from tasks.units import Done, run_unit
@@ -111,9 +112,11 @@ def _same_on_disk(tile_dir: Path, mesh: TileMesh) -> bool:
         if doc.get("tile") != mesh.tile or textures != texture_refs(Path.cwd(), mesh.textures):
             return False
         with np.load(npz, allow_pickle=False) as z:
-            for name in ("faces", "face_texture", "grade", "source", "region", "vertices", "uv", "vertex_colors"):
+            for name in ("faces", "face_texture", "grade", "source", "region", "vertices", "uv", "vertex_colors",
+                         "face_deviation", "face_score"):
                 new = getattr(mesh, name)
-                if (new is None) != (name not in z.files) or (new is not None and not np.array_equal(z[name], new)):
+                if (new is None) != (name not in z.files) or (
+                        new is not None and not np.array_equal(z[name], new, equal_nan=new.dtype.kind == "f")):
                     return False
     except (OSError, ValueError, KeyError, EOFError, zipfile.BadZipFile):
         return False
@@ -124,7 +127,9 @@ def merge_fingerprint(tile_dir: Path, regions: Sequence[tuple[int, str]], frame_
     """The identity of a tile's merge inputs: store files, the grades it reads under ``grades_mode``
     (:func:`storage.patches.state.grades_identity`), frame, and the rebuilt regions as (number, content
     fingerprint) pairs (:func:`storage.contracts.region_mesh.region_files_for_tile`: the files, no array read)."""
-    store = [file_fingerprint(tile_dir / n) for n in (FACES_FILE, PATCHES_FILE)]
+    store = [file_fingerprint(tile_dir / n) for n in (FACES_FILE, PATCHES_FILE, POINTS_FILE)]
+    grades = side_table_path(tile_dir, "grades")  # the faces' scores, whatever table their grades come from
+    store.append(file_fingerprint(grades) if grades.exists() else "no grades")
     regs = [f"{number}:{fp}" for number, fp in sorted(regions)]
     return combine_fingerprints([*store, grades_identity(tile_dir, grades_mode), repr(sorted(frame_json.items())),
                                  *regs])
@@ -137,6 +142,15 @@ def _load_regions(root: Path, tile: TileId) -> list[RegionMesh]:
         return region_meshes_for_tile(root, tile)
     except (ValueError, KeyError, zipfile.BadZipFile) as e:
         raise InputError(None, f"tile {tile.key}: merge inputs: a rebuilt region: {e}") from None
+
+
+def _face_quality(store: PatchStore, mesh: TileMesh, grid, origin) -> tuple[TileMesh, dict]:
+    """The merged mesh with its per-face scan-to-model distance and grader score
+    (:func:`tasks.merge.face_quality.with_face_quality`), from the tile's points and ``grades.parquet``."""
+    points = store.read_all_stacked("points", ["x", "y", "z"]) if store.n_points else np.zeros((0, 3), np.float32)
+    grades = store.side("grades")
+    keys = store.patches()["patch"]
+    return with_face_quality(mesh, points, keys, None if grades is None else grades["score"], grid, origin)
 
 
 def _merge_work(tile: TileId, cfg, wd: WorkDir, frame_json: dict, regions: Sequence[RegionMesh] | None) -> Done:
@@ -157,6 +171,7 @@ def _merge_work(tile: TileId, cfg, wd: WorkDir, frame_json: dict, regions: Seque
     _give_back_freed_memory()
     mesh, stats = weld_tile(tile, retained, rebuilt, n_retained, n_replaced)
     del retained
+    mesh, quality = _face_quality(store, mesh, grid, frame.origin_array)
     for t in mesh.textures:
         if not input_exists(t):
             raise InputError(redact(t), f"texture image of tile {tile.key} not found")
@@ -164,7 +179,7 @@ def _merge_work(tile: TileId, cfg, wd: WorkDir, frame_json: dict, regions: Seque
     if rewritten:
         write_tile_mesh(tile_dir, mesh)
     npz, meta = tile_mesh_paths(tile_dir)
-    summary = {"tile": tile.key, **stats.to_json(), "grades_from": grade_source, "textures": len(mesh.textures),
+    summary = {"tile": tile.key, **stats.to_json(), **quality, "grades_from": grade_source, "textures": len(mesh.textures),
                "rewritten": rewritten, "merge_seconds": time.perf_counter() - t0,
                "worker": f"{socket.gethostname()}:{os.getpid()}"}  # fmt: skip
     return Done(outputs=[str(p.relative_to(wd.root)) for p in (npz, meta)], summary=summary)
