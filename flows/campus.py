@@ -33,6 +33,7 @@ from flows.tasks import (
     classify_task,
     config_of,
     export_nodes_task,
+    heldout_task,
     ingest_task,
     merge_task,
     outliers_task,
@@ -243,7 +244,7 @@ def _outputs(run: _Run) -> tuple[dict, dict]:
     """3D Tiles (nodes mapped over the workers) beside the model's quality shares, then the run report.
     Returns (export summary, report summary)."""
     from tasks.export import node_records, run_export_stage
-    from tasks.quality import quality_parts, quality_plan, share_name, write_quality
+    from tasks.quality import heldout_pending, quality_parts, quality_plan, share_name, write_quality
     from tasks.report import region_renders_fresh
 
     cfg, wd, ex, cj = run.cfg, run.wd, run.ex, run.cfg_json
@@ -269,6 +270,7 @@ def _outputs(run: _Run) -> tuple[dict, dict]:
     qplan = quality_plan(local_view(cfg, "truth"), wd) if cfg.report.enabled and cfg.report.quality else None
     parts = quality_parts(qplan, run.n_workers)
     shares = [ex.submit(quality_task, cj, qplan, part) for part in parts]
+    held = ex.submit(heldout_task, cj) if cfg.report.enabled and heldout_pending(cfg, wd) else None
     exported = run_export_stage(cfg, wd, map_jobs=map_jobs)
     start_renders()  # when the export built no node, or one level only
     renders = side["renders"]
@@ -278,6 +280,8 @@ def _outputs(run: _Run) -> tuple[dict, dict]:
             write_quality(wd, qplan["key"], [g["sums"] for g in got])
             drop_unplanned_records(wd, "quality", {share_name(p) for p in parts})
     run.note("export", [exported], per_unit=False)
+    if held is not None:  # the held-out MLS strips against the input mesh and the merged model
+        run.note("holdout", [held.result()], per_unit=False)
     if renders is not None:
         try:
             got = renders.result()

@@ -74,8 +74,32 @@ def summarise(wd: WorkDir, wall_s: float, failed: dict, outliers: dict, since: f
                                                  "distance_before_m", "distance_after_m") if k in reg},
         "outliers": outliers,
         "grades": grades_summary(wd),
+        "holdout": holdout_summary(wd),
         "input_warnings": input_warnings(wd),
     }
+
+
+def holdout_summary(wd: WorkDir) -> dict:
+    """The held-out MLS strips' campus figures of ``report/holdout.json`` (the quality stage's):
+    {"held_out", "points", "holdout", "campus": {model: figures}}, or {} when there are none."""
+    from tasks.quality import read_heldout
+
+    doc = read_heldout(wd) or {}
+    return {k: doc[k] for k in ("held_out", "points", "held_out_share", "holdout", "campus") if k in doc}
+
+
+def holdout_line(h: dict | None) -> str:
+    """One line of the held-out figures, or "".
+
+    >>> holdout_line({"held_out": 1200, "campus": {"input mesh": {"median_m": 0.031, "p90_m": 0.12, "within_5cm": 0.7,
+    ...     "within_10cm": 0.88}, "merged model": {"median_m": 0.012, "p90_m": 0.05, "within_5cm": 0.9, "within_10cm": 0.97}}})
+    'held-out MLS (1,200 points): input mesh median 3.1 cm, p90 12.0 cm, 70% within 5 cm; merged model median 1.2 cm, p90 5.0 cm, 90% within 5 cm'
+    """
+    if not h or not h.get("campus"):
+        return ""
+    parts = [f"{m} median {100 * f['median_m']:.1f} cm, p90 {100 * f['p90_m']:.1f} cm, {100 * f['within_5cm']:.0f}% within 5 cm"
+             for m, f in h["campus"].items() if f.get("median_m") is not None]
+    return f"held-out MLS ({h['held_out']:,} points): " + "; ".join(parts) if parts else ""
 
 
 def input_warnings(wd: WorkDir) -> list[str]:
@@ -134,7 +158,7 @@ def format_summary(s: dict) -> str:
                      + ", ".join(f"{p.rsplit('/', 1)[-1]} ({why})" for p, why in s["skipped_files"][:5])
                      + (" ..." if len(s["skipped_files"]) > 5 else ""))
     lines += [f"warning: {w}" for w in s.get("input_warnings") or []]
-    lines += [w for w in [unknown_warning(s.get("grades"))] if w]
+    lines += [w for w in [unknown_warning(s.get("grades")), holdout_line(s.get("holdout"))] if w]
     lines.append(f"wall {s['wall_seconds']:.1f} s, sum of task times {s['task_seconds']:.1f} s")
     out = s.get("output") or {}
     if out.get("tileset"):

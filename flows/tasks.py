@@ -28,6 +28,7 @@ from tasks.ingest import STAGE as INGEST
 from tasks.merge import STAGE as MERGE
 from tasks.outliers import STAGE as OUTLIERS
 from tasks.partition import STAGE as PARTITION
+from tasks.quality import HELDOUT_STAGE
 from tasks.quality import STAGE as QUALITY
 from tasks.regions import STAGE as REGIONS
 from tasks.register import STAGE as REGISTER
@@ -179,6 +180,15 @@ def quality_task(cfg_json: dict, plan: dict, part: tuple) -> dict:
     plan = local_truth_plan(cfg, plan)  # a truth by URL: this worker's staged copy
     return record_step(wd, "quality", share_name(part),
                        lambda: {"sums": run_quality_share(cfg, wd, plan, tuple(part))})
+
+
+@stage_task(HELDOUT_STAGE)
+def heldout_task(cfg_json: dict) -> dict:
+    """The held-out MLS strips measured against the input mesh and the merged model (``report/holdout.json``)."""
+    from tasks.quality import run_heldout
+
+    cfg, wd = config_of(cfg_json)
+    return record_step(wd, "holdout", "campus", lambda: run_heldout(cfg, wd))
 
 
 @stage_task(RENDERS_STAGE)

@@ -13,9 +13,14 @@ from pathlib import Path
 
 import numpy as np
 
-from storage.atomic import file_sha256, write_json_atomic
-from storage.contracts.tile_mesh import SOURCE_REBUILT, read_tile_mesh, tile_mesh_paths
+from storage.atomic import file_fingerprint, file_sha256, write_json_atomic
+from storage.contracts.tile_mesh import SOURCE_REBUILT, read_tile_arrays, read_tile_mesh, tile_mesh_paths
+from storage.ids import TileId
+from storage.patches.read import PatchStore
+from storage.patches.schema import PATCHES_FILE, POINTS_FILE
 from storage.workdir.layout import WorkDir, campus_frame, read_campus
+from storage.workdir.manifest import combine_fingerprints
+from tasks.quality.heldout import CAP_M, HeldOutSums, faces_near
 
 QUALITY_VERSION = 2  # 2: the input mesh row is measured on the ingested faces
 QUALITY_TILE_M = 25.0  # quality is evaluated tile by tile (memory): distances capped at the buffer
@@ -209,3 +214,123 @@ def run_quality_share(cfg, wd: WorkDir, plan: dict, part: tuple) -> dict:
     origin = campus_frame(read_campus(wd)).origin_array
     return quality_share(wd, Path(plan["truth"]), origin, plan["tiles"], plan["rebuilt"], part,
                          float(plan.get("spacing_m", 0.10)))
+
+
+# ------------------------------------------------------------------------------ accuracy without truth
+
+HELDOUT_VERSION = 1
+HELDOUT_FILE = "holdout.json"
+HELDOUT_PAD_M = CAP_M  # faces within this of a tile's held-out points: their distances are exact below it
+_POINT_COLUMNS = ["x", "y", "z", "gps_time", "patch"]
+_TRI_COLUMNS = [f"{a}{v}" for v in range(3) for a in "xyz"]
+
+
+def _neighbour_dirs(wd: WorkDir, tile: str) -> list[Path]:
+    t = TileId.from_key(tile)
+    return [wd.tile_dir(TileId(t.ix + dx, t.iy + dy)) for dx in (-1, 0, 1) for dy in (-1, 0, 1)]
+
+
+def _near_triangles(dirs: list[Path], read, lo: np.ndarray, hi: np.ndarray) -> np.ndarray:
+    """(m, 3, 3) float64 triangles of the tiles ``dirs`` (``read(dir)``: their (k, 3, 3) triangles or None)
+    within HELDOUT_PAD_M of the box [lo, hi]; one tile's mesh in memory at a time."""
+    parts = []
+    for d in dirs:
+        tri = read(d)
+        if tri is not None and len(tri):
+            parts.append(tri[faces_near(tri, lo, hi, HELDOUT_PAD_M)].astype(np.float64))
+    return np.concatenate(parts) if parts else np.zeros((0, 3, 3))
+
+
+def _merged_triangles(tile_dir: Path) -> np.ndarray | None:
+    if not tile_mesh_paths(tile_dir)[1].exists():
+        return None
+    a = read_tile_arrays(tile_dir, ("vertices", "faces"))
+    return a["vertices"][a["faces"]]
+
+
+def _input_triangles(tile_dir: Path) -> np.ndarray | None:
+    if not (tile_dir / PATCHES_FILE).exists():
+        return None
+    return PatchStore(tile_dir).read_all_stacked("faces", _TRI_COLUMNS).reshape(-1, 3, 3)
+
+
+def _distances(points: np.ndarray, tri: np.ndarray) -> np.ndarray:
+    from tasks.geometry.distance import MeshDistance  # late: open3d loads only where distances are measured
+
+    if not len(tri):
+        return np.full(len(points), np.inf)
+    return MeshDistance(tri.reshape(-1, 3), np.arange(3 * len(tri)).reshape(-1, 3)).query(points)[0]
+
+
+def heldout_tile(wd: WorkDir, tile: str, holdout, origin: np.ndarray) -> tuple[dict, int, int]:
+    """One tile's held-out points measured against the input mesh and the merged model (the faces of it and
+    its eight neighbours near them): ({model: HeldOutSums}, points of the tile, points held out)."""
+    cols, _ = PatchStore(wd.tile_dir(TileId.from_key(tile))).read_all(point_columns=_POINT_COLUMNS, face_columns=[])
+    xyz = np.stack([cols[c] for c in "xyz"], 1).astype(np.float64)
+    held = holdout.mask(cols["gps_time"], xyz[:, :2] + origin[:2], cols["patch"])
+    p = xyz[held]
+    out = {}
+    if len(p):
+        lo, hi, dirs = p.min(0), p.max(0), _neighbour_dirs(wd, tile)
+        for name, read in (("input mesh", _input_triangles), ("merged model", _merged_triangles)):
+            out[name] = HeldOutSums.of(_distances(p, _near_triangles(dirs, read, lo, hi)))
+    return out, len(xyz), int(held.sum())
+
+
+def heldout_key(cfg, wd: WorkDir, tiles: list[str]) -> dict:
+    """What the held-out figures depend on: the strip choice, the merged tiles, the tiles' point stores."""
+    stores = combine_fingerprints([f"{k}:{file_fingerprint(wd.tile_dir(TileId.from_key(k)) / POINTS_FILE)}"
+                                   for k in tiles])
+    return {"version": HELDOUT_VERSION, "holdout": cfg.quality.holdout().to_json(),
+            "merged": _merged_fingerprint(wd, tiles), "points": stores, "cap_m": CAP_M}
+
+
+def heldout_pending(cfg, wd: WorkDir) -> bool:
+    """Whether :func:`ensure_heldout` has work: a holdout, merged tiles, and no current ``report/holdout.json``
+    (so a rerun with nothing changed launches no task)."""
+    tiles = merged_tiles(wd)
+    if not cfg.quality.holdout().enabled or not tiles:
+        return False
+    path = wd.report_dir / HELDOUT_FILE
+    return not path.exists() or json.loads(path.read_text()).get("key") != heldout_key(cfg, wd, tiles)
+
+
+def ensure_heldout(cfg, wd: WorkDir) -> dict:
+    """``report/holdout.json``: the held-out strips' distances to the input mesh and to the merged model, per
+    tile and for the campus ({"key", "holdout", "points", "held_out", "campus": {model: figures},
+    "tiles": {tile: {model: figures}}}), measured tile by tile (memory: a tile and its neighbours' faces
+    near it) unless the file already holds them. {"status": "off"} without a holdout or merged tiles."""
+    tiles = merged_tiles(wd)
+    holdout = cfg.quality.holdout()
+    if not holdout.enabled or not tiles:
+        return {"status": "off"}
+    path = wd.report_dir / HELDOUT_FILE
+    key = heldout_key(cfg, wd, tiles)
+    if path.exists() and (doc := json.loads(path.read_text())).get("key") == key:
+        return doc
+    origin = campus_frame(read_campus(wd)).origin_array
+    campus, per_tile, n_points, n_held = {}, {}, 0, 0
+    for k in tiles:
+        sums, n, h = heldout_tile(wd, k, holdout, origin)
+        n_points, n_held = n_points + n, n_held + h
+        per_tile[k] = {name: s.figures() for name, s in sums.items()}
+        for name, s in sums.items():
+            campus[name] = campus.get(name, HeldOutSums.empty()) + s
+    doc = {"key": key, "holdout": holdout.to_json(), "points": n_points, "held_out": n_held,
+           "held_out_share": round(n_held / n_points, 4) if n_points else None,
+           "campus": {name: s.figures() for name, s in campus.items()}, "tiles": per_tile}
+    write_json_atomic(path, doc)
+    return doc
+
+
+def run_heldout(cfg, wd: WorkDir) -> dict:
+    """:func:`ensure_heldout` as a step's small result (the campus figures, flattened)."""
+    doc = ensure_heldout(cfg, wd)
+    flat = {f"{m.split()[0]}_{k}": v for m, f in (doc.get("campus") or {}).items() for k, v in f.items()}
+    return {"status": "done", "held_out": doc.get("held_out", 0), **flat}
+
+
+def read_heldout(wd: WorkDir) -> dict | None:
+    """The recorded ``report/holdout.json`` (see :func:`ensure_heldout`), or None when there is none."""
+    path = wd.report_dir / HELDOUT_FILE
+    return json.loads(path.read_text()) if path.exists() else None

@@ -2,7 +2,7 @@
 
 Reads ``campus.json``, ``registration.json``, the manifest records, the outlier histograms in ``report/``,
 the patch stores (``tiles/*/patches.parquet`` and side tables), the merged tiles, the export's
-``output/tileset.json`` + ``tileset.fingerprints.json``, and the quality stage's ``report/quality.json``
+``output/tileset.json`` + ``tileset.fingerprints.json``, and the quality stage's ``report/quality.json`` and ``report/holdout.json``
 (measured here when missing or stale, see ``tasks.quality``). Writes ``output/report.html``,
 ``report/class_map.png`` and ``report/regions/region_*.png``. Every run rewrites the page; only the region
 renders are kept (``report/regions/section.json``), invalidated by the partition, classify and merge records

@@ -12,7 +12,9 @@ Sections, each from what the work dir holds (a section whose inputs are missing 
    (``grades.py``, ``report/score_histogram.png``), which need no truth;
 4. per-stage units, times and peak memory from the manifest records (``manifest.d``);
 5. quality against the truth where it exists (a synth campus): the merged model, and the input mesh
-   when regions were rebuilt (cached in ``report/quality.json`` by the merged tiles' fingerprints);
+   when regions were rebuilt (cached in ``report/quality.json`` by the merged tiles' fingerprints); then
+   accuracy without truth: the held-out MLS strips against the input mesh and the merged model, for the
+   campus and per tile (``report/holdout.json``, the quality stage's; ``heldout.py``);
 6. before/after renders of the rebuilt regions (``report/regions/*.png``), when there are any;
 7. the output: links to the tileset, overview and georeference, and the ``ms3d view`` command.
 
@@ -37,8 +39,9 @@ from storage.errors import InputError
 from storage.workdir.layout import WorkDir, campus_frame, read_campus
 from storage.workdir.manifest import all_records, combine_fingerprints, is_done, params_hash
 from tasks.classify import grading_threshold
-from tasks.quality import ensure_quality, merged_tiles, truth_dir_of
+from tasks.quality import ensure_quality, merged_tiles, read_heldout, truth_dir_of
 from tasks.report.grades import census_of_stores, grades_section
+from tasks.report.heldout import heldout_section
 from tasks.report.html import Section, esc, render_page
 from tasks.report.regions import regions_section
 from tasks.report.sections import (
@@ -147,6 +150,7 @@ def run_report(cfg, wd: WorkDir, truth_dir: str | Path | None = None, quality: b
         rebuilt = bool(regions and regions[0])
         sections.append(_guarded("Quality against the truth", lambda: quality_section(
             truth, tiles, lambda: ensure_quality(wd, truth, origin, tiles, rebuilt, cfg.report.quality_spacing_m), rebuilt)))
+    sections.append(_guarded("Accuracy without truth: held-out MLS strips", lambda: heldout_section(read_heldout(wd))))
     sections += [region_sec, _guarded("Output: 3D Tiles", lambda: output_section(wd.output_dir))]
     now = datetime.datetime.now(datetime.UTC).strftime("%Y-%m-%d %H:%M UTC")
     page = render_page(f"ms3d run report: {campus.get('name', cfg.name)}",
@@ -159,7 +163,7 @@ def run_report(cfg, wd: WorkDir, truth_dir: str | Path | None = None, quality: b
 
 
 # stages recorded by record_step on every run they make: their seconds change on each run
-_ALWAYS_RECORDED = ("export", "quality", "outliers", "regions")
+_ALWAYS_RECORDED = ("export", "quality", "holdout", "outliers", "regions")
 REPORT_VERSION = 1  # bumped whenever report.html changes for the same inputs
 
 
@@ -173,14 +177,14 @@ def _sha(path) -> str:
 def report_fingerprint(wd: WorkDir) -> str:
     """What the run report shows: every manifest record but the report's own (status, fingerprint,
     parameters and, for the units skipped by fingerprint, seconds: a unit that ran this run changes it), the
-    content of ``tileset.json`` and ``report/quality.json``."""
+    content of ``tileset.json``, ``report/quality.json`` and ``report/holdout.json``."""
     parts = []
     for r in all_records(wd):
         if r.stage == "report":
             continue
         secs = None if r.stage in _ALWAYS_RECORDED else r.seconds
         parts.append(json.dumps([r.stage, r.unit, r.status, r.fingerprint, r.params_hash, secs, r.error]))
-    parts += [_sha(wd.tileset_json), _sha(wd.report_dir / "quality.json")]
+    parts += [_sha(wd.tileset_json), _sha(wd.report_dir / "quality.json"), _sha(wd.report_dir / "holdout.json")]
     return combine_fingerprints(sorted(parts))
 
 

@@ -39,7 +39,7 @@ def test_the_flow_tasks_carry_their_stage_declarations():
     found = {t.spec.name: t for t in (getattr(tasks, n) for n in dir(tasks)) if isinstance(getattr(t, "spec", None),
                                                                                             StageSpec)}
     assert set(found) == {"scan", "register", "ingest", "partition", "outliers", "classify", "regions", "repair",
-                          "merge", "export-nodes", "quality", "region renders", "report"}
+                          "merge", "export-nodes", "quality", "holdout", "region renders", "report"}
     assert all(t.name == name for name, t in found.items())  # the Prefect task is named by its stage
     assert found["export-nodes"].spec.priority > 0 > found["region renders"].spec.priority
     assert found["merge"].spec.reads_for(["1_2"]) == ("manifest.d/merge/", "campus.json", "regions/", "tiles/1_2/")
