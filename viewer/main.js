@@ -1,11 +1,13 @@
 // ms3d viewer: three.js + 3d-tiles-renderer, no online service. Loads ?tileset=URL (default
 // /output/tileset.json), colours faces by the EXT_structural_metadata provenance (grade, source, region)
+// or by each face's signed scan-to-model distance (mode "deviation": the face_quality table of the leaves),
 // or shows the textures, and prints the provenance of a clicked face. ?label=1: the labelling mode (label.js).
 import * as THREE from 'three';
 import { OrbitControls } from 'three/addons/controls/OrbitControls.js';
 import { DRACOLoader } from 'three/addons/loaders/DRACOLoader.js';
 import { TilesRenderer } from '3d-tiles-renderer';
 import { GLTFExtensionsPlugin, ReorientationPlugin } from '3d-tiles-renderer/plugins';
+import { NO_DEVIATION, deviationColour } from './deviation.js';
 import { setupLabelling } from './label.js';
 
 const params = new URLSearchParams(location.search);
@@ -41,6 +43,36 @@ tiles.setCamera(camera);
 tiles.setResolutionFromRenderer(camera, renderer);
 scene.add(tiles.group);
 
+// Deviation mode: the face_quality table's deviation_m through the diverging ramp of deviation.js.
+state.deviation = { faces: 0, absent: 0 };
+state.deviationColour = deviationColour;
+
+// the per-vertex colours of the deviation mode (leaves: a vertex per face corner, _FEATURE_ID_1 = the face's
+// row of the face_quality table); null where the mesh has no such table (LOD parents: all grey)
+function deviationColours(geometry, meshFeatures, structuralMetadata) {
+  const count = geometry.getAttribute('position').count;
+  const out = new Float32Array(count * 3);
+  const info = meshFeatures.getFeatureInfo().find((f) => f.label === 'face_quality');
+  const ids = info ? geometry.getAttribute(`_feature_id_${info.attribute}`) : null;
+  const c = new THREE.Color();
+  const rows = new Map();
+  for (let i = 0; i < count; i++) {
+    let rgb = NO_DEVIATION;
+    if (ids) {
+      const id = ids.getX(i);
+      if (!rows.has(id)) {
+        const row = structuralMetadata.getPropertyTableData(info.propertyTable, id);
+        rows.set(id, row ? row.deviation_m : null);
+      }
+      rgb = deviationColour(rows.get(id));
+    }
+    c.setRGB(rgb[0] / 255, rgb[1] / 255, rgb[2] / 255, THREE.SRGBColorSpace);
+    out.set([c.r, c.g, c.b], i * 3);
+  }
+  for (const d of rows.values()) { state.deviation.faces += 1; if (d === null || !Number.isFinite(d)) state.deviation.absent += 1; }
+  return out;
+}
+
 function category(row) {
   if (!row) return 'unknown';
   if (row.source === 'rebuilt') return 'rebuilt';
@@ -72,6 +104,8 @@ function prepareMesh(mesh) {
     original: { material: mesh.material, color: geometry.getAttribute('color') || null },
     grade: { material: new THREE.MeshLambertMaterial({ vertexColors: true, side: THREE.DoubleSide }),
              color: new THREE.BufferAttribute(colours, 3) },
+    deviation: { material: new THREE.MeshLambertMaterial({ vertexColors: true, side: THREE.DoubleSide }),
+                 color: new THREE.BufferAttribute(deviationColours(geometry, meshFeatures, structuralMetadata), 3) },
   };
   applyMode(mesh);
 }
@@ -79,7 +113,7 @@ function prepareMesh(mesh) {
 function applyMode(mesh) {
   const m = mesh.userData.ms3d;
   if (!m) return;
-  const which = mode === 'grade' ? m.grade : m.original;
+  const which = mode === 'grade' ? m.grade : mode === 'deviation' ? m.deviation : m.original;
   mesh.material = which.material;
   if (which.color) mesh.geometry.setAttribute('color', which.color);
   else mesh.geometry.deleteAttribute('color');
@@ -166,7 +200,12 @@ function pickAt(x, y) {
   const table = meshFeatures.getFeatureInfo()[0].propertyTable;
   const row = structuralMetadata.getPropertyTableData(table, id);
   let tile = hit.object; while (tile && !tile.userData.ms3dUri) tile = tile.parent;
+  const infos = meshFeatures.getFeatureInfo();
+  const q = infos.findIndex((f) => f.label === 'face_quality');
+  const quality = q >= 0 ? structuralMetadata.getPropertyTableData(infos[q].propertyTable,
+    meshFeatures.getFeatures(hit.faceIndex, hit.barycoord)[q]) : null;
   return { face: hit.faceIndex, feature: id, grade: row.grade, source: row.source, region: row.region,
+           deviation_m: quality ? quality.deviation_m : null, confidence: quality ? quality.confidence : null,
            distance: +hit.distance.toFixed(2) };
 }
 state.pickAt = pickAt;
@@ -175,7 +214,10 @@ renderer.domElement.addEventListener('click', (e) => {
   const p = pickAt(e.clientX, e.clientY);
   state.pick = p;
   document.getElementById('pick').textContent = p
-    ? `grade  ${p.grade}\nsource ${p.source}\nregion ${p.region}\nface   ${p.face} (feature ${p.feature})`
+    ? `grade  ${p.grade}\nsource ${p.source}\nregion ${p.region}\nface   ${p.face} (feature ${p.feature})` +
+      (p.deviation_m !== null && p.deviation_m !== undefined
+        ? `\nscan   ${Number.isFinite(p.deviation_m) ? (100 * p.deviation_m).toFixed(1) + ' cm' : 'no MLS near'}` +
+          `\np(bad) ${Number.isFinite(p.confidence) ? p.confidence.toFixed(2) : 'not graded'}` : '')
     : 'nothing there';
 });
 
