@@ -7,9 +7,12 @@ it): a strip is a block of ``block_s`` GPS seconds (27 m of track at 9 m/s for 3
 driven at different times, fall in different blocks). Points that carry no time (``gps_time`` 0: a PLY or
 XYZ input) fall in strips of ``cell_m`` ground cells of world coordinates instead.
 
-The choice is a seeded hash of the strip's id, so it depends on the points alone: the same points in any
-order, tile or region, read by any stage, give the same choice, and nothing has to be stored to repeat it
-(the counts are recorded by the stages that use it). One rule keeps small data working: a patch never
+The choice is a function of the strip's id alone: strip ``b`` is held out when ``frac(b / phi + offset(seed))``
+is below ``share`` (a Weyl sequence: any run of consecutive strips holds out ``share`` of them to within a
+few strips, spread evenly along the drive, where a hash left a short scan of ten strips with a third of them
+held out). So it depends on the points alone: the same points in any order, tile or region, read by any
+stage, give the same choice, and nothing has to be stored to repeat it (the counts are recorded by the
+stages that use it: ``report/holdout.json``, the regions' ``mls_held_out``). One rule keeps small data working: a patch never
 loses all its points (where every point of a patch is in held-out strips, that patch keeps them), so
 no tile is ever held out whole and no patch the grader graded is left without points for the repair.
 
@@ -45,6 +48,7 @@ import numpy as np
 from ms3d_model.hashing import splitmix64
 
 _TIMELESS = np.int64(1) << np.int64(62)  # strip ids of ground cells: apart from every time block's
+_GOLDEN = np.uint64(0x9E3779B97F4A7C15)  # 2**64 / golden ratio: the Weyl sequence's step
 
 
 @dataclass(frozen=True)
@@ -63,7 +67,7 @@ class Holdout:
 
     def to_json(self) -> dict:
         return {"share": float(self.share), "block_s": float(self.block_s), "cell_m": float(self.cell_m),
-                "seed": int(self.seed), "rule": "gps-time strips, ground cells without time; no patch emptied"}
+                "seed": int(self.seed), "rule": "weyl sequence over gps-time strips, ground cells without time; no patch emptied"}
 
     def strip_ids(self, gps_time: np.ndarray, xy_world: np.ndarray) -> np.ndarray:
         """(n,) int64 strip id of each point: its GPS-time block, or its ground cell where gps_time is 0.
@@ -80,9 +84,10 @@ class Holdout:
         """(n,) bool: whether each strip id is held out (a seeded hash below ``share``)."""
         if not self.enabled:
             return np.zeros(len(strip_ids), bool)
-        h = splitmix64(np.asarray(strip_ids, np.int64).view(np.uint64) ^ splitmix64(
-            np.full(len(strip_ids), np.uint64(self.seed % 2**64), np.uint64)))
-        return (h >> np.uint64(11)).astype(np.float64) * 2.0**-53 < self.share
+        offset = splitmix64(np.array([self.seed % 2**64], np.uint64))[0]
+        with np.errstate(over="ignore"):  # uint64 wrapping arithmetic is the point
+            u = np.asarray(strip_ids, np.int64).view(np.uint64) * _GOLDEN + offset
+        return (u >> np.uint64(11)).astype(np.float64) * 2.0**-53 < self.share
 
     def mask(self, gps_time: np.ndarray, xy_world: np.ndarray, patch: np.ndarray | None = None) -> np.ndarray:
         """(n,) bool: the held-out points among ``n`` (see the module doc). patch: (n,) int64 patch key of each
