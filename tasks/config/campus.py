@@ -127,7 +127,7 @@ class QualityConfig(_Model):
     """Accuracy without truth: a share of the MLS held out of the repair and measured against the models."""
 
     holdout_share: float = Field(0.1, ge=0.0, lt=1.0, description="share of the MLS held out of the repair's fusion and meshing, in whole strips (GPS-time blocks of holdout_block_s seconds of one input file; points without a time: holdout_cell_m ground cells), to measure the input mesh and the merged model on points that shaped neither (report.html, the run summary); 0 turns it off. A patch never loses all its points, so a tile never does (tasks.geometry.holdout)")
-    holdout_block_s: float = Field(3.0, gt=0.0, description="length of one held-out strip in GPS seconds (27 m of track at 9 m/s); points of different input files or passes fall in different strips")
+    holdout_block_s: float = Field(1.0, gt=0.0, description="length of one held-out strip in GPS seconds (9 m of track at 9 m/s: short enough that a short scan has strips to choose from, the tiny synth campus's scan holds 13); passes driven at different times fall in different strips")
     holdout_cell_m: float = Field(5.0, gt=0.0, description="ground cell (world metres) that stands in for a strip where the points carry no GPS time (gps_time 0)")
     holdout_seed: int = Field(0, description="seed of the strip choice: the same seed, share and points always hold out the same strips")
 

@@ -3,7 +3,7 @@
 Real users have no truth, only their scan: a share of the scan kept out of the fusion and meshing is the
 next best thing. Held-out points are whole strips of the scan, never scattered points (a scattered
 tenth leaves every neighbour of a held-out point in the fusion, so the model would still be fitted to
-it): a strip is a block of ``block_s`` GPS seconds (27 m of track at 9 m/s for 3 s; the passes of a road,
+it): a strip is a block of ``block_s`` GPS seconds (9 m of track at 9 m/s for 1 s; the passes of a road,
 driven at different times, fall in different blocks). Points that carry no time (``gps_time`` 0: a PLY or
 XYZ input) fall in strips of ``cell_m`` ground cells of world coordinates instead.
 
@@ -57,7 +57,7 @@ class Holdout:
     (``cell_m`` world ground cells where a point has no time), chosen by ``seed``."""
 
     share: float = 0.1
-    block_s: float = 3.0
+    block_s: float = 1.0
     cell_m: float = 5.0
     seed: int = 0
 
