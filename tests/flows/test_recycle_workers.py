@@ -92,5 +92,7 @@ def test_the_local_scheduler_starts_with_the_long_tasks_durations():
         assert TaskPrefix("quality_task").duration_average == 30.0
         assert TaskPrefix("export_nodes_task").duration_average == 5.0
         assert TaskPrefix("other_task").duration_average == 2.0
-        assert task_durations() == {"quality_task": "30s", "region_renders_task": "15s", "export_nodes_task": "5s"}
+        assert task_durations() == {
+            "quality_task": "30s", "heldout_task": "30s", "region_renders_task": "15s", "export_nodes_task": "5s"
+        }
         assert set(task_durations()) <= set(dask.config.get("distributed.scheduler.default-task-durations"))
