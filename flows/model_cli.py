@@ -45,6 +45,8 @@ def _cmd_train(a) -> int:
         overrides = PAPER_TRAINING | overrides  # --set still wins
     if "milestones" in overrides:
         overrides["milestones"] = tuple(overrides["milestones"])
+    if "gbm_ignored_cues" in overrides:
+        overrides["gbm_ignored_cues"] = tuple(overrides["gbm_ignored_cues"])
     models = list(suite()) if a.suite else (a.models or ["ms3dqe"])
     spec = TrainSpec(out=a.out, data=a.data, seeds=a.seeds, work_dirs=a.work_dir or [], profile=a.profile,
                      overrides=overrides, models=models, block_m=a.block_m, buffer_m=a.buffer_m,

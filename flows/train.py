@@ -182,6 +182,23 @@ def train_one(name: str, switches: dict, spec: TrainSpec, pairs, train_mask, val
     return res
 
 
+def without_cues(cues, names: tuple[str, ...]):
+    """``cues`` (B, N_CUES) with the named columns set to 0: a constant column is never split on, so the
+    trees cannot read it (their ``feature`` arrays never index it). An unknown name is an error."""
+    import numpy as np
+
+    from ms3d_model.cues import CUE_NAMES
+
+    unknown = sorted(set(names) - set(CUE_NAMES))
+    if unknown:
+        raise ValueError(f"gbm_ignored_cues: unknown cue names {unknown}")
+    if not names:
+        return cues
+    cues = np.array(cues, copy=True)
+    cues[:, [CUE_NAMES.index(n) for n in names]] = 0.0
+    return cues
+
+
 def fit_tree_model(prof, tr, va, out: Path) -> dict:
     """The gradient-boosting baseline on the training pairs' cues, saved as a TreeNet checkpoint."""
     import torch
@@ -193,6 +210,7 @@ def fit_tree_model(prof, tr, va, out: Path) -> dict:
 
     t0, c0 = time.perf_counter(), time.process_time()
     cues, labels = clean_context_copies(tr.cues, tr.labels, prof.gbm_clean_context_share, prof.seed)
+    cues = without_cues(cues, prof.gbm_ignored_cues)
     clf = fit_gbm(cues, labels, seed=prof.seed, max_iter=prof.gbm_max_iter, learning_rate=prof.gbm_lr,
                   max_leaf_nodes=prof.gbm_leaves, l2=prof.gbm_l2, balanced=prof.gbm_balanced)
     arrays = tree_arrays(clf)

@@ -67,6 +67,9 @@ class Profile:
     gbm_l2: float = 1.0  # L2 regularisation of the leaf values
     gbm_clean_context_share: float = 0.25  # copies of training pairs in a clean neighbourhood (ms3d_model.context)
     gbm_balanced: bool = False  # inverse-frequency class weights (measured: no gain in AP on bad for the trees)
+    # cues the trees never split on (held constant in training): the mesh's own structure, which says where a
+    # real production's node borders, cracks and slivers are, not what the scan says about the surface
+    gbm_ignored_cues: tuple[str, ...] = ()
 
     def to_json(self) -> dict:
         d = asdict(self)
@@ -78,6 +81,7 @@ class Profile:
         d = dict(d)
         d["net"] = NetConfig.from_json(d["net"])
         d["milestones"] = tuple(d.get("milestones", ()))
+        d["gbm_ignored_cues"] = tuple(d.get("gbm_ignored_cues", ()))
         if "optimizer" not in d:  # written before the training switches existed: trained the paper's way
             d = PAPER_TRAINING | d
         return cls(**d)

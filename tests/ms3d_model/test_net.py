@@ -230,6 +230,32 @@ def test_the_trees_follow_the_profiles_gbm_fields_and_ship_a_threshold(tmp_path)
     assert Profile.from_json(old).gbm_leaves == Profile().gbm_leaves
 
 
+def test_ignored_cues_are_never_split_on_and_travel_in_the_checkpoint(tmp_path):
+    """gbm_ignored_cues: the trees never index an ignored column, however informative, and the profile in
+    the checkpoint names them (a fine-tune refits with the base's profile, so it keeps them)."""
+    import pytest
+
+    from flows.train import fit_tree_model, without_cues
+    from ms3d_model.cues import CUE_NAMES
+
+    ps = _pairs(300, seed=4)
+    oe, p2m = CUE_NAMES.index("open_edge_m"), CUE_NAMES.index("p2m_p90")
+    ps.cues[:, oe] += ps.labels * 5.0  # the prior cue separates the classes perfectly
+    ps.cues[:, p2m] += ps.labels * 0.5 + np.random.default_rng(0).normal(0, 0.4, len(ps))
+    base = replace(TINY, net=replace(TINY.net, arch="gbm", n_cues=N_CUES), gbm_max_iter=5, gbm_leaves=4, gbm_lr=0.3)
+    net, _, _ = load_checkpoint(fit_tree_model(base, ps.take(np.arange(200)), ps.take(np.arange(200, 300)),
+                                               tmp_path / "all")["best_path"])
+    assert oe in set(net.feature.flatten().tolist())  # the control reads it
+    prof = replace(base, gbm_ignored_cues=("open_edge_m", "open_edge_count"))
+    net, p2, _ = load_checkpoint(fit_tree_model(prof, ps.take(np.arange(200)), ps.take(np.arange(200, 300)),
+                                                tmp_path / "evidence")["best_path"])
+    used = set(net.feature.flatten().tolist())
+    assert oe not in used and p2m in used
+    assert p2.gbm_ignored_cues == ("open_edge_m", "open_edge_count")
+    with pytest.raises(ValueError, match="unknown cue names"):
+        without_cues(ps.cues, ("no_such_cue",))
+
+
 def test_geometry_inputs_are_the_points_distances_to_the_mesh_in_metres():
     """The geometry switch feeds each point's signed distance to its nearest face in metres: the same pair
     lifted off its sheet by 10 cm moves that channel by tanh(0.1 / 0.15) whatever the pair's scale, and the
