@@ -13,7 +13,8 @@ bare git folder (``git show``) and builds a case folder::
     truth/truth_mesh_faces.npz  per-face class from the normal (ground / wall / roof), and
     truth/registration.json  the frame origin, so ``report.quality`` measures the merged model against it
     case.json                source, licence, scale factor and how it was chosen, the frame, scan stats
-    campus.yaml              an ``ms3d run`` config (no labels: nothing is known bad)
+    truth/defects.json       no defects: every patch is labelled good (``ms3d evaluate`` counts false alarms)
+    campus.yaml              an ``ms3d run`` config (labels: that empty defects.json)
 
 The MVS frame is arbitrary (SfM scale and orientation). :func:`upright` finds it: the facade plane is the
 least principal axis of the area-weighted faces, turned to face the cameras (the mean face normal); "up"
@@ -55,7 +56,7 @@ DEFAULT_MIRROR = Path("/work/.mirror/cdcseacave+openMVS_sample/repo")
 CRS = "EPSG:2154"  # RGF93 / Lambert-93
 WORLD_ORIGIN = (650_000.0, 6_857_000.0, 60.0)  # near Sceaux (Hauts-de-Seine); z: ground about 60 m
 FACADE_HEIGHT_M = 15.0
-CASE_VERSION = 2
+CASE_VERSION = 3  # 3: labelled, every patch good
 
 
 def read_source(mirror: Path, name: str = SOURCE_FILE, cache: Path | None = None) -> Path:
@@ -177,9 +178,10 @@ def scan_agreement(out: Path, world: np.ndarray, faces: np.ndarray, n: int = 200
 
 
 def write_campus_yaml(out: Path, name: str) -> None:
-    """campus.yaml: the mesh and the scan are co-registered in EPSG:2154 (registration off), no labels."""
+    """campus.yaml: the mesh and the scan are co-registered in EPSG:2154 (registration off); the labels are
+    ``truth/defects.json`` without a defect (every patch good)."""
     cfg = {"name": name, "work_dir": f"../../{name}-work",
-           "inputs": {"mesh": ["mesh.ply"], "points": ["mls"], "crs": CRS},
+           "inputs": {"mesh": ["mesh.ply"], "points": ["mls"], "crs": CRS, "labels": "truth/defects.json"},
            "registration": {"mode": "off"}}
     (out / "campus.yaml").write_text(yaml.safe_dump(cfg, sort_keys=False))
 
@@ -209,6 +211,7 @@ def build_zero_defect(out: Path, mirror: Path = DEFAULT_MIRROR, street_m: float 
     (out / "truth" / "registration.json").write_text(json.dumps(
         {"frame_origin": list(WORLD_ORIGIN), "crs": CRS, "matrix_mls_to_mesh": np.eye(4).tolist(),
          "note": "zero-defect real-mesh case: the scan is simulated from the truth mesh, co-registered"}))
+    (out / "truth" / "defects.json").write_text(json.dumps({"frame_origin": list(WORLD_ORIGIN), "defects": []}))
     scene, trajs = scan(local, faces, cls, street_m, seed)
     stats = write_scan(out, scene, trajs, density, seed)
     stats.update(scan_agreement(out, world, faces))
