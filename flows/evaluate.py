@@ -26,6 +26,8 @@ from pathlib import Path
 
 import numpy as np
 
+from flows.evaluate_path import FACADE_MAX_HORIZONTAL, FIGURES, facade_mask, shipped_scores, with_flagged
+
 log = logging.getLogger("ms3d.evaluate")
 
 SUITE_CASES = {"ablation1": "(1)", "ablation2": "(2)", "ablation3": "(3)", "ablation4": "(4)", "ablation5": "(5)",
@@ -109,8 +111,11 @@ def evaluate(models: dict[str, str], eval_name: str, eval_wd: str, data: str = "
         ps = held[size]
         t = time.perf_counter()
         p = predict(net, ps, prof.eval_batch)
-        rep = classification_report(ps.labels, p, thr)
+        rep = with_flagged(classification_report(ps.labels, p, thr))
         rep["threshold"] = thr
+        rep["all"] = {k: rep[k] for k in (*FIGURES, "n")}
+        fac = facade_mask(ps.cues)
+        rep["facade"] = with_flagged(classification_report(ps.labels[fac], p[fac], thr)) if fac.any() else {}
         rep.update(forward_seconds(net, ps, uses_cues=net_uses_cues(net)))
         n_par = int(net.feature.numel()) if prof.net.arch == "gbm" else n_parameters(net)  # trees: node count
         rep.update({"parameters": n_par, "profile": prof.name, "path": str(path),
@@ -129,6 +134,7 @@ def evaluate(models: dict[str, str], eval_name: str, eval_wd: str, data: str = "
 
             kc = kernel_response_stats(net, to_batch(ps.feats.take(np.arange(min(64, len(ps))))))
         log.info("%s: threshold %.4f acc %.4f mAP %.4f", rep["model"], thr, rep["acc"], rep["map"])
+    shipped = shipped_path_row(eval_wd, held)
     trees = [k for k, r in results.items() if model_kind(r["net"]) == "gbm"]
     cue_s = _cue_seconds_per_pair(eval_wd) if trees else float("nan")
     for k in trees:
@@ -142,6 +148,7 @@ def evaluate(models: dict[str, str], eval_name: str, eval_wd: str, data: str = "
     cases = {names[k]: v for k, v in results.items() if k in names}
     case_cfg = {names[k]: v for k, v in configs.items() if k in names}
     text = "\n\n".join([table3(results), table4(cases, case_cfg), per_class(results)])
+    text += "\n\n" + path_table(results, shipped)
     if trees:
         text += (f"\n\nGBM time is the trees alone; its input, the hand-made cues, costs "
                  f"{cue_s * 1000:.1f} ms per pair to extract (the networks' featurisation is not timed either).")
@@ -150,11 +157,63 @@ def evaluate(models: dict[str, str], eval_name: str, eval_wd: str, data: str = "
             f"  {k:<14} mean {v['mean']:.3g}  median {v['median']:.3g}  >1e-3 {100 * v['frac_gt_1e-3']:.1f} %  "
             f">0.1 {100 * v['frac_gt_0.1']:.1f} %" for k, v in kc.items())
     text = f"Held-out campus {eval_name} ({eval_wd}): {n} labelled pairs\n\n" + text
-    res = {"campus": eval_name, "work_dir": eval_wd, "results": results, "kernel_stats": kc, "text": text}
+    res = {"campus": eval_name, "work_dir": eval_wd, "results": results, "shipped_path": shipped,
+           "kernel_stats": kc, "text": text}
     if out:
         Path(out).parent.mkdir(parents=True, exist_ok=True)
         Path(out).write_text(json.dumps(res, indent=1, default=str))
     return res
+
+
+def campus_rows(res: dict) -> dict:
+    """{row name: {"all": figures, "facade": figures}} of one campus's results (models and shipped path)."""
+    rows = {r.get("model", k): {"all": r.get("all", {}), "facade": r.get("facade", {})}
+            for k, r in res["results"].items()}
+    if res.get("shipped_path"):
+        sp = res["shipped_path"]
+        rows[f"shipped path: {sp['grader']}"] = {"all": sp["all"], "facade": sp["facade"]}
+    return rows
+
+
+def shipped_path_row(eval_wd: str, held: dict) -> dict | None:
+    """The shipped grading path's figures on the campus (its stored grades against the labels, all pairs and
+    facades), or None when the campus was processed without classify."""
+    from ms3d_model.metrics import classification_report
+
+    if not held:
+        return None
+    ps = next(iter(held.values()))
+    got = shipped_scores(eval_wd, ps.ijk)
+    if got is None:
+        return None
+    flagged, score, meta = got
+    thr = float(meta.get("threshold", 0.5))
+    fac = facade_mask(ps.cues)
+    row = {"grader": meta.get("grader", "?"), "model": meta.get("model", "?"), "threshold": thr,
+           "all": with_flagged(classification_report(ps.labels, score, thr)),
+           "facade": with_flagged(classification_report(ps.labels[fac], score[fac], thr)) if fac.any() else {}}
+    row["all"]["flagged"] = int(flagged.sum())
+    return row
+
+
+def path_table(results: dict, shipped: dict | None) -> str:
+    """The model alone (each checkpoint at its threshold) beside the shipped path, on all pairs and facades."""
+    head = f"{'row':<44} {'scope':<7} {'pairs':>6} " + " ".join(f"{k:>13}" for k in FIGURES)
+    lines = ["The model alone and the shipped grading path (model + evidence + user labels; stored grades), "
+             f"all pairs and facades (<= {FACADE_MAX_HORIZONTAL:.0%} of a patch's faces horizontal)", head]
+    rows = [(r.get("model", k), r) for k, r in results.items()]
+    if shipped:
+        rows.append((f"shipped path: {shipped['grader']}", shipped))
+    for name, r in rows:
+        for scope in ("all", "facade"):
+            rep = r.get(scope) or {}
+            if rep:
+                n = rep.get("n", 0)
+                lines.append(f"{name[:44]:<44} {scope:<7} {n:>6} " + " ".join(f"{rep.get(k, np.nan):>13.4f}"
+                                                                             for k in FIGURES))
+    if not shipped:
+        lines.append("(no stored grades: the campus was processed without classify, so no shipped-path row)")
+    return "\n".join(lines)
 
 
 def _result_key(name: str, kind: str, results: dict) -> str:
@@ -192,4 +251,5 @@ def suite_models(suite_dir: str) -> dict[str, str]:
     return {p.parent.name: str(p) for p in sorted(Path(suite_dir).glob("*/best.pt"))}
 
 
-__all__ = ["evaluate", "forward_seconds", "held_out_campus", "replace", "suite_models"]
+__all__ = ["campus_rows", "evaluate", "forward_seconds", "held_out_campus", "path_table", "replace", "shipped_path_row",
+           "suite_models"]

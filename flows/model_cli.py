@@ -6,6 +6,7 @@ import argparse
 import json
 import logging
 import sys
+from pathlib import Path
 
 
 def _cmd_finetune(a) -> int:
@@ -65,7 +66,8 @@ def _cmd_train(a) -> int:
 
 
 def _cmd_evaluate(a) -> int:
-    from flows.evaluate import evaluate, held_out_campus, suite_models
+    from flows.evaluate import campus_rows, evaluate, held_out_campus, suite_models
+    from flows.evaluate_path import spread_table
 
     models = suite_models(a.suite) if a.suite else {}
     for kv in a.model or []:
@@ -76,9 +78,20 @@ def _cmd_evaluate(a) -> int:
 
         models = {"ms3dqe": str(DEFAULT_MODEL)}
     logging.getLogger("ms3d").setLevel(logging.INFO)
-    name, wd = held_out_campus(a.seed, a.work_dir, a.campus, a.data)
-    res = evaluate(models, name, wd, data=a.data, out=a.out, threads=a.threads, max_pairs=a.max_pairs)
-    print(res["text"])
+    campuses = [held_out_campus(None, w, None, a.data) for w in a.work_dir or []]
+    campuses += [held_out_campus(None, None, c, a.data) for c in a.campus or []]
+    if not campuses or a.seed:
+        campuses += [held_out_campus(s, None, None, a.data) for s in (a.seed or [42])]
+    per_campus = {}
+    for name, wd in campuses:
+        out = a.out if len(campuses) == 1 or not a.out else str(Path(a.out).with_suffix("")) + f"_{name}.json"
+        res = evaluate(models, name, wd, data=a.data, out=out, threads=a.threads, max_pairs=a.max_pairs)
+        print(res["text"])
+        per_campus[name] = campus_rows(res)
+    if len(per_campus) > 1:
+        print("\n" + spread_table(per_campus))
+        if a.out:
+            Path(a.out).write_text(json.dumps(per_campus, indent=1, default=str))
     return 0
 
 
@@ -114,9 +127,11 @@ def add_commands(sub: argparse._SubParsersAction) -> None:
     e = sub.add_parser("evaluate", help="Tables 3 and 4 on a held-out campus")
     e.add_argument("--suite", help="a `ms3d train --suite` output folder")
     e.add_argument("--model", action="append", metavar="NAME=PATH", help="a checkpoint to score (repeatable)")
-    e.add_argument("--seed", type=int, default=42, help="held-out synth demo campus (never trained on)")
-    e.add_argument("--work-dir", help="score a processed labelled campus instead")
-    e.add_argument("--campus", help="score a campus config (YAML with inputs.labels) instead")
+    e.add_argument("--seed", type=int, action="append", help="held-out synth demo campus, never trained on "
+                   "(repeatable; default 42 when no --work-dir or --campus is given)")
+    e.add_argument("--work-dir", action="append", help="score a processed labelled campus instead (repeatable: "
+                   "each campus is scored, then the mean and spread over them)")
+    e.add_argument("--campus", action="append", help="score a campus config (YAML with inputs.labels; repeatable)")
     e.add_argument("--threads", type=int, default=1, help="torch threads (1 is fastest on a busy 2-core machine)")
     e.add_argument("--max-pairs", type=int, help="score a seeded random subset of this many labelled pairs")
     e.add_argument("--data", default="ms3d-work")

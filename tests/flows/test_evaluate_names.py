@@ -93,3 +93,52 @@ def test_evaluate_grades_at_the_checkpoints_own_threshold(tiny_work, tmp_path):
     p = predict(net, ps, 256)
     assert r["confusion"] == classification_report(ps.labels, p, 0.05)["confusion"]
     assert r["confusion"] != classification_report(ps.labels, p, 0.5)["confusion"]
+
+
+def test_evaluate_scores_the_shipped_path_beside_the_model(tiny_work, tmp_path):
+    """The stored grades (model + evidence + user labels) are scored against the labels beside the model
+    alone: a patch an override graded bad counts as flagged though its score is low."""
+    import json
+    import shutil
+
+    import numpy as np
+    import pandas as pd
+    import pyarrow as pa
+    import pyarrow.parquet as pq
+
+    from flows.evaluate import evaluate
+    from storage.workdir.layout import WorkDir
+    from tasks.classify import DEFAULT_MODEL
+
+    _, wd = tiny_work
+    work = tmp_path / "work"
+    shutil.copytree(wd.root, work)
+    forced = []
+    for t in WorkDir(work).live_tiles():
+        td = WorkDir(work).tile_dir(t)
+        keys = pd.read_parquet(td / "patches.parquet", columns=["patch"])["patch"].to_numpy()
+        grade = np.zeros(len(keys), np.int8)
+        grade[::7] = 1  # what the evidence rule or a user label graded bad
+        forced.append(keys[::7])
+        table = pa.table({"patch": keys, "score": np.full(len(keys), 0.01, np.float32), "grade": grade})
+        meta = {"grader": "test grader", "model": "x.pt", "threshold": 0.3}
+        pq.write_table(table.replace_schema_metadata({"ms3d": json.dumps(meta)}), td / "grades.parquet")
+    res = evaluate({"gbm": str(DEFAULT_MODEL)}, "tiny", str(work), data=str(tmp_path))
+    sp = res["shipped_path"]
+    assert sp["grader"] == "test grader" and sp["threshold"] == 0.3
+    assert sp["all"]["n"] == res["results"]["gbm"]["n"]
+    cm = np.asarray(sp["all"]["confusion"])
+    assert cm[:, 1].sum() == sp["all"]["flagged"] > 0
+    assert sp["all"]["flagged"] <= sum(len(f) for f in forced)
+    assert 0 < sp["facade"]["n"] < sp["all"]["n"]
+    assert "shipped path: test grader" in res["text"]
+
+
+def test_the_spread_over_campuses():
+    from flows.evaluate_path import spread, spread_table, with_flagged
+
+    s = spread([{"ap_bad": 0.8}, {"ap_bad": 0.9}, {"ap_bad": float("nan")}])["ap_bad"]
+    assert s["n"] == 2 and abs(s["mean"] - 0.85) < 1e-12 and (s["min"], s["max"]) == (0.8, 0.9)
+    assert with_flagged({"confusion": [[8, 2], [1, 9]]})["flagged_share"] == 11 / 20
+    text = spread_table({"a": {"m": {"all": {"ap_bad": 0.8}}}, "b": {"m": {"all": {"ap_bad": 0.9}}}})
+    assert "Across 2 campuses (a, b)" in text and "0.850 [0.800, 0.900]" in text
