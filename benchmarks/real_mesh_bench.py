@@ -1,6 +1,7 @@
-"""No harm on a good real mesh: ``ms3d run`` on the zero-defect real-mesh case, per checkpoint.
+"""Real meshes: no harm on a good one, repair of a defective one, per checkpoint, with the synth beside.
 
     .venv/bin/python benchmarks/real_mesh_bench.py [--case DIR] [--work-root DIR] [--models default,geo]
+        [--defect-seeds 2] [--synth WORK_DIR ...]
 
 The case (:mod:`benchmarks.real_cases`: the Sceaux castle MVS mesh scaled to metres in EPSG:2154 and an
 MLS ray-cast from it along a street) is built once and reused while its key holds. Each checkpoint runs the
@@ -16,6 +17,15 @@ work dir. Figures per checkpoint:
   and of the input as ingest stored it), and the share of merged area that repair rebuilt.
 
 The no-harm goal on a zero-defect case: <= 3 % bad, F@5cm >= 0.98, area within +-3 %.
+
+Defect cases (:mod:`benchmarks.real_defects`, one per ``--defect-seeds`` seed: the zero case's truth and
+scan, the mesh with labelled injected defects) print, per checkpoint: bad recall / precision of the shipped
+grades against the labels, and F@5cm and uncovered area of the input mesh and of the merged model against
+the truth, with the classes (ground, wall, roof) the merged model does worse on. The goal there: ms3d beats
+the input on F@5cm and on uncovered area with no class worse.
+
+``--synth W ...``: processed, labelled synth work dirs (never used for a choice) scored with ``ms3d evaluate``
+per checkpoint (the model alone and the shipped path): mean [min, max] of AP, precision and recall on bad.
 """
 
 from __future__ import annotations
@@ -35,6 +45,7 @@ sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 
 from real_cases import DEFAULT_MIRROR, build_zero_defect
+from real_defects import build_defect_case
 
 from storage.contracts.tile_mesh import SOURCE_REBUILT, read_tile_mesh
 from storage.workdir.layout import WorkDir
@@ -115,6 +126,75 @@ def bench_model(case: Path, work_root: Path, name: str, force: bool, extra: tupl
     return row
 
 
+def labelled_grades(work: Path) -> dict:
+    """Bad recall / precision of the stored grades (the shipped path) against the labels, over patches with
+    both: {"labelled_bad", "flagged", "recall_bad", "precision_bad"}."""
+    tp = fp = fn = 0
+    for td in sorted((work / "tiles").glob("*/grades.parquet")):
+        g = pd.read_parquet(td, columns=["patch", "grade"])
+        lab = td.parent / "labels.parquet"
+        if not lab.exists():
+            continue
+        m = g.merge(pd.read_parquet(lab, columns=["patch", "label"]), on="patch")
+        m = m[(m["grade"] >= 0) & (m["label"] >= 0)]
+        tp += int(((m["grade"] == 1) & (m["label"] == 1)).sum())
+        fp += int(((m["grade"] == 1) & (m["label"] == 0)).sum())
+        fn += int(((m["grade"] == 0) & (m["label"] == 1)).sum())
+    return {"labelled_bad": tp + fn, "flagged": tp + fp, "recall_bad": tp / max(1, tp + fn),
+            "precision_bad": tp / max(1, tp + fp)}
+
+
+def input_vs_merged(work: Path) -> dict:
+    """F@5cm and uncovered area (m^2) of the input mesh and the merged model against the truth, and the
+    classes whose F@5cm or uncovered area the merged model makes worse."""
+    rows = json.loads((work / "report" / "quality.json").read_text())["rows"]
+    out, worse = {}, []
+    for name, key in (("input mesh", "in"), ("merged model", "out")):
+        r = rows[name]
+        out[f"f5_{key}"] = r["fscore"][r["taus_m"].index(0.05)]
+        out[f"uncovered_{key}_m2"] = r["uncovered_area_m2"]
+    for c, ri in rows["input mesh"]["per_class"].items():
+        ro = rows["merged model"]["per_class"].get(c)
+        if ro and (ro["fscore"][0] < ri["fscore"][0] - 1e-3 or ro["uncovered_area_m2"] > ri["uncovered_area_m2"] + 0.05):
+            worse.append(c)
+    out["classes_worse"] = worse
+    out["beats_input"] = bool(out["f5_out"] > out["f5_in"] and out["uncovered_out_m2"] <= out["uncovered_in_m2"]
+                              and not worse)
+    return out
+
+
+def bench_defect_case(case: Path, work_root: Path, name: str, force: bool) -> dict:
+    """One checkpoint on one defect case: the shipped grades against the labels, input vs merged quality."""
+    work = work_root / f"work-{case.name}-{name}"
+    if force and work.exists():
+        shutil.rmtree(work)
+    work_root.mkdir(parents=True, exist_ok=True)
+    seconds = run_pipeline(case, work, MODELS[name], work.with_suffix(".log"))
+    return {"case": case.name, "checkpoint": name, **labelled_grades(work), **input_vs_merged(work),
+            **areas(work), "run_s": seconds}
+
+
+def print_defect_table(rows: list[dict]) -> None:
+    print("defect cases (the real mesh as truth, labelled injected defects): shipped grades against the labels; "
+          "F@5cm and uncovered area against the truth; goal: merged beats input, no class worse")
+    print(f"{'case':<18} {'checkpoint':<10} {'bad':>5} {'flag':>5} {'R bad':>6} {'P bad':>6} {'F5 in':>6} "
+          f"{'F5 out':>6} {'unc in':>7} {'unc out':>7} {'worse':<12} goal")
+    for r in rows:
+        print(f"{r['case']:<18} {r['checkpoint']:<10} {r['labelled_bad']:>5} {r['flagged']:>5} {r['recall_bad']:>6.3f} "
+              f"{r['precision_bad']:>6.3f} {r['f5_in']:>6.3f} {r['f5_out']:>6.3f} {r['uncovered_in_m2']:>7.2f} "
+              f"{r['uncovered_out_m2']:>7.2f} {','.join(r['classes_worse']) or '-':<12} "
+              f"{'met' if r['beats_input'] else 'missed'}")
+
+
+def synth_rows(work_dirs: list[str], names: list[str], data: Path) -> dict:
+    """``ms3d evaluate`` of each checkpoint on each synth work dir: {campus: {row: {"all", "facade"}}}."""
+    from flows.evaluate import campus_rows, evaluate
+    from tasks.classify import DEFAULT_MODEL
+
+    models = {n: str(MODELS[n] or DEFAULT_MODEL) for n in names}
+    return {Path(w).name: campus_rows(evaluate(models, Path(w).name, w, data=str(data))) for w in work_dirs}
+
+
 def print_table(case_doc: dict, rows: list[dict]) -> None:
     scan = case_doc["scan"]
     print(f"zero-defect real mesh: {case_doc['mesh']} ({case_doc['faces']:,} faces, {case_doc['area_m2']:.1f} m^2, "
@@ -144,16 +224,38 @@ def main(argv: list[str] | None = None) -> None:
     ap.add_argument("--street-m", type=float, default=12.0, help="the case's road distance from the facade")
     ap.add_argument("--models", default="default,geo", help=f"checkpoints among {','.join(MODELS)}")
     ap.add_argument("--force", action="store_true", help="empty the work dirs first (a clean run)")
+    ap.add_argument("--model", action="append", default=[], metavar="NAME=PATH",
+                    help="another checkpoint to bench (a candidate); name it in --models too")
+    ap.add_argument("--defect-seeds", default="2", help="defect cases of the zero case, one per seed "
+                    "(comma-separated; empty: none)")
+    ap.add_argument("--synth", nargs="*", default=[], metavar="WORK_DIR",
+                    help="processed labelled synth work dirs scored beside (ms3d evaluate per checkpoint)")
     ap.add_argument("--set", dest="sets", action="append", default=[], metavar="KEY=VALUE",
                     help="extra config override for every run (a diagnosis, e.g. classify.evidence=false); "
                          "its runs get their own work dirs")
     a = ap.parse_args(argv)
     case = build_zero_defect(a.case, a.mirror, street_m=a.street_m, density=a.mls_density)
     case_doc = json.loads((case / "case.json").read_text())
-    rows = [bench_model(case, a.work_root, name, a.force, tuple(a.sets)) for name in a.models.split(",")]
+    for kv in a.model:
+        k, _, v = kv.partition("=")
+        MODELS[k] = Path(v).absolute()
+    names = a.models.split(",")
+    rows = [bench_model(case, a.work_root, name, a.force, tuple(a.sets)) for name in names]
     print_table(case_doc, rows)
+    defect_rows = []
+    for seed in [int(x) for x in a.defect_seeds.split(",") if x.strip()]:
+        dcase = build_defect_case(case, case.parent / f"{case.name.replace('-zero', '')}-defects-{seed}", seed)
+        defect_rows += [bench_defect_case(dcase, a.work_root, name, a.force) for name in names]
+    if defect_rows:
+        print_defect_table(defect_rows)
+    synth = synth_rows(a.synth, names, a.work_root / "evaluate") if a.synth else {}
+    if synth:
+        from flows.evaluate_path import spread_table
+
+        print(spread_table(synth))
     out = a.work_root / ("real_mesh_bench" + "".join(f"-{kv.replace('=', '_')}" for kv in a.sets) + ".json")
-    out.write_text(json.dumps({"case": str(case), "rows": rows}, indent=1))
+    out.write_text(json.dumps({"case": str(case), "rows": rows, "defect_rows": defect_rows, "synth": synth},
+                              indent=1, default=str))
     print(f"rows: {out}")
 
 
