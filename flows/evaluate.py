@@ -198,7 +198,9 @@ def shipped_path_row(eval_wd: str, held: dict) -> dict | None:
 
 def path_table(results: dict, shipped: dict | None) -> str:
     """The model alone (each checkpoint at its threshold) beside the shipped path, on all pairs and facades."""
-    head = f"{'row':<44} {'scope':<7} {'pairs':>6} " + " ".join(f"{k:>13}" for k in FIGURES)
+    width = max([44] + [len(r.get("model", k)) for k, r in results.items()]
+                + ([len(shipped["grader"]) + 14] if shipped else []))
+    head = f"{'row':<{width}} {'scope':<7} {'pairs':>6} " + " ".join(f"{k:>13}" for k in FIGURES)
     lines = ["The model alone and the shipped grading path (model + evidence + user labels; stored grades), "
              f"all pairs and facades (<= {FACADE_MAX_HORIZONTAL:.0%} of a patch's faces horizontal)", head]
     rows = [(r.get("model", k), r) for k, r in results.items()]
@@ -209,7 +211,7 @@ def path_table(results: dict, shipped: dict | None) -> str:
             rep = r.get(scope) or {}
             if rep:
                 n = rep.get("n", 0)
-                lines.append(f"{name[:44]:<44} {scope:<7} {n:>6} " + " ".join(f"{rep.get(k, np.nan):>13.4f}"
+                lines.append(f"{name:<{width}} {scope:<7} {n:>6} " + " ".join(f"{rep.get(k, np.nan):>13.4f}"
                                                                              for k in FIGURES))
     if not shipped:
         lines.append("(no stored grades: the campus was processed without classify, so no shipped-path row)")

@@ -23,7 +23,10 @@ def with_flagged(rep: dict) -> dict:
     """``rep`` (a classification report) with "flagged_share": the share of its pairs called bad (on a
     zero-defect case, the false-alarm share: how much of a good mesh repair would rebuild)."""
     cm = np.asarray(rep.get("confusion", [[0, 0], [0, 0]]))
-    return rep | {"flagged_share": float(cm[:, 1].sum() / cm.sum()) if cm.sum() else float("nan")}
+    out = rep | {"flagged_share": float(cm[:, 1].sum() / cm.sum()) if cm.sum() else float("nan")}
+    if cm.sum() and not cm[1].sum():  # no labelled bad pair: precision on bad says nothing (0 by definition)
+        out |= {"precision_bad": float("nan"), "f1_bad": float("nan")}
+    return out
 
 
 def facade_mask(cues: np.ndarray) -> np.ndarray:
@@ -96,13 +99,14 @@ def spread_table(per_campus: dict[str, dict[str, dict]]) -> str:
             for scope in ("all", "facade"):
                 if scope in rep:
                     rows.setdefault((name, scope), []).append(rep[scope])
-    head = f"{'row':<34} {'scope':<7} {'n':>2} " + " ".join(f"{k:>22}" for k in FIGURES)
+    width = max([34] + [len(name) for res in per_campus.values() for name in res])
+    head = f"{'row':<{width}} {'scope':<7} {'n':>2} " + " ".join(f"{k:>22}" for k in FIGURES)
     lines = [f"Across {len(per_campus)} campuses ({', '.join(per_campus)}): mean [min, max]", head]
     for (name, scope), reps in rows.items():
         s = spread(reps)
         cells = " ".join(f"{v['mean']:>8.3f} [{v['min']:.3f}, {v['max']:.3f}]" if v["n"] else f"{'-':>22}"
                          for v in s.values())
-        lines.append(f"{name:<34} {scope:<7} {len(reps):>2} {cells}")
+        lines.append(f"{name:<{width}} {scope:<7} {len(reps):>2} {cells}")
     return "\n".join(lines)
 
 
