@@ -165,9 +165,15 @@ def evaluate(models: dict[str, str], eval_name: str, eval_wd: str, data: str = "
     return res
 
 
+def _row_name(key: str, rep: dict) -> str:
+    """A row's name: the checkpoint's label, after the name it was passed under unless that is a kind's."""
+    name, label = rep.get("passed_as", key), rep.get("model", key)
+    return label if name in ("gbm", "ms3dqe") else f"{name}: {label}"
+
+
 def campus_rows(res: dict) -> dict:
     """{row name: {"all": figures, "facade": figures}} of one campus's results (models and shipped path)."""
-    rows = {r.get("model", k): {"all": r.get("all", {}), "facade": r.get("facade", {})}
+    rows = {_row_name(k, r): {"all": r.get("all", {}), "facade": r.get("facade", {})}
             for k, r in res["results"].items()}
     if res.get("shipped_path"):
         sp = res["shipped_path"]
@@ -203,7 +209,7 @@ def path_table(results: dict, shipped: dict | None) -> str:
     head = f"{'row':<{width}} {'scope':<7} {'pairs':>6} " + " ".join(f"{k:>13}" for k in FIGURES)
     lines = ["The model alone and the shipped grading path (model + evidence + user labels; stored grades), "
              f"all pairs and facades (<= {FACADE_MAX_HORIZONTAL:.0%} of a patch's faces horizontal)", head]
-    rows = [(r.get("model", k), r) for k, r in results.items()]
+    rows = [(_row_name(k, r), r) for k, r in results.items()]
     if shipped:
         rows.append((f"shipped path: {shipped['grader']}", shipped))
     for name, r in rows:
