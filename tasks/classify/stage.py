@@ -154,6 +154,18 @@ def tile_evidence(tp, patches: dict, ccfg) -> Evidence:
                            standing_normal_z=ccfg.evidence_standing_normal_z)
 
 
+def count_outliers(tile_dir: Path, keys: np.ndarray) -> np.ndarray:
+    """(U,) bool: the tile's patches the outliers stage flagged by point or face count (not those merely below
+    the minimum counts: those are no pair anyway); all False when the stage wrote no flags."""
+    from storage.patches.read import read_side_table
+
+    side = read_side_table(tile_dir, "outliers", keys)
+    if side is None:
+        return np.zeros(len(keys), bool)
+    cols, _ = side
+    return np.asarray(cols["outlier_points"], bool) | np.asarray(cols["outlier_faces"], bool)
+
+
 def run_classify_tile(tile: TileId, cfg, wd: WorkDir) -> dict | None:
     """Grade every pair of one tile into ``grades.parquet``.
 
@@ -174,10 +186,12 @@ def run_classify_tile(tile: TileId, cfg, wd: WorkDir) -> dict | None:
         model = load_model(ccfg.model)
     except InputError as e:
         return {"unit": tile.key, "status": "failed", "error": str(e), "skipped": False}
-    fp = store_fingerprint(tile_dir)
+    fp = store_fingerprint(tile_dir, ("outliers",) if ccfg.outliers == "unknown" else ())
     threshold = float(ccfg.threshold) if ccfg.threshold is not None else model.threshold
     params = {"model_hash": model.hash, "threshold": threshold,
               "min_faces": cfg.partition.min_faces, "min_points": cfg.partition.min_points}
+    if ccfg.outliers != "grade":
+        params["outliers"] = ccfg.outliers
     if ccfg.evidence:
         params["evidence"] = {k: v for k, v in ccfg.model_dump().items() if k.startswith("evidence_")}
     try:
@@ -206,18 +220,22 @@ def run_classify_tile(tile: TileId, cfg, wd: WorkDir) -> dict | None:
         ev = tile_evidence(tp, store.patches(), ccfg) if ccfg.evidence else None
         if ev is not None:
             grade[ev.bad] = 1
+        outlier = count_outliers(tile_dir, keys) if ccfg.outliers == "unknown" else np.zeros(len(keys), bool)
+        grade[outlier] = -1
         user = apply_user_labels(np.asarray(keys, np.int64), grade, np.asarray(ukeys, np.int64),
                                  np.asarray(ulabs, np.int8))
         t_evidence = time.perf_counter() - t1 - t_grade
         write_side_table(tile_dir, "grades", {"patch": keys, "score": score, "grade": grade}, store.meta,
                          model_hash=model.hash, model=Path(model.path).name, profile=model.profile.name,
                          grader=model.label + (" + the evidence rule" if ev is not None else ""),
-                         threshold=threshold, user_labels=int((user >= 0).sum()))
+                         threshold=threshold, user_labels=int((user >= 0).sum()),
+                         outliers=ccfg.outliers, outliers_unknown=int((outlier & (user < 0)).sum()))
         summary = {"tile": tile.key, "n_patches": len(keys), "n_pairs": int(np.isfinite(score).sum()), "n_bad": int((grade == 1).sum()),
                    "n_unknown": int((grade == -1).sum()), "model_hash": model.hash,
                    "n_evidence_bad": int(ev.bad.sum()) if ev is not None else 0,
                    "n_missing_surface": int(ev.missing.sum()) if ev is not None else 0,
                    "n_user_labels": int((user >= 0).sum()),
+                   "n_outlier_unknown": int((outlier & (user < 0)).sum()),
                    "read_seconds": t_read, "grade_seconds": t_grade, "evidence_seconds": t_evidence,
                    "pairs_per_s": len(tp) / t_grade if t_grade > 0 and len(tp) else 0.0}
         return Done(outputs=[str(side_table_path(tile_dir, "grades").relative_to(wd.root))], summary=summary)

@@ -97,3 +97,41 @@ def test_the_users_labels_win_and_regrade_only_their_tile(tiny_work, tmp_path):
         assert failed["status"] == "failed" and "broken.csv" in failed["error"] and "label must be" in failed["error"]
     finally:
         shutil.rmtree(wd.root / LABELS_DIR, ignore_errors=True)
+
+
+def test_count_outliers_are_graded_unknown_when_asked_and_the_record_says_so(tiny_work, tmp_path):
+    """classify.outliers 'unknown': the patches the outliers stage flagged by count get grade -1 (their score
+    kept), the grades' metadata and the unit record count them; 'grade' (the default) grades them."""
+    import json
+    import shutil
+
+    import pyarrow.parquet as pq
+
+    from storage.workdir.layout import WorkDir
+    from tasks.classify import run_classify_tile
+
+    cfg, wd = tiny_work
+    shutil.copytree(wd.root, tmp_path / "work")
+    wd = WorkDir(tmp_path / "work")
+    _checkpoint(tmp_path / "m.pt", 0)
+    base = cfg.classify.model_copy(update={"enabled": True, "model": str(tmp_path / "m.pt"), "evidence": False})
+    cfg_grade = cfg.model_copy(update={"work_dir": str(wd.root), "classify": base})
+    cfg_unk = cfg.model_copy(update={"work_dir": str(wd.root), "classify": base.model_copy(update={"outliers": "unknown"})})
+    n_flagged = 0
+    for t in wd.live_tiles():
+        store = PatchStore(wd.tile_dir(t))
+        o = store.side("outliers")
+        flagged = o["outlier_points"] | o["outlier_faces"]
+        run_classify_tile(t, cfg_grade, wd)
+        graded = store.side("grades")["grade"]
+        res = run_classify_tile(t, cfg_unk, wd)
+        assert not res["skipped"]  # the switch regrades
+        g = store.side("grades")
+        pair = graded >= 0
+        assert (g["grade"][flagged] == -1).all()
+        np.testing.assert_array_equal(g["grade"][~flagged], graded[~flagged])
+        assert res["n_outlier_unknown"] == int((flagged & pair).sum() + (flagged & ~pair).sum())
+        meta = json.loads(pq.read_schema(wd.tile_dir(t) / "grades.parquet").metadata[b"ms3d"])
+        assert meta["outliers"] == "unknown" and meta["outliers_unknown"] == res["n_outlier_unknown"]
+        n_flagged += int((flagged & pair).sum())
+    assert n_flagged > 0
