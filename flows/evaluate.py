@@ -89,7 +89,6 @@ def evaluate(models: dict[str, str], eval_name: str, eval_wd: str, data: str = "
     into the tables)."""
     import torch
 
-    from ms3d_model.metrics import classification_report
     from ms3d_model.net import kernel_response_stats, n_parameters
     from ms3d_model.report import model_kind, model_label, per_class, table3, table4
     from ms3d_model.train import checkpoint_threshold, load_checkpoint, net_uses_cues, predict
@@ -111,11 +110,7 @@ def evaluate(models: dict[str, str], eval_name: str, eval_wd: str, data: str = "
         ps = held[size]
         t = time.perf_counter()
         p = predict(net, ps, prof.eval_batch)
-        rep = with_flagged(classification_report(ps.labels, p, thr))
-        rep["threshold"] = thr
-        rep["all"] = {k: rep[k] for k in (*FIGURES, "n")}
-        fac = facade_mask(ps.cues)
-        rep["facade"] = with_flagged(classification_report(ps.labels[fac], p[fac], thr)) if fac.any() else {}
+        rep = scoped_report(ps, p, thr)
         rep.update(forward_seconds(net, ps, uses_cues=net_uses_cues(net)))
         n_par = int(net.feature.numel()) if prof.net.arch == "gbm" else n_parameters(net)  # trees: node count
         rep.update({"parameters": n_par, "profile": prof.name, "path": str(path),
@@ -163,6 +158,19 @@ def evaluate(models: dict[str, str], eval_name: str, eval_wd: str, data: str = "
         Path(out).parent.mkdir(parents=True, exist_ok=True)
         Path(out).write_text(json.dumps(res, indent=1, default=str))
     return res
+
+
+def scoped_report(ps, p_bad: np.ndarray, thr: float) -> dict:
+    """The classification report of scores ``p_bad`` (B,) on the pairs ``ps`` at ``thr``, with its "all" and
+    "facade" scopes (and the flagged share) beside it."""
+    from ms3d_model.metrics import classification_report
+
+    rep = with_flagged(classification_report(ps.labels, p_bad, thr))
+    rep["threshold"] = thr
+    rep["all"] = {k: rep[k] for k in (*FIGURES, "n")}
+    fac = facade_mask(ps.cues)
+    rep["facade"] = with_flagged(classification_report(ps.labels[fac], p_bad[fac], thr)) if fac.any() else {}
+    return rep
 
 
 def _row_name(key: str, rep: dict) -> str:

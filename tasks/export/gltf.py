@@ -26,7 +26,12 @@ from functools import lru_cache
 
 import numpy as np
 
-from tasks.export.face_quality import FACE_QUALITY_CLASS, face_quality_table, feature_id_values, split_per_face
+from tasks.export.face_quality import (
+    FACE_QUALITY_CLASS,
+    face_quality_table,
+    feature_id_values,
+    split_per_face,
+)
 from tasks.export.vertex_split import split_by_feature
 from tasks.geometry.triangles import vertex_normals
 
