@@ -253,7 +253,8 @@ def main(argv: list[str] | None = None) -> None:
         from flows.evaluate_path import spread_table
 
         print(spread_table(synth))
-    out = a.work_root / ("real_mesh_bench" + "".join(f"-{kv.replace('=', '_')}" for kv in a.sets) + ".json")
+    out = a.work_root / ("real_mesh_bench-" + "+".join(names) + "".join(f"-{kv.replace('=', '_')}" for kv in a.sets)
+                         + ".json")  # one file per checkpoint list: a later run of others does not overwrite it
     out.write_text(json.dumps({"case": str(case), "rows": rows, "defect_rows": defect_rows, "synth": synth},
                               indent=1, default=str))
     print(f"rows: {out}")

@@ -192,8 +192,6 @@ def campus_rows(res: dict) -> dict:
 def shipped_path_row(eval_wd: str, held: dict) -> dict | None:
     """The shipped grading path's figures on the campus (its stored grades against the labels, all pairs and
     facades), or None when the campus was processed without classify."""
-    from ms3d_model.metrics import classification_report
-
     if not held:
         return None
     ps = next(iter(held.values()))
@@ -201,11 +199,9 @@ def shipped_path_row(eval_wd: str, held: dict) -> dict | None:
     if got is None:
         return None
     flagged, score, meta = got
-    thr = float(meta.get("threshold", 0.5))
-    fac = facade_mask(ps.cues)
-    row = {"grader": meta.get("grader", "?"), "model": meta.get("model", "?"), "threshold": thr,
-           "all": with_flagged(classification_report(ps.labels, score, thr)),
-           "facade": with_flagged(classification_report(ps.labels[fac], score[fac], thr)) if fac.any() else {}}
+    rep = scoped_report(ps, score, float(meta.get("threshold", 0.5)))
+    row = {"grader": meta.get("grader", "?"), "model": meta.get("model", "?"), "threshold": rep["threshold"],
+           "all": {k: v for k, v in rep.items() if k not in ("all", "facade")}, "facade": rep["facade"]}
     row["all"]["flagged"] = int(flagged.sum())
     return row
 

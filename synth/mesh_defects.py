@@ -29,29 +29,22 @@ from dataclasses import dataclass, field
 import numpy as np
 from scipy.spatial import cKDTree
 
+from .defects import DefectSpec  # rate per 100 m^2 of wall-like area, radius and magnitude ranges
+
 MESH_DEFECT_TYPES = ("hole", "bridge", "melt", "protrusion", "dent", "offset", "noise", "thin")
 _Z = np.array([0.0, 0.0, 1.0])
 
 
-@dataclass(frozen=True)
-class MeshDefectSpec:
-    """rate_per_100m2: expected count per 100 m^2 of wall-like area; radius_m, magnitude_m: uniform ranges."""
-
-    rate_per_100m2: float
-    radius_m: tuple[float, float]
-    magnitude_m: tuple[float, float] = (0.0, 0.0)
-
-
-def _default_specs() -> dict[str, MeshDefectSpec]:
+def _default_specs() -> dict[str, DefectSpec]:
     return {
-        "hole": MeshDefectSpec(0.8, (0.5, 1.5)),
-        "bridge": MeshDefectSpec(0.6, (0.6, 1.6)),
-        "melt": MeshDefectSpec(0.5, (0.8, 2.0), (0.2, 0.8)),
-        "protrusion": MeshDefectSpec(0.6, (0.6, 1.6), (0.2, 0.8)),
-        "dent": MeshDefectSpec(0.6, (0.5, 1.2), (0.1, 0.4)),
-        "offset": MeshDefectSpec(0.3, (1.0, 2.5), (0.1, 0.3)),
-        "noise": MeshDefectSpec(0.4, (0.8, 2.0), (0.05, 0.15)),
-        "thin": MeshDefectSpec(0.3, (0.8, 1.6)),
+        "hole": DefectSpec(0.8, (0.5, 1.5)),
+        "bridge": DefectSpec(0.6, (0.6, 1.6)),
+        "melt": DefectSpec(0.5, (0.8, 2.0), (0.2, 0.8)),
+        "protrusion": DefectSpec(0.6, (0.6, 1.6), (0.2, 0.8)),
+        "dent": DefectSpec(0.6, (0.5, 1.2), (0.1, 0.4)),
+        "offset": DefectSpec(0.3, (1.0, 2.5), (0.1, 0.3)),
+        "noise": DefectSpec(0.4, (0.8, 2.0), (0.05, 0.15)),
+        "thin": DefectSpec(0.3, (0.8, 1.6)),
     }
 
 
@@ -59,7 +52,7 @@ def _default_specs() -> dict[str, MeshDefectSpec]:
 class MeshDefectParams:
     """Rates, sizes and thresholds of :func:`inject_mesh_defects` (metres)."""
 
-    specs: dict[str, MeshDefectSpec] = field(default_factory=_default_specs)
+    specs: dict[str, DefectSpec] = field(default_factory=_default_specs)
     max_normal_z: float = 0.4  # a defect centre sits on a face this close to vertical (|n_z| below it)
     min_height_m: float = 0.5  # and this far above the lowest vertex (not on the ground)
     affected_min_m: float = 0.03  # a vertex counts as changed from this displacement on
@@ -261,5 +254,5 @@ def inject_mesh_defects(rng: np.random.Generator, vertices: np.ndarray, faces: n
     return v[used], remap.reshape(-1, 3).astype(np.int64), defects
 
 
-__all__ = ["MESH_DEFECT_TYPES", "MeshDefectParams", "MeshDefectSpec", "disc_frame", "displacement", "face_frames",
+__all__ = ["MESH_DEFECT_TYPES", "MeshDefectParams", "disc_frame", "displacement", "face_frames",
            "inject_mesh_defects", "plan_mesh_defects", "sample_faces"]

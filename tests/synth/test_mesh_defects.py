@@ -3,7 +3,8 @@
 import numpy as np
 import pytest
 
-from synth.mesh_defects import MESH_DEFECT_TYPES, MeshDefectParams, MeshDefectSpec, inject_mesh_defects
+from synth.defects import DefectSpec
+from synth.mesh_defects import MESH_DEFECT_TYPES, MeshDefectParams, inject_mesh_defects
 
 
 def wall_mesh(w=20.0, h=10.0, step=0.1):
@@ -23,7 +24,7 @@ def wall_mesh(w=20.0, h=10.0, step=0.1):
 
 def only(typ, rate=2.0, **kw):
     base = MeshDefectParams().specs
-    return MeshDefectParams(specs={typ: MeshDefectSpec(rate, *([base[typ].radius_m, base[typ].magnitude_m]))}, **kw)
+    return MeshDefectParams(specs={typ: DefectSpec(rate, *([base[typ].radius_m, base[typ].magnitude_m]))}, **kw)
 
 
 @pytest.mark.parametrize("typ", MESH_DEFECT_TYPES)
