@@ -116,16 +116,20 @@ def building_mesh(seq: bytes, building: str = BUILDING) -> tuple[np.ndarray, np.
         for g in obj.get("geometry", []):
             if best is None or float(g.get("lod", 0)) > float(best.get("lod", 0)):
                 best = g
-    faces = []
+    faces, inner_rings, untriangulated = [], 0, 0
     shells = best["boundaries"] if best["type"] == "Solid" else [best["boundaries"]]
     for shell in shells:
         for surface in shell:
-            ring = np.asarray(surface[0], np.int64)  # outer ring; inner rings (rare on LoD2.2) are left out
-            faces += [ring[t] for t in ear_clip(verts[ring])]
+            ring = np.asarray(surface[0], np.int64)  # outer ring; inner rings (rare on LoD2.2) are left out, counted
+            inner_rings += len(surface) - 1
+            tris = ear_clip(verts[ring])
+            untriangulated += int(len(tris) == 0)
+            faces += [ring[t] for t in tris]
     faces = np.asarray(faces, np.int64)
     used, inv = np.unique(faces, return_inverse=True)
     info = {"lod": best.get("lod"), "geometry": best["type"], "surfaces": sum(len(s) for s in shells),
-            "triangles": len(faces), "crs": head.get("metadata", {}).get("referenceSystem")}
+            "triangles": len(faces), "inner_rings_left_out": inner_rings, "surfaces_not_triangulated": untriangulated,
+            "crs": head.get("metadata", {}).get("referenceSystem")}
     return verts[used], inv.reshape(-1, 3), info
 
 
