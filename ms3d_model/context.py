@@ -11,9 +11,20 @@ from __future__ import annotations
 
 import numpy as np
 
-from .cues import CONTEXT_CUE_NAMES, CONTEXT_SOURCES, CUE_NAMES, PAIR_CUE_NAMES  # noqa: F401 - the doctests use it
+from .cues import (  # noqa: F401 - the doctests use some
+    CONTEXT_CUE_NAMES,
+    CONTEXT_SOURCES,
+    CUE_NAMES,
+    OWN_CUE_NAMES,
+    PAIR_CUE_NAMES,
+    SURFACE_CONTEXT_SOURCES,
+    SURFACE_CUE_NAMES,
+)
 
 _SOURCE_COLS = np.array([PAIR_CUE_NAMES.index(n) for n in CONTEXT_SOURCES])
+_SURFACE_SOURCE_COLS = np.array([OWN_CUE_NAMES.index(n) for n in SURFACE_CONTEXT_SOURCES])
+# the columns of CUE_NAMES that describe a pair's neighbours, not the pair (clean-context copies swap them)
+CONTEXT_COLUMNS = np.array([i for i, n in enumerate(CUE_NAMES) if n.startswith("nb_")])
 _OFFSETS = np.array([(a, b, c) for a in (-1, 0, 1) for b in (-1, 0, 1) for c in (-1, 0, 1) if (a, b, c) != (0, 0, 0)])
 
 
@@ -23,12 +34,14 @@ def _cell_keys(ijk: np.ndarray) -> np.ndarray:
     return (o[:, 0] << 42) | (o[:, 1] << 21) | o[:, 2]
 
 
-def context_cues(pair_cues: np.ndarray, ijk: np.ndarray) -> np.ndarray:
+def context_cues(pair_cues: np.ndarray, ijk: np.ndarray, columns: np.ndarray = _SOURCE_COLS,
+                 with_count: bool = True) -> np.ndarray:
     """(P, len(CONTEXT_CUE_NAMES)) float32: per pair, the max and the mean of the :data:`CONTEXT_SOURCES` cues
     over the pairs in its 26 neighbouring cells, then their count. 0 where a pair has no neighbour.
 
     pair_cues: (P, >= N_PAIR_CUES) float cues of the pairs of one tile (:data:`PAIR_CUE_NAMES` order);
-    ijk: (P, 3) int patch cells of the pairs (one pair per cell).
+    ijk: (P, 3) int patch cells of the pairs (one pair per cell); columns: the source columns of
+    ``pair_cues`` (default: the :data:`CONTEXT_SOURCES`); with_count: append the neighbour count.
 
     >>> cues = np.zeros((3, len(PAIR_CUE_NAMES))); cues[:, PAIR_CUE_NAMES.index("p2m_p90")] = [0.1, 0.5, 9.0]
     >>> c = dict(zip(CONTEXT_CUE_NAMES, context_cues(cues, np.array([[0, 0, 0], [1, 1, 0], [5, 0, 0]])).T))
@@ -36,7 +49,7 @@ def context_cues(pair_cues: np.ndarray, ijk: np.ndarray) -> np.ndarray:
     ([0.5, 0.10000000149011612, 0.0], [1.0, 1.0, 0.0])
     """
     p = len(pair_cues)
-    src = np.asarray(pair_cues, np.float64)[:, _SOURCE_COLS] if p else np.zeros((0, len(CONTEXT_SOURCES)))
+    src = np.asarray(pair_cues, np.float64)[:, columns] if p else np.zeros((0, len(columns)))
     src = np.where(np.isfinite(src), src, 0.0)
     keys = _cell_keys(ijk) if p else np.zeros(0, np.int64)
     order = np.argsort(keys, kind="stable")
@@ -56,13 +69,19 @@ def context_cues(pair_cues: np.ndarray, ijk: np.ndarray) -> np.ndarray:
         count[hit] += 1
     mx[count == 0] = 0.0
     mean = total / np.maximum(count, 1)[:, None]
-    return np.concatenate([mx, mean, count[:, None]], axis=1).astype(np.float32)
+    parts = [mx, mean] + ([count[:, None]] if with_count else [])
+    return np.concatenate(parts, axis=1).astype(np.float32)
 
 
-def with_context(pair_cues: np.ndarray, ijk: np.ndarray) -> np.ndarray:
-    """(P, N_CUES) float32: the pair cues (P, N_PAIR_CUES) of one tile's pairs followed by their context cues."""
-    pc = np.asarray(pair_cues, np.float32)[:, :len(PAIR_CUE_NAMES)]
-    return np.concatenate([pc, context_cues(pc, ijk)], axis=1)
+def with_context(own_cues: np.ndarray, ijk: np.ndarray) -> np.ndarray:
+    """(P, N_CUES) float32 in :data:`CUE_NAMES` order: the own cues (P, len(OWN_CUE_NAMES)) of one tile's pairs
+    (:func:`~ms3d_model.cues.batch_cues`) with their context cues put in their places."""
+    own = np.asarray(own_cues, np.float32)
+    if own.shape[1] != len(OWN_CUE_NAMES):
+        raise ValueError(f"expected {len(OWN_CUE_NAMES)} own cue columns, got {own.shape[1]}")
+    n_pair = len(PAIR_CUE_NAMES)
+    return np.concatenate([own[:, :n_pair], context_cues(own, ijk), own[:, n_pair:],
+                           context_cues(own, ijk, _SURFACE_SOURCE_COLS, with_count=False)], axis=1)
 
 
 def clean_context_copies(cues: np.ndarray, labels: np.ndarray, share: float, seed: int = 0,
@@ -78,7 +97,6 @@ def clean_context_copies(cues: np.ndarray, labels: np.ndarray, share: float, see
     cues and (B + c,) labels; unchanged when share <= 0 or no donor exists.
     """
     cues, labels = np.asarray(cues), np.asarray(labels)
-    n_own = len(PAIR_CUE_NAMES)
     if share <= 0 or cues.shape[1] < len(CUE_NAMES) or not len(cues):
         return cues, labels
     count = cues[:, CUE_NAMES.index("nb_count")]
@@ -89,5 +107,5 @@ def clean_context_copies(cues: np.ndarray, labels: np.ndarray, share: float, see
     rng = np.random.default_rng(seed)
     pick = rng.choice(len(cues), int(round(share * len(cues))), replace=False)
     copies = cues[pick].copy()
-    copies[:, n_own:] = cues[rng.choice(donors, len(pick)), n_own:]
+    copies[:, CONTEXT_COLUMNS] = cues[rng.choice(donors, len(pick))][:, CONTEXT_COLUMNS]
     return np.concatenate([cues, copies]), np.concatenate([labels, labels[pick]])

@@ -30,6 +30,7 @@ from .features import edge_neighbours, pair_seed, vertex_ids_from_coords
 from .grid_search import nearest_distance_runs
 from .kernels import nearest_of_candidates
 from .segments import median_of_sorted, percentile_of_sorted, segment_max, segment_mean, sorted_segments
+from .surface import TileSurface, in_plane
 
 CUE_NAMES = (
     "log_n_points", "log_n_faces", "mesh_area_m2", "log_point_density",
@@ -56,8 +57,18 @@ CONTEXT_SOURCES = ("p2m_frac_15cm", "p2m_p90", "coverage_10cm", "open_edge_m", "
                    "p2m_frac_behind_10cm", "p2m_frac_front_10cm", "m2p_frac_25cm")
 CONTEXT_CUE_NAMES = (tuple(f"nb_max_{n}" for n in CONTEXT_SOURCES) + tuple(f"nb_mean_{n}" for n in CONTEXT_SOURCES)
                      + ("nb_count",))
-CUE_NAMES = PAIR_CUE_NAMES + CONTEXT_CUE_NAMES
+# Appended after those: the pair's points against the tile's whole surface (:mod:`ms3d_model.surface`): the
+# share more than 10 cm from every face of the tile, the share more than 10 cm *beside* the surface (their
+# offset mostly in the nearest face's plane: the scan sees surface where the mesh has none), and the 90th
+# percentile of the in-plane offset (m); then the max and mean of the in-plane share over the neighbours.
+SURFACE_CUE_NAMES = ("surf_p2m_frac_10cm", "surf_lateral_frac_10cm", "surf_lateral_p90")
+SURFACE_CONTEXT_SOURCES = ("surf_lateral_frac_10cm",)
+SURFACE_CONTEXT_NAMES = (tuple(f"nb_max_{n}" for n in SURFACE_CONTEXT_SOURCES)
+                         + tuple(f"nb_mean_{n}" for n in SURFACE_CONTEXT_SOURCES))
+OWN_CUE_NAMES = PAIR_CUE_NAMES + SURFACE_CUE_NAMES  # what :func:`batch_cues` gives per pair, in this order
+CUE_NAMES = PAIR_CUE_NAMES + CONTEXT_CUE_NAMES + SURFACE_CUE_NAMES + SURFACE_CONTEXT_NAMES
 N_CUES = len(CUE_NAMES)
+LATERAL_MIN_M = 0.10  # the offsets the surface cues count (a crack or a seam leaves millimetres)
 MAX_CUE_POINTS = 1024
 # The cues over a pair's whole point set (mesh -> point distances, the points' normal and planarity, their
 # spread along the mesh normal) use at most this many of its points, a seeded subsample above it; counts and
@@ -154,9 +165,10 @@ def _pair_knn(data: np.ndarray, d_counts: np.ndarray, queries: np.ndarray, q_cou
     return dist, rows
 
 
-def _point_to_mesh(p, p_counts, t, f_counts, normals, centres, k_max) -> tuple[np.ndarray, np.ndarray]:
+def _point_to_mesh(p, p_counts, t, f_counts, normals, centres, k_max) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """Unsigned and signed distances (q,) float64 of points p (q, 3) to their pair's faces: exact distance to
-    the nearest of the (up to) k_max faces with the nearest centres.
+    the nearest of the (up to) k_max faces with the nearest centres; third, the offset along that face's
+    normal (q,).
 
     The exact distance is computed for the nearest-centre face, then only for the candidates whose lower
     bound (centre distance minus the face's radius, and the distance to its plane) is below it: the others
@@ -164,8 +176,7 @@ def _point_to_mesh(p, p_counts, t, f_counts, normals, centres, k_max) -> tuple[n
     """
     dc, fi = _pair_knn(centres, f_counts, p, p_counts, min(k_max, int(f_counts.max())))
     radius = np.linalg.norm(t - centres[:, None], axis=2).max(axis=1)
-    d, signed = nearest_of_candidates(p, t, normals, radius, fi.astype(np.int64), dc)  # compiled: one pass
-    return d, signed
+    return nearest_of_candidates(p, t, normals, radius, fi.astype(np.int64), dc)  # compiled: one pass
 
 
 def _point_normals(p_all, counts, mesh_n) -> tuple[np.ndarray, np.ndarray]:
@@ -179,8 +190,19 @@ def _point_normals(p_all, counts, mesh_n) -> tuple[np.ndarray, np.ndarray]:
     return pt_n, planarity
 
 
-def _cues(points: list, tris: list, open_edges: list | None, seeds: list) -> np.ndarray:
-    """(B, N_PAIR_CUES) float32 cues of B pairs; seeds[b]: the subsampling seed of pair b."""
+def _surface_cues(d: np.ndarray, off: np.ndarray, gp: np.ndarray, n_cue: np.ndarray, b: int) -> list:
+    """The :data:`SURFACE_CUE_NAMES` columns, (B,) float64 each, from the cue points' distances d (q,) and
+    normal offsets off (q,) to the surface, the points of pair gp (q,), n_cue (B,) of them per pair."""
+    lat = in_plane(d, off)
+    beside = (lat > LATERAL_MIN_M) & (lat > np.abs(off))
+    return [segment_mean((d > LATERAL_MIN_M).astype(float), gp, n_cue), segment_mean(beside.astype(float), gp, n_cue),
+            percentile_of_sorted(sorted_segments(lat, gp, b), 90)]
+
+
+def _cues(points: list, tris: list, open_edges: list | None, seeds: list, surface: TileSurface | None = None
+          ) -> np.ndarray:
+    """(B, len(OWN_CUE_NAMES)) float32 cues of B pairs; seeds[b]: the subsampling seed of pair b; surface: the
+    tile's faces for the surface cues (None: each pair's own faces)."""
     points = [np.asarray(p, np.float64).reshape(-1, 3) for p in points]
     tris = [np.asarray(t, np.float64).reshape(-1, 3, 3) for t in tris]
     n = np.array([len(p) for p in points], np.int64)
@@ -200,7 +222,11 @@ def _cues(points: list, tris: list, open_edges: list | None, seeds: list) -> np.
 
     p, gp, p_sh, gs = _cue_points(p_all, n, seeds)
     n_cue = np.bincount(gp, minlength=b)
-    d, signed = _point_to_mesh(p, n_cue, t, m, normals, centres, 8)
+    d, signed, off = _point_to_mesh(p, n_cue, t, m, normals, centres, 8)
+    if surface is not None:
+        d_s, off_s = surface.nearest(p)
+    else:
+        d_s, off_s = d, off
 
     # mesh -> points, and the shape of the point set: on at most MAX_SHAPE_POINTS points per pair
     n_sh = np.bincount(gs, minlength=b)
@@ -243,6 +269,7 @@ def _cues(points: list, tris: list, open_edges: list | None, seeds: list) -> np.
         spread(along_p, gs), spread(along_m, gv),
         np.bincount(gf, w * (np.abs(normals[:, 2]) > 0.9), minlength=b),
     ] + _extra_cues(d, signed, gp, n_cue, sd, ss, sm, dm, gf, w, p_all[:, 2], ga, t[:, :, 2], b)
+    cues += _surface_cues(d_s, off_s, gp, n_cue, b)
     return np.stack(cues, axis=1).astype(np.float32)
 
 
@@ -266,7 +293,7 @@ def _extra_cues(d, signed, gp, n_cue, sd, ss, sm, dm, gf, w, pz, ga, tz, b) -> l
 
 
 def pair_cues(points: np.ndarray, tris: np.ndarray, open_edges: np.ndarray | None = None, seed: int = 0) -> np.ndarray:
-    """(N_PAIR_CUES,) float32 cues of one pair (see :data:`PAIR_CUE_NAMES`).
+    """(len(OWN_CUE_NAMES),) float32 cues of one pair (see :data:`OWN_CUE_NAMES`; the surface is its own faces).
 
     points: (n, 3) metres; tris: (m, 3, 3) metres (n, m >= 1); open_edges: (m, 3) bool tile-level open
     edges, or None (then the patch-local boundary stands in). Points beyond MAX_CUE_POINTS are subsampled
@@ -276,11 +303,14 @@ def pair_cues(points: np.ndarray, tris: np.ndarray, open_edges: np.ndarray | Non
 
 
 def batch_cues(points: list[np.ndarray], tris: list[np.ndarray], open_edges: list[np.ndarray] | None,
-               keys: np.ndarray, seed: int = 0) -> np.ndarray:
-    """(B, N_PAIR_CUES) float32 cues of B pairs, all pairs at once (one k-d tree per kind for the batch).
+               keys: np.ndarray, seed: int = 0, surface: TileSurface | None = None) -> np.ndarray:
+    """(B, len(OWN_CUE_NAMES)) float32 cues of B pairs, all pairs at once (one k-d tree per kind for the batch):
+    the :data:`PAIR_CUE_NAMES` then the :data:`SURFACE_CUE_NAMES`.
 
     points[b]: (n_b, 3) float, metres; tris[b]: (m_b, 3, 3) float, metres (n_b, m_b >= 1); open_edges[b]:
-    (m_b, 3) bool or None; keys: (B,) int64 patch keys (pair b subsamples with ``pair_seed(seed, keys[b])``).
+    (m_b, 3) bool or None; keys: (B,) int64 patch keys (pair b subsamples with ``pair_seed(seed, keys[b])``);
+    surface: the tile's faces (:class:`~ms3d_model.surface.TileSurface`) the surface cues measure against
+    (None: each pair's own faces).
 
     >>> tris = np.array([[[0, 0, 0], [1, 0, 0], [1, 1, 0]], [[0, 0, 0], [1, 1, 0], [0, 1, 0]]], float)
     >>> pts = np.array([[.25, .5, .2], [.75, .5, .2], [.5, .25, .2], [.5, .75, .2]])  # 0.2 m above the square
@@ -291,4 +321,4 @@ def batch_cues(points: list[np.ndarray], tris: list[np.ndarray], open_edges: lis
     [0.0, 0.0, 0.0]
     """
     n = [len(p) for p in points]
-    return _cues(points, tris, open_edges, _group_seeds(n, np.asarray(keys, np.int64), seed))
+    return _cues(points, tris, open_edges, _group_seeds(n, np.asarray(keys, np.int64), seed), surface)

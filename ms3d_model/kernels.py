@@ -323,7 +323,7 @@ def closest_points_numpy(p, a, b, c) -> np.ndarray:
 
 @njit(cache=True, nogil=True)
 def nearest_of_candidates(p: np.ndarray, tri: np.ndarray, normals: np.ndarray, radius: np.ndarray,
-                          cand: np.ndarray, cand_d: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+                          cand: np.ndarray, cand_d: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """Unsigned and signed distance (q,) float64 of each point p[i] (p: (q, 3)) to the nearest of its
     candidate faces cand[i] (cand: (q, k) int64 rows of tri (m, 3, 3), m where there is none; cand_d:
     (q, k) their centres' distances, the nearest first; normals: (m, 3) unit; radius: (m,) each face's
@@ -332,10 +332,12 @@ def nearest_of_candidates(p: np.ndarray, tri: np.ndarray, normals: np.ndarray, r
     The exact distance is computed for the first candidate, then only for a candidate whose lower bounds
     (centre distance minus radius, and distance to its plane) are within it (1e-9 relative slack): the others
     cannot be nearer. The first of equal distances wins. The sign is that of the offset from the foot along
-    the chosen face's normal (0 on the face)."""
+    the chosen face's normal (0 on the face). Third output: that offset itself (q,) float64, the component of
+    the point's offset from its foot along the face normal (its square subtracted from the distance's square
+    leaves the in-plane part: a point beyond a face's edge in the face's plane has offset ~0)."""
     q, k = cand.shape
     m = len(tri)
-    d_out, s_out = np.empty(q), np.empty(q)
+    d_out, s_out, o_out = np.empty(q), np.empty(q), np.empty(q)
     for i in range(q):
         px, py, pz = p[i, 0], p[i, 1], p[i, 2]
         fb = cand[i, 0]
@@ -356,4 +358,5 @@ def nearest_of_candidates(p: np.ndarray, tri: np.ndarray, normals: np.ndarray, r
         off = (px - nx) * normals[fb, 0] + (py - ny) * normals[fb, 1] + (pz - nz) * normals[fb, 2]
         d_out[i] = best
         s_out[i] = (1.0 if off > 0 else (-1.0 if off < 0 else 0.0)) * best
-    return d_out, s_out
+        o_out[i] = off
+    return d_out, s_out, o_out

@@ -18,7 +18,8 @@ from pathlib import Path
 import numpy as np
 
 from ms3d_model.context import with_context
-from ms3d_model.cues import CUE_NAMES, batch_cues, open_edge_flags
+from ms3d_model.surface import TileSurface
+from ms3d_model.cues import CUE_NAMES, OWN_CUE_NAMES, batch_cues, open_edge_flags
 from ms3d_model.dataset import PairSet
 from ms3d_model.features import PairFeatures, featurise_pairs
 from storage.formats.arrays import read_arrays, write_arrays
@@ -126,9 +127,10 @@ class TilePairs:
         """(P, N_CUES) float32 cues of every pair of the tile: each pair's own, then its neighbourhood in the
         tile (:mod:`ms3d_model.context`). Computed once per seed."""
         if seed not in self._cues:
-            own = [batch_cues(*self.raw_cue_inputs(np.arange(s, e)), seed=seed)
+            surface = TileSurface.from_triangles(self._tris) if len(self._tris) and len(self) else None
+            own = [batch_cues(*self.raw_cue_inputs(np.arange(s, e)), seed=seed, surface=surface)
                    for s, e in cue_chunks(self._pr)]
-            own = np.concatenate(own) if own else np.zeros((0, len(CUE_NAMES)), np.float32)
+            own = np.concatenate(own) if own else np.zeros((0, len(OWN_CUE_NAMES)), np.float32)
             self._cues[seed] = with_context(own, self.ijk)
         return self._cues[seed]
 

@@ -2,8 +2,8 @@
 
 import numpy as np
 
-from ms3d_model.context import context_cues, with_context
-from ms3d_model.cues import CONTEXT_CUE_NAMES, CUE_NAMES, N_PAIR_CUES, PAIR_CUE_NAMES
+from ms3d_model.context import CONTEXT_COLUMNS, context_cues, with_context
+from ms3d_model.cues import CONTEXT_CUE_NAMES, CUE_NAMES, N_PAIR_CUES, OWN_CUE_NAMES, PAIR_CUE_NAMES
 
 
 def _cues(values: dict[str, list[float]], n: int) -> np.ndarray:
@@ -40,13 +40,21 @@ def test_with_context_appends_in_cue_name_order_and_order_does_not_matter():
     rng = np.random.default_rng(0)
     ijk = rng.integers(-3, 3, (40, 3))
     ijk = np.unique(ijk, axis=0)
-    pc = rng.random((len(ijk), N_PAIR_CUES)).astype(np.float32)
+    pc = rng.random((len(ijk), len(OWN_CUE_NAMES))).astype(np.float32)
     full = with_context(pc, ijk)
     assert full.shape == (len(ijk), len(CUE_NAMES))
-    np.testing.assert_array_equal(full[:, :N_PAIR_CUES], pc)
+    for j, name in enumerate(OWN_CUE_NAMES):  # every own cue lands in its named column
+        np.testing.assert_array_equal(full[:, CUE_NAMES.index(name)], pc[:, j])
     perm = rng.permutation(len(ijk))
     np.testing.assert_allclose(with_context(pc[perm], ijk[perm]), full[perm], rtol=1e-6)
-    assert with_context(np.zeros((0, N_PAIR_CUES)), np.zeros((0, 3), int)).shape == (0, len(CUE_NAMES))
+    assert with_context(np.zeros((0, len(OWN_CUE_NAMES))), np.zeros((0, 3), int)).shape == (0, len(CUE_NAMES))
+    # the surface context: max / mean of the in-plane share over the neighbours
+    lat = CUE_NAMES.index("surf_lateral_frac_10cm")
+    nb_max = CUE_NAMES.index("nb_max_surf_lateral_frac_10cm")
+    one = np.zeros((2, len(OWN_CUE_NAMES)), np.float32)
+    one[0, OWN_CUE_NAMES.index("surf_lateral_frac_10cm")] = 0.7
+    got = with_context(one, np.array([[0, 0, 0], [0, 1, 0]]))
+    assert got[0, lat] == np.float32(0.7) and got[1, nb_max] == np.float32(0.7) and got[0, nb_max] == 0.0
 
 
 def test_clean_context_copies_keep_the_own_cues_and_labels_and_take_a_clean_context():
@@ -68,6 +76,10 @@ def test_clean_context_copies_keep_the_own_cues_and_labels_and_take_a_clean_cont
     # ... and the context of a good pair with >= 2 neighbours, none dirty
     donors = (labels == 0) & (cues[:, count] >= 2) & (cues[:, dirty] < 0.15)
     for c in copies:
-        assert any((cues[d, N_PAIR_CUES:] == c[N_PAIR_CUES:]).all() for d in np.flatnonzero(donors))
+        assert any((cues[d, CONTEXT_COLUMNS] == c[CONTEXT_COLUMNS]).all() for d in np.flatnonzero(donors))
+    own = np.setdiff1d(np.arange(len(CUE_NAMES)), CONTEXT_COLUMNS)  # the surface cues are the pair's own too
+    assert CUE_NAMES.index("surf_lateral_p90") in own
+    for c, s in zip(copies, src):
+        np.testing.assert_array_equal(c[own], cues[s, own])
     assert clean_context_copies(cues, labels, 0.0)[0] is cues
     assert clean_context_copies(cues[:, :N_PAIR_CUES], labels, 0.25)[0].shape == (n, N_PAIR_CUES)  # no context

@@ -124,7 +124,7 @@ def test_nearest_of_candidates_equals_the_nearest_of_every_candidate_face():
     cand = np.argsort(dc, axis=1, kind="stable")
     cand_d = np.take_along_axis(dc, cand, axis=1)
     cand, cand_d = np.c_[cand, np.full(len(p), len(tri))], np.c_[cand_d, np.full(len(p), np.inf)]  # a "none"
-    d, signed = nearest_of_candidates(p, tri, normals, radius, cand.astype(np.int64), cand_d)
+    d, signed, off = nearest_of_candidates(p, tri, normals, radius, cand.astype(np.int64), cand_d)
     every = np.stack([np.linalg.norm(closest_points_on_triangles(p, tri, np.full(len(p), f, np.int64)) - p, axis=1)
                       for f in range(len(tri))], axis=1)
     np.testing.assert_allclose(d, every.min(axis=1), rtol=0, atol=1e-12)
@@ -133,3 +133,5 @@ def test_nearest_of_candidates_equals_the_nearest_of_every_candidate_face():
     want = np.sign(((p - foot) * normals[best]).sum(1)) * every.min(axis=1)
     np.testing.assert_allclose(signed, want, atol=1e-12)
     assert signed[-1] == 0.0 and (signed[:-1] != 0).all() and (signed < 0).any() and (signed > 0).any()
+    np.testing.assert_allclose(off, ((p - foot) * normals[best]).sum(1), atol=1e-12)
+    assert (np.abs(off) <= d + 1e-12).all() and (np.sign(off) == np.sign(signed)).all()
