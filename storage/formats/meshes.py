@@ -1,4 +1,4 @@
-"""Mesh readers (OBJ+MTL, PLY, GLB/glTF, folders of tiles) and OBJ / PLY writers.
+"""Mesh readers (OBJ+MTL, PLY, GLB/glTF, 3MX/3MXB, folders of tiles) and OBJ / PLY writers.
 
 Readers form a registry keyed by extension (``READERS``). Each returns the file's faces in file order,
 after the same checks. They degrade where a user's tool would (trimesh, MeshLab): faces that touch a
@@ -40,6 +40,7 @@ from storage.formats.mesh_data import (
 from storage.formats.obj import read_obj, write_obj
 from storage.formats.ply import read_ply_mesh, write_ply
 from storage.formats.production import finest_lod
+from storage.formats.threemx import read_3mx, select_3mx
 from storage.inputs.remote import readable
 
 
@@ -89,7 +90,8 @@ def _finish(path: Path, mesh: MeshData, offset, units_scale: float) -> MeshData:
 
 
 READERS: dict[str, Callable[[Path], MeshData]] = {
-    ".obj": read_obj, ".ply": read_ply_mesh, ".glb": read_gltf, ".gltf": read_gltf,
+    ".obj": read_obj, ".ply": read_ply_mesh, ".glb": read_gltf, ".gltf": read_gltf, ".3mx": read_3mx,
+    ".3mxb": read_3mx,
 }  # fmt: skip
 
 
@@ -97,7 +99,8 @@ READERS: dict[str, Callable[[Path], MeshData]] = {
 
 
 def read_mesh(path: str | Path, offset=(0.0, 0.0, 0.0), units_scale: float = 1.0) -> MeshData:
-    """Read one mesh file (OBJ, PLY, GLB, glTF), or every mesh file under a folder, concatenated.
+    """Read one mesh file (OBJ, PLY, GLB, glTF, a 3MX scene or root node), or every mesh file under a folder,
+    concatenated.
 
     vertices = file coordinates * units_scale + offset, float64 world metres.
     """
@@ -124,7 +127,7 @@ def mesh_files(folder: str | Path) -> list[Path]:
         str(p) for p in folder.rglob("*")
         if p.is_file() and p.suffix.lower() in READERS and not p.name.startswith(".")
     )  # fmt: skip
-    return [Path(p) for p in finest_lod(found)[0]]
+    return [Path(p) for p in finest_lod(select_3mx(found)[0])[0]]
 
 
 def iter_meshes(path: str | Path, offset=(0.0, 0.0, 0.0), units_scale: float = 1.0) -> Iterator[MeshData]:

@@ -122,9 +122,30 @@ def production_root(mesh_path: str | Path) -> Path | None:
     return None if root is None else root.path
 
 
+def scene_production(scene_path: str | Path) -> Production:
+    """A 3MX scene file (``.3mx``) as a production: its first mesh layer's SRS and SRSOrigin are the
+    metadata (the scene file is the metadata path; :func:`storage.formats.threemx.read_3mx` places further
+    layers relative to the first). InputError naming the scene when its SRS is missing or not EPSG:<code>."""
+    from storage.formats.threemx import read_scene
+
+    path = Path(scene_path).absolute()
+    layer = read_scene(path)[0]
+    srs = layer.srs.strip()
+    if not srs:
+        raise InputError(path, "the 3MX scene's layer has no SRS: the production cannot be georeferenced")
+    if not _EPSG.match(srs):
+        short = srs if len(srs) <= 60 else srs[:57] + "..."
+        raise InputError(path, f"unknown SRS {short!r}: ms3d reads EPSG:<code> (a projected CRS in metres); "
+                               "re-export the production in a projected EPSG system")
+    meta = ProductionMetadata(str(path), srs.upper(), layer.origin)
+    return Production(str(path.parent), meta, production_key(path))
+
+
 def production_of(mesh_path: str | Path) -> Production | None:
     """The :class:`Production` of a mesh file (its metadata read), or None for an ordinary file.
     Raises InputError (naming ``metadata.xml``) when the metadata exists but cannot be used."""
+    if Path(mesh_path).suffix.lower() == ".3mx":
+        return scene_production(mesh_path)
     root = production_root(mesh_path)
     if root is None:
         return None

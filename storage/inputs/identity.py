@@ -25,6 +25,7 @@ from pathlib import Path
 from storage.atomic import file_fingerprint
 from storage.errors import InputError
 from storage.formats.production import finest_lod
+from storage.formats.threemx import select_3mx
 from storage.inputs.location import is_url
 from storage.inputs.remote import discover_url, url_fingerprint
 
@@ -34,7 +35,7 @@ VERTEX_INDEX_BITS = 32  # up to 4.29e9 vertices per mesh file
 # Extensions a folder scan takes (a .txt or .csv of x y z is read when named explicitly, but in a folder it
 # is far more often a readme or a log).
 POINT_SUFFIXES = frozenset({".las", ".laz", ".ply", ".pcd", ".xyz", ".pts"})
-MESH_SUFFIXES = frozenset({".obj", ".ply", ".glb", ".gltf", ".off", ".stl"})
+MESH_SUFFIXES = frozenset({".obj", ".ply", ".glb", ".gltf", ".off", ".stl", ".3mx", ".3mxb"})
 
 
 def _hash_id(path: str) -> int:
@@ -137,8 +138,9 @@ def discover(mesh_entries: list[str], point_entries: list[str]) -> Discovery:
                 if not found:
                     raise InputError(p, f"no {kind} files ({', '.join(sorted(suffixes))}) in this folder")
                 if kind == "mesh":
+                    found, levels = select_3mx(found)
                     found, coarser = finest_lod(found)
-                    skipped += coarser
+                    skipped += levels + coarser
                 files += found
             elif p.exists():
                 files.append(str(p.absolute()))
