@@ -175,11 +175,12 @@ def _flaky_put_if_match(store, monkeypatch, fail_calls, land_first=False):
 
 @pytest.mark.parametrize("land_first", [False, True])
 def test_renewal_survives_one_transient_error(s3_store, monkeypatch, land_first):
-    lease = acquire_lease(s3_store, owner="run-t", ttl_s=3.0)
+    # a TTL with room for a loaded machine: the first request to a fresh moto server can take a second
+    lease = acquire_lease(s3_store, owner="run-t", ttl_s=6.0)
     first_expiry = lease.expires_utc
     calls = _flaky_put_if_match(s3_store, monkeypatch, {1}, land_first)
     renewer = _Renewer(lease)
-    renewer.start()  # the first renewal (at 1 s) fails; the retry (0.1 s later) succeeds
+    renewer.start()  # the first renewal (at 2 s) fails; the retry (0.2 s later) succeeds
     deadline = time.time() + 10
     while lease.expires_utc == first_expiry and renewer.is_alive() and time.time() < deadline:
         time.sleep(0.05)
