@@ -81,11 +81,15 @@ def summarise(wd: WorkDir, wall_s: float, failed: dict, outliers: dict, since: f
 
 def holdout_summary(wd: WorkDir) -> dict:
     """The held-out MLS strips' campus figures of ``report/holdout.json`` (the quality stage's):
-    {"held_out", "points", "holdout", "campus": {model: figures}}, or {} when there are none."""
+    {"held_out", "points", "holdout", "campus": {model: figures}, "buildings": how many hold held-out points
+    (where the file has buildings)}, or {} when there are none."""
     from tasks.quality import read_heldout
 
     doc = read_heldout(wd) or {}
-    return {k: doc[k] for k in ("held_out", "points", "held_out_share", "holdout", "campus") if k in doc}
+    out = {k: doc[k] for k in ("held_out", "points", "held_out_share", "holdout", "campus") if k in doc}
+    if "buildings" in doc:
+        out["buildings"] = sum(1 for b in doc["buildings"] if b.get("id"))
+    return out
 
 
 def holdout_line(h: dict | None) -> str:
@@ -94,12 +98,16 @@ def holdout_line(h: dict | None) -> str:
     >>> holdout_line({"held_out": 1200, "campus": {"input mesh": {"median_m": 0.031, "p90_m": 0.12, "within_5cm": 0.7,
     ...     "within_10cm": 0.88}, "merged model": {"median_m": 0.012, "p90_m": 0.05, "within_5cm": 0.9, "within_10cm": 0.97}}})
     'held-out MLS (1,200 points): input mesh median 3.1 cm, p90 12.0 cm, 70% within 5 cm; merged model median 1.2 cm, p90 5.0 cm, 90% within 5 cm'
+    >>> holdout_line({"held_out": 1200, "buildings": 14, "campus": {"merged model": {"median_m": 0.012, "p90_m": 0.05,
+    ...     "within_5cm": 0.9, "within_10cm": 0.97}}})
+    'held-out MLS (1,200 points, 14 buildings): merged model median 1.2 cm, p90 5.0 cm, 90% within 5 cm'
     """
     if not h or not h.get("campus"):
         return ""
     parts = [f"{m} median {100 * f['median_m']:.1f} cm, p90 {100 * f['p90_m']:.1f} cm, {100 * f['within_5cm']:.0f}% within 5 cm"
              for m, f in h["campus"].items() if f.get("median_m") is not None]
-    return f"held-out MLS ({h['held_out']:,} points): " + "; ".join(parts) if parts else ""
+    where = f", {h['buildings']:,} building{'s' * (h['buildings'] != 1)}" if "buildings" in h else ""
+    return f"held-out MLS ({h['held_out']:,} points{where}): " + "; ".join(parts) if parts else ""
 
 
 def input_warnings(wd: WorkDir) -> list[str]:

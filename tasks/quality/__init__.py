@@ -9,7 +9,8 @@ was rebuilt, the sample spacing, tile and buffer sizes, and the stage's version.
 
 Accuracy without truth (every campus, ``quality.holdout_share`` > 0): the MLS strips held out of the repair
 (:mod:`tasks.geometry.holdout`) measured against the input mesh (the tiles' ``faces.parquet``) and the merged
-model, per tile and for the campus (no building ids exist for real inputs, so no per-building rows). Reads the
+model, per tile, per building (footprints of the input mesh, :mod:`tasks.geometry.footprints`: raised ground
+cells; a point within 1.5 m of one counts as that building) and for the campus. Reads the
 tiles' ``points.parquet`` and the merged tiles; writes ``report/holdout.json``; invalidated by the strip
 choice, the merged tiles or the point stores (:func:`heldout_key`).
 

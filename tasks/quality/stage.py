@@ -20,6 +20,8 @@ from storage.patches.read import PatchStore
 from storage.patches.schema import PATCHES_FILE, POINTS_FILE
 from storage.workdir.layout import WorkDir, campus_frame, read_campus
 from storage.workdir.manifest import combine_fingerprints
+from tasks.geometry.footprints import CellHeights, Footprints, cell_heights, footprints_of
+from tasks.quality.buildings import GroupedSums, building_rows
 from tasks.quality.heldout import CAP_M, HeldOutSums, faces_near
 
 QUALITY_VERSION = 2  # 2: the input mesh row is measured on the ingested faces
@@ -218,9 +220,11 @@ def run_quality_share(cfg, wd: WorkDir, plan: dict, part: tuple) -> dict:
 
 # ------------------------------------------------------------------------------ accuracy without truth
 
-HELDOUT_VERSION = 1
+HELDOUT_VERSION = 2  # 2: per building (footprints of the input mesh)
 HELDOUT_FILE = "holdout.json"
 HELDOUT_PAD_M = CAP_M  # faces within this of a tile's held-out points: their distances are exact below it
+# building footprints of the per-building figures (tasks.geometry.footprints); pad_m: a facade's scan beside it
+FOOTPRINTS = {"cell_m": 1.0, "ground_window_m": 25.0, "min_height_m": 2.5, "min_area_m2": 20.0, "pad_m": 1.5}
 _POINT_COLUMNS = ["x", "y", "z", "gps_time", "patch"]
 _TRI_COLUMNS = [f"{a}{v}" for v in range(3) for a in "xyz"]
 
@@ -262,19 +266,33 @@ def _distances(points: np.ndarray, tri: np.ndarray) -> np.ndarray:
     return MeshDistance(tri.reshape(-1, 3), np.arange(3 * len(tri)).reshape(-1, 3)).query(points)[0]
 
 
-def heldout_tile(wd: WorkDir, tile: str, holdout, origin: np.ndarray) -> tuple[dict, int, int]:
+def campus_footprints(wd: WorkDir, tiles: list[str]) -> Footprints:
+    """The building footprints (:data:`FOOTPRINTS`) of the input mesh as ingest stored it in ``tiles``,
+    campus-local: each tile's faces reduced to its ground cells' heights, one tile's faces in memory at a time."""
+    p = {k: v for k, v in FOOTPRINTS.items() if k not in ("cell_m", "pad_m")}
+    cells = [cell_heights(tri, FOOTPRINTS["cell_m"]) for k in tiles
+             if (tri := _input_triangles(wd.tile_dir(TileId.from_key(k)))) is not None]
+    return footprints_of(CellHeights.merge(cells, FOOTPRINTS["cell_m"]), **p)
+
+
+def heldout_tile(wd: WorkDir, tile: str, holdout, origin: np.ndarray,
+                 footprints: Footprints | None = None) -> tuple[dict, int, int, dict]:
     """One tile's held-out points measured against the input mesh and the merged model (the faces of it and
-    its eight neighbours near them): ({model: HeldOutSums}, points of the tile, points held out)."""
+    its eight neighbours near them): ({model: HeldOutSums}, points of the tile, points held out, {model:
+    GroupedSums by building id of ``footprints``, 0: none (all 0 without footprints)})."""
     cols, _ = PatchStore(wd.tile_dir(TileId.from_key(tile))).read_all(point_columns=_POINT_COLUMNS, face_columns=[])
     xyz = np.stack([cols[c] for c in "xyz"], 1).astype(np.float64)
     held = holdout.mask(cols["gps_time"], xyz[:, :2] + origin[:2], cols["patch"])
     p = xyz[held]
-    out = {}
+    out, by_building = {}, {}
     if len(p):
         lo, hi, dirs = p.min(0), p.max(0), _neighbour_dirs(wd, tile)
+        building = (footprints.building_of(p[:, :2], FOOTPRINTS["pad_m"]) if footprints is not None
+                    else np.zeros(len(p), np.int32))
         for name, read in (("input mesh", _input_triangles), ("merged model", _merged_triangles)):
-            out[name] = HeldOutSums.of(_distances(p, _near_triangles(dirs, read, lo, hi)))
-    return out, len(xyz), int(held.sum())
+            d = _distances(p, _near_triangles(dirs, read, lo, hi))
+            out[name], by_building[name] = HeldOutSums.of(d), GroupedSums.of(building, d)
+    return out, len(xyz), int(held.sum()), by_building
 
 
 def heldout_key(cfg, wd: WorkDir, tiles: list[str]) -> dict:
@@ -282,7 +300,7 @@ def heldout_key(cfg, wd: WorkDir, tiles: list[str]) -> dict:
     stores = combine_fingerprints([f"{k}:{file_fingerprint(wd.tile_dir(TileId.from_key(k)) / POINTS_FILE)}"
                                    for k in tiles])
     return {"version": HELDOUT_VERSION, "holdout": cfg.quality.holdout().to_json(),
-            "merged": _merged_fingerprint(wd, tiles), "points": stores, "cap_m": CAP_M}
+            "merged": _merged_fingerprint(wd, tiles), "points": stores, "cap_m": CAP_M, "footprints": FOOTPRINTS}
 
 
 def heldout_pending(cfg, wd: WorkDir) -> bool:
@@ -297,9 +315,11 @@ def heldout_pending(cfg, wd: WorkDir) -> bool:
 
 def ensure_heldout(cfg, wd: WorkDir) -> dict:
     """``report/holdout.json``: the held-out strips' distances to the input mesh and to the merged model, per
-    tile and for the campus ({"key", "holdout", "points", "held_out", "campus": {model: figures},
-    "tiles": {tile: {model: figures}}}), measured tile by tile (memory: a tile and its neighbours' faces
-    near it) unless the file already holds them. {"status": "off"} without a holdout or merged tiles."""
+    tile, for the campus and per building ({"key", "holdout", "points", "held_out", "campus": {model: figures},
+    "tiles": {tile: {model: figures}}, "footprints": {parameters, "buildings": how many the input mesh has},
+    "buildings": [building with held-out points, then "other"] (:func:`tasks.quality.buildings.building_rows`)}),
+    measured tile by tile (memory: a tile and its neighbours' faces near it) unless the file already holds
+    them. {"status": "off"} without a holdout or merged tiles."""
     tiles = merged_tiles(wd)
     holdout = cfg.quality.holdout()
     if not holdout.enabled or not tiles:
@@ -309,16 +329,21 @@ def ensure_heldout(cfg, wd: WorkDir) -> dict:
     if path.exists() and (doc := json.loads(path.read_text())).get("key") == key:
         return doc
     origin = campus_frame(read_campus(wd)).origin_array
-    campus, per_tile, n_points, n_held = {}, {}, 0, 0
+    fp = campus_footprints(wd, tiles)
+    campus, per_tile, per_building, n_points, n_held = {}, {}, {}, 0, 0
     for k in tiles:
-        sums, n, h = heldout_tile(wd, k, holdout, origin)
+        sums, n, h, by_building = heldout_tile(wd, k, holdout, origin, fp)
         n_points, n_held = n_points + n, n_held + h
         per_tile[k] = {name: s.figures() for name, s in sums.items()}
         for name, s in sums.items():
             campus[name] = campus.get(name, HeldOutSums.empty()) + s
+        for name, s in by_building.items():
+            per_building.setdefault(name, []).append(s)
+    per_building = {name: GroupedSums.merge(parts) for name, parts in per_building.items()}
     doc = {"key": key, "holdout": holdout.to_json(), "points": n_points, "held_out": n_held,
            "held_out_share": round(n_held / n_points, 4) if n_points else None,
-           "campus": {name: s.figures() for name, s in campus.items()}, "tiles": per_tile}
+           "campus": {name: s.figures() for name, s in campus.items()}, "tiles": per_tile,
+           "footprints": {**FOOTPRINTS, "buildings": fp.n}, "buildings": building_rows(fp, per_building, origin)}
     write_json_atomic(path, doc)
     return doc
 

@@ -1,6 +1,8 @@
 """Accuracy without truth: the held-out MLS strips (choice, absence from the repair's input), their figures
 against the input mesh and the merged model, and the per-face scan-to-model distance and grader score in a
-merged tile and its glb. Data built in code: one 10 m tile of a flat 8 x 4 m mesh with a scan above it."""
+merged tile and its glb, per building too. Data built in code: one 10 m tile of a flat 8 x 4 m mesh with a
+scan above it; one 50 m tile of a box building on a ground grid, scanned from the street (its facade and the
+ground in front of it) and written into report.html."""
 
 from __future__ import annotations
 
@@ -46,29 +48,37 @@ def _scan(n_strips: int = 40, per_strip: int = 150) -> dict:
     return {"x": x.astype(np.float32), "y": y.astype(np.float32), "z": z.astype(np.float32), "gps_time": t}
 
 
-def _cfg(work, share: float = 0.25) -> CampusConfig:
-    return CampusConfig(work_dir=str(work), tiling={"tile_size_m": 10.0}, partition={"patch_size_m": (1.0, 1.0, 1.0)},
+def _cfg(work, share: float = 0.25, tile_size_m: float = 10.0) -> CampusConfig:
+    return CampusConfig(work_dir=str(work), tiling={"tile_size_m": tile_size_m},
+                        partition={"patch_size_m": (1.0, 1.0, 1.0)},
                         quality={"holdout_share": share, "holdout_block_s": 1.0, "holdout_seed": 5})
+
+
+def _work_dir(cfg, tile: TileId, scan: dict, tri: np.ndarray) -> tuple[WorkDir, dict]:
+    """A work dir with one tile store of ``tri``'s faces ((m, 3, 3) campus-local) and ``scan``, graded good with
+    score 0.25 everywhere: (work dir, the store's points columns)."""
+    from tasks.partition.kernels import build_tile_tables
+
+    wd = WorkDir(cfg.work_dir)
+    write_campus(wd, CampusFrame(origin=ORIGIN, crs="EPSG:32650"), {"matrix": np.eye(4).tolist(), "scale": 1.0},
+                 cfg.model_dump(mode="json"), extra={"grid": cfg.grid().to_json()})
+    tri = np.asarray(tri, np.float32)
+    faces = {f"{a}{k}": tri[:, k, i] for k in range(3) for i, a in enumerate("xyz")}
+    points, faces, patches = build_tile_tables(scan, faces, cfg.grid(), ORIGIN)
+    meta = TileMeta(tile=tile.key, patch_size_m=(1.0, 1.0, 1.0), crs="EPSG:32650")
+    write_tile_tables(wd.tile_dir(tile), points, faces, patches, meta)
+    keys = patches["patch"]
+    write_side_table(wd.tile_dir(tile), "grades", {"patch": keys, "score": np.full(len(keys), 0.25, np.float32),
+                                                   "grade": np.zeros(len(keys), np.int8)}, meta)
+    return wd, points
 
 
 @pytest.fixture
 def flat(tmp_path):
     """A work dir with one tile store (the plane's faces, the scan, grades with score 0.25 everywhere)."""
-    from tasks.partition.kernels import build_tile_tables
-
     cfg = _cfg(tmp_path / "work")
-    wd = WorkDir(cfg.work_dir)
-    write_campus(wd, CampusFrame(origin=ORIGIN, crs="EPSG:32650"), {"matrix": np.eye(4).tolist(), "scale": 1.0},
-                 cfg.model_dump(mode="json"), extra={"grid": cfg.grid().to_json()})
     v, f = _plane()
-    tri = v[f]
-    faces = {f"{a}{k}": tri[:, k, i] for k in range(3) for i, a in enumerate("xyz")}
-    points, faces, patches = build_tile_tables(_scan(), faces, cfg.grid(), ORIGIN)
-    meta = TileMeta(tile=TILE.key, patch_size_m=(1.0, 1.0, 1.0), crs="EPSG:32650")
-    write_tile_tables(wd.tile_dir(TILE), points, faces, patches, meta)
-    keys = patches["patch"]
-    write_side_table(wd.tile_dir(TILE), "grades", {"patch": keys, "score": np.full(len(keys), 0.25, np.float32),
-                                                   "grade": np.zeros(len(keys), np.int8)}, meta)
+    wd, points = _work_dir(cfg, TILE, _scan(), v[f])
     return cfg, wd, points
 
 
@@ -173,3 +183,94 @@ def test_merged_faces_carry_scan_distance_and_score_into_a_valid_glb(flat, tmp_p
     (tmp_path / "q.glb").write_bytes(data)
     (report,) = validate_glbs([tmp_path / "q.glb"])
     assert report["errors"] == 0 and report["warnings"] == 0, report["messages"]
+
+
+# ------------------------------------------------------------------------------ per building
+
+BOX = (10.0, 10.0, 20.0, 18.0, 12.0)  # x0, y0, x1, y1, height (campus-local metres): one 10 x 8 m building
+FACADE_OFFSET_M = 0.05  # the facade's scan lies this far in front of it; the ground's OFFSET_M above it
+BOX_TILE = TileId(10000, 80000)  # 50 m tiles: the campus origin's
+
+
+def _quads(corner, u, v, nu: int, nv: int) -> np.ndarray:
+    """(2 nu nv, 3, 3) triangles of the parallelogram ``corner + [0, 1] u + [0, 1] v`` in nu x nv quads."""
+    a, b = np.meshgrid(np.arange(nu), np.arange(nv), indexing="ij")
+    p = np.asarray(corner, float) + (a.ravel()[:, None] * np.asarray(u) / nu) + (b.ravel()[:, None] * np.asarray(v) / nv)
+    du, dv = np.asarray(u) / nu, np.asarray(v) / nv
+    return np.concatenate([np.stack([p, p + du, p + du + dv], 1), np.stack([p, p + du + dv, p + dv], 1)])
+
+
+def _box_scene() -> np.ndarray:
+    """A 40 x 30 m ground grid at z 0 (none under the box) and the box's four walls and roof, 1 m faces."""
+    x0, y0, x1, y1, h = BOX
+    ground = _quads((0, 0, 0), (40, 0, 0), (0, 30, 0), 40, 30)
+    c = ground.mean(1)
+    ground = ground[~((c[:, 0] > x0) & (c[:, 0] < x1) & (c[:, 1] > y0) & (c[:, 1] < y1))]
+    corners = [(x0, y0), (x1, y0), (x1, y1), (x0, y1)]
+    walls = [_quads((*a, 0), (b[0] - a[0], b[1] - a[1], 0), (0, 0, h), int(np.hypot(b[0] - a[0], b[1] - a[1])), int(h))
+             for a, b in zip(corners, corners[1:] + corners[:1])]
+    roof = _quads((x0, y0, h), (x1 - x0, 0, 0), (0, y1 - y0, 0), int(x1 - x0), int(y1 - y0))
+    return np.concatenate([ground, *walls, roof])
+
+
+def _street_scan(per_strip: int = 300) -> dict:
+    """Two passes along the street south of the box (40 one-second strips, each 2 m of x): in each strip, half
+    the points on the box's south facade ``FACADE_OFFSET_M`` in front of it (where the strip passes it), the
+    rest on the ground ``OFFSET_M`` above it, 2 to 8 m from the facade."""
+    x0, y0, x1, _, h = BOX
+    rng = np.random.default_rng(3)
+    t = np.repeat(np.arange(40, dtype=np.float64), per_strip) + rng.random(40 * per_strip) * 0.99 + 1000
+    x = ((t - 1000) % 20) * 2.0
+    facade = (rng.random(len(t)) < 0.5) & (x >= x0 + 0.1) & (x <= x1 - 0.1)
+    y = np.where(facade, y0 - FACADE_OFFSET_M, y0 - 2.0 - rng.random(len(t)) * 6.0)
+    z = np.where(facade, 0.5 + rng.random(len(t)) * (h - 1.0), OFFSET_M)
+    return {"x": x.astype(np.float32), "y": y.astype(np.float32), "z": z.astype(np.float32), "gps_time": t}
+
+
+def test_held_out_figures_per_building_and_in_the_report(tmp_path):
+    from tasks.report import run_report
+
+    cfg = _cfg(tmp_path / "work", tile_size_m=50.0)
+    wd, _ = _work_dir(cfg, BOX_TILE, _street_scan(), _box_scene())
+    assert run_merge_tile(BOX_TILE, cfg, wd)["status"] == "done"
+    doc = ensure_heldout(cfg, wd)
+    assert doc["footprints"]["buildings"] == 1
+    (box,) = [b for b in doc["buildings"] if b["id"]]
+    other = doc["buildings"][-1]
+    assert other["id"] == 0 and other["name"] == "other"
+    assert box["id"] == 1 and box["area_m2"] == pytest.approx(80.0, rel=0.15)
+    assert box["height_m"] == pytest.approx(12.0, abs=0.5)
+    assert box["centroid"] == pytest.approx([15.0, 14.0], abs=0.6)
+    assert box["centroid_world"] == pytest.approx([ORIGIN[0] + box["centroid"][0], ORIGIN[1] + box["centroid"][1]])
+    for model in ("input mesh", "merged model"):
+        on, off = box["models"][model], other["models"][model]
+        assert on["points"] > 0 and off["points"] > 0
+        assert on["points"] + off["points"] == doc["campus"][model]["points"] == doc["held_out"]
+        assert on["median_m"] == pytest.approx(FACADE_OFFSET_M, abs=2e-4)  # the facade's points, on the building
+        assert off["median_m"] == pytest.approx(OFFSET_M, abs=2e-4)  # the ground's, on none
+    assert doc["tiles"][BOX_TILE.key] == doc["campus"]  # the tile and campus figures as before
+    assert ensure_heldout(cfg, wd) == doc  # cached
+
+    run_report(cfg, wd, quality=False)
+    html = wd.report_html.read_text()
+    section = html[html.index("Accuracy without truth: held-out MLS strips</h2>"):]
+    assert "<h3>Per building</h3>" in section and section.index("<h3>Per building</h3>") < section.index("Per tile")
+    assert "<th>footprint (m²)</th>" in section and "<td>other (no building)</td>" in section
+    assert f"<tr><td>1</td><td>{box['area_m2']:,.0f}</td><td>{box['height_m']:.1f}</td>" \
+           f"<td>{box['models']['input mesh']['points']:,}</td>" in section
+
+
+def test_grouped_sums_add_up_to_each_groups_dense_sums_across_tiles():
+    from tasks.quality.buildings import GroupedSums
+    from tasks.quality.heldout import HeldOutSums
+
+    rng = np.random.default_rng(4)
+    g = rng.integers(0, 6, 3000)
+    d = np.where(rng.random(3000) < 0.05, np.inf, rng.exponential(0.05, 3000))
+    tiles = np.array_split(rng.permutation(3000), 3)  # a building's points in several tiles
+    s = GroupedSums.merge([GroupedSums.of(g[i], d[i]) for i in tiles])
+    assert s.groups().tolist() == sorted(set(g.tolist()))
+    for b in range(6):
+        np.testing.assert_array_equal(s.sums(b).counts, HeldOutSums.of(d[g == b]).counts)
+    assert sum(s.sums(b).n for b in range(6)) == 3000 and s.sums(9).n == 0
+    assert len(s.keys) <= 3000  # sparse: never more pairs than points
