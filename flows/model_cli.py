@@ -105,7 +105,8 @@ def add_commands(sub: argparse._SubParsersAction) -> None:
     t.add_argument("--data", default="ms3d-work", help="where synth campuses, their work dirs and caches live")
     t.add_argument("--out", default="ms3d-work/train")
     t.add_argument("--workers", type=int, default=2, help="training campuses prepared side by side (processes)")
-    t.add_argument("--models", nargs="*", help="networks to train (ms3dqe, ms3dqe_plus, ms3dqe_geo, pointnet, meshnet, ablation1..6)")
+    t.add_argument("--models", nargs="*", help="networks to train (ms3dqe, ms3dqe_plus, ms3dqe_geo, pointnet, "
+                   "pointnet2, pointcnn, meshnet, gbm, ablation1..6)")
     t.add_argument("--suite", action="store_true", help="train every network of Tables 3 and 4")
     t.add_argument("--set", action="append", metavar="KEY=VALUE", help="override a profile field, e.g. epochs=3")
     t.add_argument("--paper-training", action="store_true",

@@ -69,6 +69,7 @@ from .layers import (
     point_mesh_geometry,
     response_stats,
 )
+from .point_baselines import PointCNN, PointNet2
 
 PAPER_PARAMETERS = 4_541_057
 
@@ -77,7 +78,8 @@ PAPER_PARAMETERS = 4_541_057
 class NetConfig:
     """Architecture of a network (defaults: the paper's MS3DQE-Net widths)."""
 
-    arch: str = "ms3dqe"  # "ms3dqe" (MS3DQE-Net, its ablations, MeshNet-style, MS3DQE-Net+) | "pointnet" | "gbm"
+    arch: str = "ms3dqe"  # "ms3dqe" (MS3DQE-Net, its ablations, MeshNet-style, MS3DQE-Net+) | "pointnet" |
+    #                       "pointnet2" | "pointcnn" (ms3d_model.point_baselines) | "gbm"
     points: bool = True
     face: bool = True
     centre_global: bool = True
@@ -108,9 +110,15 @@ class NetConfig:
     cue_dim: int = 64
     pointnet_mlp: tuple[int, ...] = (64, 64, 64, 128, 1024)
     tree_depth: int = 0  # arch "gbm": levels walked by TreeNet
+    # PointNet++ SSG: (centres, radius in pair units, neighbours) per level; shared MLP widths of the two levels
+    # and of the global abstraction (the published classifier's / 2-4)
+    pointnet2_levels: tuple = ((64, 0.25, 16), (16, 0.5, 16))
+    pointnet2_mlps: tuple = ((32, 32, 64), (64, 64, 128), (128, 256))
+    # PointCNN: (representatives P, neighbours K, dilation D, lifted offset features C_delta, output C) per layer
+    pointcnn_layers: tuple = ((128, 8, 1, 16, 32), (64, 8, 2, 16, 64), (16, 8, 2, 16, 128))
 
     def __post_init__(self):
-        if self.arch not in ("ms3dqe", "pointnet", "gbm"):
+        if self.arch not in ("ms3dqe", "pointnet", "pointnet2", "pointcnn", "gbm"):
             raise ValueError(f"unknown arch {self.arch!r}")
         if self.arch == "ms3dqe" and not (self.face or self.centre_global):
             raise ValueError("MS3DQE-Net needs the face or the face-centre global subbranch (a mesh feature)")
@@ -122,7 +130,10 @@ class NetConfig:
 
     @classmethod
     def from_json(cls, d: dict) -> NetConfig:
-        return cls(**{k: (tuple(v) if isinstance(v, list) else v) for k, v in d.items()})
+        def tup(v):
+            return tuple(tup(x) for x in v) if isinstance(v, (list, tuple)) else v
+
+        return cls(**{k: tup(v) for k, v in d.items()})
 
 
 # Table 4's ablations (1)-(6) and the full network, as switch settings.
@@ -287,8 +298,8 @@ class PointNet(nn.Module):
 def build_net(cfg: NetConfig, state_dict: dict | None = None) -> nn.Module:
     """The network of a config (a TreeNet takes its array shapes from ``state_dict``)."""
     if cfg.arch == "gbm":
-        return TreeNet(cfg, None if state_dict is None else {k: v.numpy() for k, v in state_dict.items()})
-    return PointNet(cfg) if cfg.arch == "pointnet" else MS3DQENet(cfg)
+        return TreeNet(cfg, None if state_dict is None else {k: v.cpu().numpy() for k, v in state_dict.items()})
+    return {"pointnet": PointNet, "pointnet2": PointNet2, "pointcnn": PointCNN}.get(cfg.arch, MS3DQENet)(cfg)
 
 
 def n_parameters(net: nn.Module) -> int:

@@ -57,6 +57,7 @@ class Profile:
     noise_m: float = 0.005
     seed: int = 0
     threads: int = 1  # torch threads: on a shared 2-core machine one thread is fastest (OpenMP threads spin)
+    device: str = "auto"  # "auto" (CUDA when present, else the CPU) | "cpu" | "cuda" | "cuda:N"
     eval_batch: int = 64
     time_budget_s: float | None = None
     val_pairs: int | None = 1500  # validation pairs scored after each epoch (a fixed random subset; None = all)

@@ -32,17 +32,20 @@ TABLE4_ROWS = ("3D point cloud feature extraction branch", "Face feature extract
 _SWITCHES = ("points", "face", "centre_global", "centre_local", "kernel_correlation", "point_aggregation")
 
 # our suite names -> the paper's row name
-OURS_TO_PAPER = {"pointnet": "PointNet", "meshnet": "MeshNet", "ms3dqe": "MS3DQE-Net"}
+OURS_TO_PAPER = {"pointnet": "PointNet", "pointnet2": "PointNet++", "pointcnn": "PointCNN", "meshnet": "MeshNet",
+                 "ms3dqe": "MS3DQE-Net"}
 # rows of our own models (by kind) below the paper's: method, data
 EXTRA_ROWS = {"gbm": ("GBM on cues (ours; tree nodes)", "point clouds, mesh"),
               "ms3dqe_plus": ("MS3DQE-Net+ (ours)", "point clouds, mesh, cues"),
               "ms3dqe_geo": ("MS3DQE-Net, geometry inputs (ours)", "point clouds, mesh"),
               "ms3dqe": ("MS3DQE-Net (ours, another)", "point clouds, mesh"),
-              "pointnet": ("PointNet (ours, another)", "point clouds"), "meshnet": ("MeshNet (ours, another)", "mesh")}
+              "pointnet": ("PointNet (ours, another)", "point clouds"), "meshnet": ("MeshNet (ours, another)", "mesh"),
+              "pointnet2": ("PointNet++ (ours, another)", "point clouds"),
+              "pointcnn": ("PointCNN (ours, another)", "point clouds")}
 
 
 KIND_LABELS = {"ms3dqe": "MS3DQE-Net", "ms3dqe_plus": "MS3DQE-Net+", "ms3dqe_geo": "MS3DQE-Net (geometry inputs)",
-               "pointnet": "PointNet", "meshnet": "MeshNet",
+               "pointnet": "PointNet", "pointnet2": "PointNet++", "pointcnn": "PointCNN", "meshnet": "MeshNet",
                "gbm": "GBM trees", "ablation": "MS3DQE-Net ablation"}
 _ALL_ON = ("points", "face", "centre_global", "centre_local", "kernel_correlation", "point_aggregation")
 
@@ -56,7 +59,7 @@ def model_kind(net: dict) -> str:
     ('ms3dqe', 'ablation')
     """
     arch = net.get("arch", "ms3dqe")
-    if arch in ("gbm", "pointnet"):
+    if arch in ("gbm", "pointnet", "pointnet2", "pointcnn"):
         return arch
     if net.get("corners") == "meshnet":
         return "meshnet"

@@ -40,8 +40,37 @@ DEFAULT_THRESHOLD = 0.5
 
 
 def set_seeds(seed: int) -> None:
-    torch.manual_seed(seed)
+    torch.manual_seed(seed)  # every device's generator
     np.random.seed(seed % (2**32))
+
+
+def resolve_device(name: str = "auto") -> torch.device:
+    """The torch device of a profile's ``device`` field: "auto" (CUDA when present, else the CPU), "cpu",
+    "cuda" or "cuda:N". Asking for CUDA where there is none is an error saying so.
+
+    >>> resolve_device("cpu").type
+    'cpu'
+    """
+    if name == "auto":
+        return torch.device("cuda" if torch.cuda.is_available() else "cpu")
+    dev = torch.device(name)
+    if dev.type == "cuda" and not torch.cuda.is_available():
+        raise ValueError(f"device {name!r} asked for, but this torch ({torch.__version__}) sees no CUDA device")
+    return dev
+
+
+def net_device(net: nn.Module) -> torch.device:
+    """The device a module's parameters (or buffers) live on; the CPU for one without any."""
+    for t in list(net.parameters()) + list(net.buffers()):
+        return t.device
+    return torch.device("cpu")
+
+
+def to_device(batch: dict[str, torch.Tensor], device: torch.device) -> dict[str, torch.Tensor]:
+    """A batch dict with every tensor moved to ``device`` (unchanged on the CPU)."""
+    if device.type == "cpu":
+        return batch
+    return {k: v.to(device, non_blocking=True) for k, v in batch.items()}
 
 
 def make_model(profile: Profile, cues: np.ndarray | None = None) -> nn.Module:
@@ -60,10 +89,11 @@ def predict(net: nn.Module, ps: PairSet, batch_size: int = 64) -> np.ndarray:
     """(B,) float32 probability of "bad" for each pair (eval mode, no gradients)."""
     net.eval()
     out = np.empty(len(ps), np.float32)
+    dev = net_device(net)
     with torch.inference_mode():
         for idx in batches(len(ps), batch_size, shuffle=False):
-            logits = net(to_batch(ps.feats.take(idx), ps.cues[idx] if net_uses_cues(net) else None))
-            out[idx] = torch.softmax(logits, dim=1)[:, 1].numpy()
+            logits = net(to_device(to_batch(ps.feats.take(idx), ps.cues[idx] if net_uses_cues(net) else None), dev))
+            out[idx] = torch.softmax(logits, dim=1)[:, 1].cpu().numpy()
     return out
 
 
@@ -71,10 +101,10 @@ def predict_tensors(net: nn.Module, pt: PairTensors, batch_size: int = 64) -> np
     """(B,) float32 probability of "bad" for each pair of ``pt`` (eval mode, no gradients)."""
     net.eval()
     out = np.empty(len(pt), np.float32)
-    cues = net_uses_cues(net)
+    cues, dev = net_uses_cues(net), net_device(net)
     with torch.inference_mode():
         for idx in batches(len(pt), batch_size, shuffle=False):
-            out[idx] = torch.softmax(net(pt.batch(idx, cues)), dim=1)[:, 1].numpy()
+            out[idx] = torch.softmax(net(to_device(pt.batch(idx, cues), dev)), dim=1)[:, 1].cpu().numpy()
     return out
 
 
@@ -114,7 +144,7 @@ def save_checkpoint(path: str | Path, net: nn.Module, profile: Profile, metrics:
     the probability of bad (None: :data:`DEFAULT_THRESHOLD`)."""
     path = Path(path)
     path.parent.mkdir(parents=True, exist_ok=True)
-    state = {k: v.detach().clone() for k, v in net.state_dict().items()}
+    state = {k: v.detach().cpu().clone() for k, v in net.state_dict().items()}  # loads on any machine
     thr = DEFAULT_THRESHOLD if threshold is None else float(threshold)
     if not 0.0 <= thr <= 1.0:
         raise ValueError(f"threshold {thr} is not a probability")
@@ -214,12 +244,12 @@ def _train_epoch(net, data: PairTensors, pick: np.ndarray, profile: Profile, opt
                  gen: torch.Generator, bar: _Bar) -> tuple[float, float, int]:
     """One pass over ``pick`` (indices into ``data``) in batches; (mean loss, accuracy at argmax, pairs)."""
     net.train()
-    uses_cues = net_uses_cues(net)
+    uses_cues, dev = net_uses_cues(net), net_device(net)
     loss_sum, correct, seen = 0.0, 0, 0
     for idx in batches(len(pick), profile.batch_size, shuffle=False):
         sel = pick[idx]
-        y = data.tensors["labels"][torch.from_numpy(sel)]
-        logits = net(data.batch(sel, uses_cues, profile.noise_m, gen))
+        y = data.tensors["labels"][torch.from_numpy(sel)].to(dev)
+        logits = net(to_device(data.batch(sel, uses_cues, profile.noise_m, gen), dev))
         loss = crit(logits, y)
         opt.zero_grad(set_to_none=True)
         loss.backward()
@@ -248,8 +278,9 @@ def train_model(profile: Profile, train: PairSet, val: PairSet, out_dir: str | P
     set_seeds(profile.seed)
     if profile.net.n_cues and profile.net.n_cues > N_CUES:
         raise ValueError(f"profile expects {profile.net.n_cues} cues, the featuriser makes {N_CUES}")
-    net = make_model(profile, train.cues)
-    rng, gen = np.random.default_rng(profile.seed), torch.Generator().manual_seed(profile.seed)
+    device = resolve_device(profile.device)
+    net = make_model(profile, train.cues).to(device)
+    rng, gen = np.random.default_rng(profile.seed), torch.Generator().manual_seed(profile.seed)  # noise: on the CPU
     history, best = [], {}
     t_wall, t_cpu = time.perf_counter(), time.process_time()
     if profile.val_pairs and len(val) > profile.val_pairs:
@@ -258,12 +289,13 @@ def train_model(profile: Profile, train: PairSet, val: PairSet, out_dir: str | P
     n_per_epoch = min(profile.pairs_per_epoch or len(train), len(train))
     n_per_epoch -= n_per_epoch % profile.batch_size  # BatchNorm needs > 1 sample: whole batches only
     opt, sched, per_step = make_optimiser(profile, net.parameters(), profile.epochs * (n_per_epoch // profile.batch_size))
-    crit = make_criterion(profile.loss, train.labels, profile.focal_gamma)
-    log.info("training %s: %d parameters, %d train / %d val pairs (%.1f %% / %.1f %% bad), %d pairs per epoch, "
-             "%s + %s, loss %s, selection by %s", profile.name, n_parameters(net), len(train), len(val),
+    crit = make_criterion(profile.loss, train.labels, profile.focal_gamma).to(device)
+    log.info("training %s on %s: %d parameters, %d train / %d val pairs (%.1f %% / %.1f %% bad), %d pairs per epoch, "
+             "%s + %s, loss %s, selection by %s", profile.name, device, n_parameters(net), len(train), len(val),
              100 * float(np.mean(train.labels == 1)), 100 * float(np.mean(val.labels == 1)), n_per_epoch,
              profile.optimizer, profile.schedule, crit, profile.select_by)
-    kc = kernel_response_stats(net, data.batch(np.arange(min(64, len(train)))), sigmas=(0.005, None)) if len(train) else {}
+    kc = (kernel_response_stats(net, to_device(data.batch(np.arange(min(64, len(train)))), device), sigmas=(0.005, None))
+          if len(train) else {})
     for name, st in kc.items():
         log.info("kernel correlation %s at init: mean %.3g, median %.3g, %.1f%% > 1e-3", name, st["mean"],
                  st["median"], 100 * st["frac_gt_1e-3"])
@@ -294,7 +326,7 @@ def train_model(profile: Profile, train: PairSet, val: PairSet, out_dir: str | P
         if profile.time_budget_s and time.perf_counter() - t_wall > profile.time_budget_s:
             log.info("time budget of %.0f s reached after epoch %d", profile.time_budget_s, epoch)
             break
-    return {"best": best, "history": history, "parameters": n_parameters(net),
+    return {"best": best, "history": history, "parameters": n_parameters(net), "device": str(device),
             "train_seconds": time.perf_counter() - t_wall, "train_cpu_seconds": time.process_time() - t_cpu,
             "best_path": str(out_dir / "best.pt"), "model_hash": model_hash(out_dir / "best.pt"),
             "threshold": best.get("threshold", DEFAULT_THRESHOLD), "kernel_stats_init": kc}

@@ -26,7 +26,8 @@ from ms3d_model.train import load_checkpoint, make_model, predict, save_checkpoi
 
 TINY = PROFILES["tiny"]
 VARIANTS = {**{f"ablation {k}": v for k, v in ABLATIONS.items()}, "meshnet": MESHNET,
-            "ms3dqe+": {"n_cues": N_CUES}, "pointnet": {"arch": "pointnet"}, "geometry": {"geometry": True}}
+            "ms3dqe+": {"n_cues": N_CUES}, "pointnet": {"arch": "pointnet"}, "geometry": {"geometry": True},
+            "pointnet++": {"arch": "pointnet2"}, "pointcnn": {"arch": "pointcnn"}}
 
 
 def _pairs(n: int, seed: int = 0, bad_shift: float = 0.0, prof=TINY):
