@@ -11,8 +11,8 @@ the whole set as one ``.npz`` keyed by the campuses' store fingerprints and the 
 (:func:`ms3d_model.dataset.area_split`, :func:`ms3d_model.dataset.largest_defect_extent_m`), and trains
 many epochs from the cached tensors (the profile's optimiser, loss, selection and threshold choice:
 :mod:`ms3d_model.train`; ``--paper-training`` for the paper's). ``--work-dir`` adds campuses processed elsewhere (any labelled work dir). ``--suite``
-trains the networks of the paper's Tables 3 and 4 too (PointNet, MeshNet-style, MS3DQE-Net+, ablations
-(1)-(6)), each in ``OUT/<name>/``.
+trains the networks of the paper's Tables 3 and 4 too (PointNet, PointNet++, PointCNN, MeshNet-style,
+MS3DQE-Net+, ablations (1)-(6)), each in ``OUT/<name>/``.
 
 As a Prefect flow (``train_flow``) each step is a task and the per-epoch metrics are published as an
 artifact; :func:`run_training` runs the same steps without Prefect (tests, ``--no-prefect``).
@@ -55,7 +55,8 @@ def suite() -> dict[str, dict]:
     from ms3d_model.cues import N_CUES
     from ms3d_model.net import ABLATIONS, MESHNET
 
-    s = {"ms3dqe": {}, "ms3dqe_plus": {"n_cues": N_CUES}, "ms3dqe_geo": {"geometry": True}, "pointnet": {"arch": "pointnet"}, "meshnet": MESHNET,
+    s = {"ms3dqe": {}, "ms3dqe_plus": {"n_cues": N_CUES}, "ms3dqe_geo": {"geometry": True}, "pointnet": {"arch": "pointnet"},
+         "pointnet2": {"arch": "pointnet2"}, "pointcnn": {"arch": "pointcnn"}, "meshnet": MESHNET,
          "gbm": {"arch": "gbm", "n_cues": N_CUES}}
     s.update({f"ablation{k.strip('()')}": v for k, v in ABLATIONS.items()})  # ablationFull: Table 4's budget
     return s
@@ -140,8 +141,9 @@ def dataset_key(campuses: dict[str, str], profile) -> str:
     from ms3d_model.cues import CUE_NAMES
     from storage.patches.state import store_fingerprint
     from storage.workdir.layout import WorkDir
+    from tasks.classify import CACHE_VERSION
 
-    spec = {"campuses": {name: {t.key: store_fingerprint(WorkDir(wd).tile_dir(t), ("labels",))
+    spec = {"featuriser": CACHE_VERSION, "campuses": {name: {t.key: store_fingerprint(WorkDir(wd).tile_dir(t), ("labels",))
                                 for t in WorkDir(wd).live_tiles()} for name, wd in sorted(campuses.items())},
             "sizes": [profile.max_points, profile.max_faces, profile.k_centre], "seed": profile.seed,
             "max_pairs": profile.max_pairs, "cues": list(CUE_NAMES)}

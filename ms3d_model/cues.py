@@ -1,8 +1,10 @@
 """Hand-made geometric cues of a (mesh patch, point patch) pair: the non-deep baseline's features and the
 extra input of MS3DQE-Net+.
 
-All in metres, from the raw (unsampled) patch: how far the MLS points lie from the mesh and the mesh from
-the points (both ways), how much of the mesh the MLS covers, open (boundary) edges, normal agreement,
+All in metres, from the raw (unsampled) patch: how far the MLS points lie from the mesh (from the nearest
+face of the whole tile when the tile's surface is given, as the classify stage and training give it: a point
+near a patch's side is often nearest to a face of the next cell; measured on the pair's own faces, a real
+production's clean facade read up to 15 cm off at patch borders) and the mesh from the points (both ways), how much of the mesh the MLS covers, open (boundary) edges, normal agreement,
 planarity, counts. In the spirit of Ennafii et al. (PE&RS 2019): cheap, interpretable, and the honest bar a
 network has to clear.
 
@@ -202,7 +204,7 @@ def _surface_cues(d: np.ndarray, off: np.ndarray, gp: np.ndarray, n_cue: np.ndar
 def _cues(points: list, tris: list, open_edges: list | None, seeds: list, surface: TileSurface | None = None
           ) -> np.ndarray:
     """(B, len(OWN_CUE_NAMES)) float32 cues of B pairs; seeds[b]: the subsampling seed of pair b; surface: the
-    tile's faces for the surface cues (None: each pair's own faces)."""
+    tile's faces, which every point -> mesh distance measures against (None: each pair's own faces)."""
     points = [np.asarray(p, np.float64).reshape(-1, 3) for p in points]
     tris = [np.asarray(t, np.float64).reshape(-1, 3, 3) for t in tris]
     n = np.array([len(p) for p in points], np.int64)
@@ -222,11 +224,11 @@ def _cues(points: list, tris: list, open_edges: list | None, seeds: list, surfac
 
     p, gp, p_sh, gs = _cue_points(p_all, n, seeds)
     n_cue = np.bincount(gp, minlength=b)
-    d, signed, off = _point_to_mesh(p, n_cue, t, m, normals, centres, 8)
-    if surface is not None:
-        d_s, off_s = surface.nearest(p)
+    if surface is not None:  # the nearest surface anywhere in the tile, not only the pair's own faces
+        d, off = surface.nearest(p)
+        signed = np.sign(off) * d
     else:
-        d_s, off_s = d, off
+        d, signed, off = _point_to_mesh(p, n_cue, t, m, normals, centres, 8)
 
     # mesh -> points, and the shape of the point set: on at most MAX_SHAPE_POINTS points per pair
     n_sh = np.bincount(gs, minlength=b)
@@ -269,7 +271,7 @@ def _cues(points: list, tris: list, open_edges: list | None, seeds: list, surfac
         spread(along_p, gs), spread(along_m, gv),
         np.bincount(gf, w * (np.abs(normals[:, 2]) > 0.9), minlength=b),
     ] + _extra_cues(d, signed, gp, n_cue, sd, ss, sm, dm, gf, w, p_all[:, 2], ga, t[:, :, 2], b)
-    cues += _surface_cues(d_s, off_s, gp, n_cue, b)
+    cues += _surface_cues(d, off, gp, n_cue, b)
     return np.stack(cues, axis=1).astype(np.float32)
 
 

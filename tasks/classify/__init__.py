@@ -19,9 +19,9 @@ STAGE = StageSpec("classify", "tile", largest_first_tile_batches, reads=("manife
 # the names below load on first use (tasks.stages.lazy_exports): importing the package for its STAGE costs
 # nothing, and a worker loads only the modules its tasks run
 __getattr__ = lazy_exports(__name__, {
-    "tasks.classify.pairs": "featurise_tile_pairs read_tile_pairs",
+    "tasks.classify.pairs": "CACHE_VERSION featurise_tile_pairs read_tile_pairs",
     "tasks.classify.stage": "DEFAULT_MODEL DEFAULT_MODEL_TRAINING_SEEDS campus_pair_set grade_pairs grading_threshold load_model run_classify_tile",
 })
 
-__all__ = ["STAGE", "DEFAULT_MODEL", "DEFAULT_MODEL_TRAINING_SEEDS", "campus_pair_set", "featurise_tile_pairs", "grade_pairs", "grading_threshold", "load_model",
+__all__ = ["STAGE", "CACHE_VERSION", "DEFAULT_MODEL", "DEFAULT_MODEL_TRAINING_SEEDS", "campus_pair_set", "featurise_tile_pairs", "grade_pairs", "grading_threshold", "load_model",
            "read_tile_pairs", "run_classify_tile"]

@@ -27,7 +27,8 @@ from storage.patches.read import PatchStore
 from storage.patches.state import store_fingerprint
 
 FACE_COLUMNS = [f"{a}{v}" for v in range(3) for a in "xyz"] + ["vid0", "vid1", "vid2"]
-CACHE_VERSION = 3  # 2: pairs above ms3d_model.cues.MAX_SHAPE_POINTS give other cues; 3: order-free subsets
+CACHE_VERSION = 4  # 2: pairs above ms3d_model.cues.MAX_SHAPE_POINTS give other cues; 3: order-free subsets;
+# 4: point -> mesh cues against the tile's whole surface
 CUE_CHUNK = 512  # pairs per batch_cues call (one k-d tree per kind per call)
 CUE_POINTS = 3_000_000  # and at most this many points per call (real MLS density: bounded memory)
 SPAN_ROWS = 4_000_000  # rows of the points table a streamed reader holds at once
