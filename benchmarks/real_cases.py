@@ -1,14 +1,27 @@
-"""Benchmark cases built from real photogrammetric meshes: the zero-defect case.
+"""Benchmark cases built from real photogrammetric meshes: the zero-defect case of each real source.
 
-The source is fetched, never committed: the Sceaux castle MVS mesh of ``cdcseacave/openMVS_sample``
-(AGPL-3.0 repository, photos by P. Moulon for research use). Bring it here with the search tool's
-``fetch`` (``github:cdcseacave/openMVS_sample``); this script reads ``scene_mesh_refine.ply`` from that
-bare git folder (``git show``) and builds a case folder::
+The sources are fetched, never committed (:data:`SOURCES`; bring each with the search tool's ``fetch``):
 
-    mesh.ply                 the real mesh, metres, EPSG:2154 world coordinates (float64), z up
-    mls/pass_000.laz, ...    an MLS scan ray-cast from a street in front of the facade (synth.mls:
-                             VMX-450-like heads, occlusion by the mesh itself, 5 mm range noise,
-                             trajectory error, density falling with range), EPSG:2154
+- ``sceaux``: the Sceaux castle MVS mesh of ``cdcseacave/openMVS_sample`` (``scene_mesh_refine.ply``;
+  AGPL-3.0 repository, photos by P. Moulon for research use). An OpenMVS reconstruction in an arbitrary
+  SfM frame: :func:`upright` finds it (the facade plane is the least principal axis of the area-weighted
+  faces, turned to face the cameras; "up" is the in-plane axis along which the ground comes forward and the
+  roof goes back), and the scale is not a documented dimension: it makes the wall faces' height (2nd to 98th
+  percentile) a plausible ``FACADE_HEIGHT_M`` = 15 m (stated in case.json). The street runs along the
+  facade, ``--street-m`` in front of it.
+- ``ccstreet``: a ContextCapture production in 3MXB (``ProjSEED/Unity-3mx``, ``Assets/StreamingAssets``:
+  410 node files, 383,015 finest-level triangles, 159 photo textures; MIT licence of the repository, the
+  data's origin unstated): a street corner with two building rows, a lane with parked cars between them,
+  roofs. Not watertight: its 159 leaf nodes are not stitched (case.json counts the open edges after welding). Its
+  local frame is metres with z up (storeys ~3 m, cars ~4.5 m), so it is only moved: ground to z = 0. The
+  scan drives along the lane between the two facades (``LANE``), both ways.
+
+Each case folder::
+
+    mesh.ply                 the real mesh, metres, world coordinates in the case's CRS (float64), z up
+    mls/pass_000.laz, ...    an MLS scan ray-cast from the street (synth.mls: VMX-450-like heads, occlusion
+                             by the mesh itself, 5 mm range noise, trajectory error, density falling with
+                             range), world coordinates
     truth/truth_mesh.ply     the same mesh as the truth (zero-defect case: the scan agrees with it),
     truth/truth_mesh_faces.npz  per-face class from the normal (ground / wall / roof), and
     truth/registration.json  the frame origin, so ``report.quality`` measures the merged model against it
@@ -16,13 +29,8 @@ bare git folder (``git show``) and builds a case folder::
     truth/defects.json       no defects: every patch is labelled good (``ms3d evaluate`` counts false alarms)
     campus.yaml              an ``ms3d run`` config (labels: that empty defects.json)
 
-The MVS frame is arbitrary (SfM scale and orientation). :func:`upright` finds it: the facade plane is the
-least principal axis of the area-weighted faces, turned to face the cameras (the mean face normal); "up"
-is the in-plane axis along which the ground comes forward and the roof goes back. The scale is not a
-documented dimension: no published height of this facade was found quickly, so the scale makes the wall
-faces' height (2nd to 98th percentile) a plausible ``FACADE_HEIGHT_M`` = 15 m (stated in case.json).
-
-    .venv/bin/python benchmarks/real_cases.py --out ms3d-work/real-cases/sceaux
+    .venv/bin/python benchmarks/real_cases.py --source sceaux --out ms3d-work/real-cases/sceaux-zero
+    .venv/bin/python benchmarks/real_cases.py --source ccstreet --out ms3d-work/real-cases/ccstreet-zero
 """
 
 from __future__ import annotations
@@ -32,6 +40,7 @@ import json
 import subprocess
 import sys
 import time
+from dataclasses import dataclass
 from pathlib import Path
 
 import laspy
@@ -50,30 +59,81 @@ from synth.trajectory import TrajectoryParams, build_trajectories
 from tasks.geometry.distance import MeshDistance
 
 ROOT = Path(__file__).resolve().parents[1]
-SOURCE_REPO = "cdcseacave/openMVS_sample"
-SOURCE_FILE = "scene_mesh_refine.ply"
-DEFAULT_MIRROR = Path("/work/.mirror/cdcseacave+openMVS_sample/repo")
-CRS = "EPSG:2154"  # RGF93 / Lambert-93
-WORLD_ORIGIN = (650_000.0, 6_857_000.0, 60.0)  # near Sceaux (Hauts-de-Seine); z: ground about 60 m
 FACADE_HEIGHT_M = 15.0
 CASE_VERSION = 3  # 3: labelled, every patch good
 
 
+@dataclass(frozen=True)
+class RealSource:
+    """A real mesh to build cases from. repo: GitHub owner/name (fetched bare under /work/.mirror); paths: what
+    to take out of it (a file or a folder); entry: the file ms3d reads, relative to the extracted copy; crs and
+    world_origin: where the case is placed (float64 metres); road: the street polyline's name (:func:`road_of`)."""
+
+    name: str
+    title: str
+    repo: str
+    paths: tuple[str, ...]
+    entry: str
+    licence: str
+    crs: str
+    world_origin: tuple[float, float, float]
+    frame: str  # "mvs": arbitrary SfM frame (upright + scale); "metric": metres, z up (ground to 0 only)
+
+    @property
+    def mirror(self) -> Path:
+        return Path("/work/.mirror") / self.repo.replace("/", "+") / "repo"
+
+
+SOURCES = {
+    "sceaux": RealSource(
+        "sceaux", "Sceaux castle MVS mesh (OpenMVS sample)", "cdcseacave/openMVS_sample",
+        ("scene_mesh_refine.ply",), "scene_mesh_refine.ply",
+        "AGPL-3.0 repository; photos (c) P. Moulon, research use; nothing committed", "EPSG:2154",
+        (650_000.0, 6_857_000.0, 60.0), "mvs"),  # near Sceaux (Hauts-de-Seine); z: ground about 60 m
+    "ccstreet": RealSource(
+        "ccstreet", "ContextCapture 3MXB street corner (ProjSEED/Unity-3mx)", "ProjSEED/Unity-3mx",
+        ("Assets/StreamingAssets",), "Assets/StreamingAssets/root.3mxb",
+        "MIT (repository LICENSE, (c) 2020 GaoXing); the data's origin is not stated; nothing committed",
+        "EPSG:32650", (589_000.0, 2_712_000.0, 15.0), "metric"),  # an arbitrary UTM 50N placement
+}
+SOURCE_REPO, SOURCE_FILE = SOURCES["sceaux"].repo, SOURCES["sceaux"].entry  # the first source's (older callers)
+DEFAULT_MIRROR = SOURCES["sceaux"].mirror
+CRS, WORLD_ORIGIN = SOURCES["sceaux"].crs, SOURCES["sceaux"].world_origin
+# the lane of ``ccstreet`` (local metres after its ground shift): between the facades facing it at y ~ 19.5
+# (+y normals) and y ~ 28.3 (-y normals), open ground and parked cars from x ~ 26 east beyond the capture
+LANE = ((26.5, 24.0), (52.0, 24.0))
+
+
 def read_source(mirror: Path, name: str = SOURCE_FILE, cache: Path | None = None) -> Path:
-    """The source PLY copied out of the fetched bare git folder ``mirror`` (to ``cache``); a Git LFS pointer
-    or a missing file is an error saying so (the case cannot be built then)."""
+    """The source file or folder ``name`` copied out of the fetched bare git folder ``mirror`` (to ``cache``);
+    a Git LFS pointer or a missing path is an error saying so (the case cannot be built then)."""
     out = (cache or Path("/tmp")) / name
-    if out.exists() and out.stat().st_size > 1000:
+    if out.exists() and (out.is_dir() or out.stat().st_size > 1000):
         return out
-    r = subprocess.run(["git", "--git-dir", str(mirror), "show", f"HEAD:{name}"], capture_output=True, check=False)
+    git = ["git", "--git-dir", str(mirror)]
+    kind = subprocess.run(git + ["cat-file", "-t", f"HEAD:{name}"], capture_output=True, check=False)
+    if kind.returncode != 0:
+        raise SystemExit(f"{mirror}: {name} not in the fetched repository ({kind.stderr.decode().strip()}); "
+                         f"fetch the source repository first")
+    if kind.stdout.strip() == b"tree":
+        listing = subprocess.run(git + ["ls-tree", "-r", "--name-only", "HEAD", name], capture_output=True, check=True)
+        for rel in listing.stdout.decode().splitlines():
+            if rel.endswith(".meta"):
+                continue  # Unity's sidecar files
+            _git_file(git, rel, (cache or Path("/tmp")) / rel, mirror)
+        return out
+    _git_file(git, name, out, mirror)
+    return out
+
+
+def _git_file(git: list[str], rel: str, out: Path, mirror: Path) -> None:
+    r = subprocess.run(git + ["show", f"HEAD:{rel}"], capture_output=True, check=False)
     if r.returncode != 0:
-        raise SystemExit(f"{mirror}: {name} not in the fetched repository ({r.stderr.decode().strip()}); "
-                         f"fetch github:{SOURCE_REPO} first")
+        raise SystemExit(f"{mirror}: {rel} not readable ({r.stderr.decode().strip()})")
     if r.stdout.startswith(b"version https://git-lfs"):
-        raise SystemExit(f"{mirror}: {name} is a Git LFS pointer, not the mesh")
+        raise SystemExit(f"{mirror}: {rel} is a Git LFS pointer, not the mesh")
     out.parent.mkdir(parents=True, exist_ok=True)
     out.write_bytes(r.stdout)
-    return out
 
 
 def _face_geometry(v: np.ndarray, f: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
@@ -114,7 +174,7 @@ def face_classes(v: np.ndarray, f: np.ndarray, z_ground: float, height: float) -
 
 
 def metric_mesh(src: Path, facade_height_m: float = FACADE_HEIGHT_M) -> tuple[np.ndarray, np.ndarray, dict]:
-    """The source mesh upright, scaled to metres, facade plane at y = 0, ground at z = 0, centred in x:
+    """An MVS mesh upright, scaled to metres, facade plane at y = 0, ground at z = 0, centred in x:
     (vertices (n, 3) float64 local metres, faces (m, 3), info for case.json)."""
     m = read_mesh(src)
     v, f = np.asarray(m.vertices, np.float64), np.asarray(m.faces, np.int64)
@@ -132,30 +192,63 @@ def metric_mesh(src: Path, facade_height_m: float = FACADE_HEIGHT_M) -> tuple[np
             "scale_source": (f"not a documented dimension: scaled so that the wall faces' height (2nd-98th "
                              f"percentile of their centroids, {z_hi - z_lo:.4f} MVS units) is a plausible "
                              f"{facade_height_m:g} m for the Chateau de Sceaux main facade"),
-            "ground_faces_found": int(ground.sum()),
+            "ground_faces_found": int(ground.sum()), "height_m": facade_height_m,
             "extent_m": np.round(local.max(0) - local.min(0), 3).tolist()}
     return local, f, info
 
 
-def scan(local: np.ndarray, faces: np.ndarray, cls: np.ndarray, street_m: float, seed: int) -> tuple[Scene, list]:
-    """The scene and trajectories of a street ``street_m`` in front of the facade (y = -street_m), two passes."""
-    mesh = Mesh(local, faces, cls, np.zeros(len(faces), np.int32), np.full((len(faces), 3), 180, np.uint8))
+def grounded_mesh(src: Path) -> tuple[np.ndarray, np.ndarray, dict]:
+    """A mesh already in metres with z up (a ContextCapture production's local frame), moved so its ground
+    (the area-weighted median height of the up-facing faces in its lowest fifth) is z = 0: (vertices (n, 3)
+    float64, faces (m, 3), info for case.json, with the open edges left after welding coincident vertices)."""
+    m = read_mesh(src)
+    v, f = np.asarray(m.vertices, np.float64), np.asarray(m.faces, np.int64)
+    c, n, a = _face_geometry(v, f)
+    lo, hi = np.percentile(c[:, 2], [1.0, 99.0])
+    ground = (n[:, 2] > 0.8) & (c[:, 2] < lo + 0.2 * (hi - lo))
+    order = np.argsort(c[ground, 2])
+    cum = np.cumsum(a[ground][order])
+    z0 = float(c[ground, 2][order][np.searchsorted(cum, 0.5 * cum[-1])])
+    local = v - [0.0, 0.0, z0]
+    _, inv = np.unique(np.round(v, 4), axis=0, return_inverse=True)  # weld coincident vertices (0.1 mm)
+    welded = inv.reshape(-1)[f]
+    edges = np.sort(np.concatenate([welded[:, [0, 1]], welded[:, [1, 2]], welded[:, [2, 0]]]), axis=1)
+    _, counts = np.unique(edges, axis=0, return_counts=True)
+    info = {"scale_factor_m_per_unit": 1.0, "scale_source": "the production's own metres (storeys ~3 m, cars ~4.5 m)",
+            "ground_shift_m": round(-z0, 3), "height_m": round(float(hi - z0), 2),
+            "textures": len(m.textures),
+            "edges_open_after_welding": round(float((counts == 1).sum() / len(counts)), 4),
+            "extent_m": np.round(local.max(0) - local.min(0), 3).tolist()}
+    return local, f, info
+
+
+def road_of(source: RealSource, local: np.ndarray, street_m: float) -> np.ndarray:
+    """(k, 2) the street polyline of a case (local metres): ``street_m`` in front of an MVS facade (y = 0,
+    facing -y), or the source's lane."""
+    if source.name == "ccstreet":
+        return np.asarray(LANE, np.float64)
     x0, x1 = local[:, 0].min() - 15.0, local[:, 0].max() + 15.0
-    road = np.array([[x0, -street_m], [x1, -street_m]])
-    scene = Scene(truth=mesh, occluders=None, buildings=[], roads=[road],
-                  extent=(x0, -street_m - 10.0, x1, float(local[:, 1].max())))
+    return np.array([[x0, -street_m], [x1, -street_m]])
+
+
+def scan(local: np.ndarray, faces: np.ndarray, cls: np.ndarray, road: np.ndarray, seed: int) -> tuple[Scene, list]:
+    """The scene and trajectories of a vehicle along ``road`` (k, 2), two passes."""
+    mesh = Mesh(local, faces, cls, np.zeros(len(faces), np.int32), np.full((len(faces), 3), 180, np.uint8))
+    lo, hi = np.minimum(local[:, :2].min(0), road.min(0)) - 10.0, np.maximum(local[:, :2].max(0), road.max(0)) + 10.0
+    scene = Scene(truth=mesh, occluders=None, buildings=[], roads=[road], extent=(lo[0], lo[1], hi[0], hi[1]))
     trajs = build_trajectories([road], TrajectoryParams(), np.random.default_rng(seed), truth=None)
     return scene, trajs
 
 
-def write_scan(out: Path, scene, trajs, density: float, seed: int) -> dict:
-    """One LAZ per pass under ``out/mls``, world coordinates in EPSG:2154; returns scan stats."""
+def write_scan(out: Path, scene, trajs, density: float, seed: int, crs: str = CRS,
+               world_origin=WORLD_ORIGIN) -> dict:
+    """One LAZ per pass under ``out/mls``, world coordinates in ``crs``; returns scan stats."""
     params = with_density(MlsParams.vmx450(), density)
-    origin, rng = np.asarray(WORLD_ORIGIN), np.random.default_rng(seed + 1)
+    origin, rng = np.asarray(world_origin), np.random.default_rng(seed + 1)
     stats = {"rays": 0, "points": 0, "passes": len(trajs), "density_scale": density}
     (out / "mls").mkdir(parents=True, exist_ok=True)
     for traj in trajs:
-        with LasChunkWriter(out / "mls" / f"pass_{traj.traj_id:03d}.laz", crs=CRS,
+        with LasChunkWriter(out / "mls" / f"pass_{traj.traj_id:03d}.laz", crs=crs,
                             offset=np.round(origin / 1000) * 1000) as w:
             for ch in simulate_mls(scene, [traj], params, rng):
                 stats["rays"] += ch.n_rays
@@ -177,53 +270,61 @@ def scan_agreement(out: Path, world: np.ndarray, faces: np.ndarray, n: int = 200
             "scan_to_mesh_p99_m": round(float(q[2]), 4), "scan_within_5cm": round(float((d <= 0.05).mean()), 4)}
 
 
-def write_campus_yaml(out: Path, name: str) -> None:
-    """campus.yaml: the mesh and the scan are co-registered in EPSG:2154 (registration off); the labels are
+def write_campus_yaml(out: Path, name: str, crs: str = CRS) -> None:
+    """campus.yaml: the mesh and the scan are co-registered in ``crs`` (registration off); the labels are
     ``truth/defects.json`` without a defect (every patch good)."""
     cfg = {"name": name, "work_dir": f"../../{name}-work",
-           "inputs": {"mesh": ["mesh.ply"], "points": ["mls"], "crs": CRS, "labels": "truth/defects.json"},
+           "inputs": {"mesh": ["mesh.ply"], "points": ["mls"], "crs": crs, "labels": "truth/defects.json"},
            "registration": {"mode": "off"}}
     (out / "campus.yaml").write_text(yaml.safe_dump(cfg, sort_keys=False))
 
 
-def case_key(street_m: float, density: float, seed: int) -> dict:
-    return {"version": CASE_VERSION, "source": f"{SOURCE_REPO}:{SOURCE_FILE}", "street_m": street_m,
-            "mls_density_scale": density, "seed": seed, "facade_height_m": FACADE_HEIGHT_M}
+def case_key(street_m: float, density: float, seed: int, source: RealSource = SOURCES["sceaux"]) -> dict:
+    key = {"version": CASE_VERSION, "source": f"{source.repo}:{source.entry}", "street_m": street_m,
+           "mls_density_scale": density, "seed": seed, "facade_height_m": FACADE_HEIGHT_M}
+    if source.name != "sceaux":  # the first source's key as it was (its built cases stay valid)
+        key.update(road=np.round(road_of(source, np.zeros((1, 3)), street_m), 3).tolist(), frame=source.frame)
+    return key
 
 
-def build_zero_defect(out: Path, mirror: Path = DEFAULT_MIRROR, street_m: float = 12.0, density: float = 0.25,
-                      seed: int = 0, force: bool = False) -> Path:
-    """Build (or reuse, when its case.json has the same key) the Sceaux zero-defect case in ``out``."""
+def build_zero_defect(out: Path, mirror: Path | None = None, street_m: float = 12.0, density: float = 0.25,
+                      seed: int = 0, force: bool = False, source: str = "sceaux") -> Path:
+    """Build (or reuse, when its case.json has the same key) the zero-defect case of ``source`` in ``out``."""
+    src_def = SOURCES[source]
+    mirror = src_def.mirror if mirror is None else Path(mirror)
     out = Path(out)
-    key = case_key(street_m, density, seed)
+    key = case_key(street_m, density, seed, src_def)
     meta = out / "case.json"
     if not force and meta.exists() and json.loads(meta.read_text()).get("key") == key:
         return out
     t0 = time.perf_counter()
-    src = read_source(mirror, cache=out / "source")
-    local, faces, info = metric_mesh(src)
-    cls = face_classes(local, faces, 0.0, FACADE_HEIGHT_M)
-    world = local + np.asarray(WORLD_ORIGIN)
+    for rel in src_def.paths:
+        read_source(mirror, rel, cache=out / "source")
+    src = out / "source" / src_def.entry
+    local, faces, info = metric_mesh(src) if src_def.frame == "mvs" else grounded_mesh(src)
+    cls = face_classes(local, faces, 0.0, info["height_m"])
+    world = local + np.asarray(src_def.world_origin)
     (out / "truth").mkdir(parents=True, exist_ok=True)
     write_ply(out / "mesh.ply", world, faces)
     write_ply(out / "truth" / "truth_mesh.ply", world, faces)
     np.savez_compressed(out / "truth" / "truth_mesh_faces.npz", face_class=cls)
     (out / "truth" / "registration.json").write_text(json.dumps(
-        {"frame_origin": list(WORLD_ORIGIN), "crs": CRS, "matrix_mls_to_mesh": np.eye(4).tolist(),
+        {"frame_origin": list(src_def.world_origin), "crs": src_def.crs, "matrix_mls_to_mesh": np.eye(4).tolist(),
          "note": "zero-defect real-mesh case: the scan is simulated from the truth mesh, co-registered"}))
-    (out / "truth" / "defects.json").write_text(json.dumps({"frame_origin": list(WORLD_ORIGIN), "defects": []}))
-    scene, trajs = scan(local, faces, cls, street_m, seed)
-    stats = write_scan(out, scene, trajs, density, seed)
+    (out / "truth" / "defects.json").write_text(json.dumps({"frame_origin": list(src_def.world_origin), "defects": []}))
+    road = road_of(src_def, local, street_m)
+    scene, trajs = scan(local, faces, cls, road, seed)
+    stats = write_scan(out, scene, trajs, density, seed, src_def.crs, src_def.world_origin)
     stats.update(scan_agreement(out, world, faces))
-    write_campus_yaml(out, "real-sceaux-zero")
+    write_campus_yaml(out, f"real-{source}-zero", src_def.crs)
     _, _, area = _face_geometry(local, faces)
-    doc = {"key": key, "case": "zero-defect", "mesh": "Sceaux castle MVS mesh (OpenMVS sample)",
-           "source": {"repository": f"github:{SOURCE_REPO}", "file": SOURCE_FILE,
-                      "licence": "AGPL-3.0 repository; photos (c) P. Moulon, research use; nothing committed"},
-           "crs": CRS, "world_origin": list(WORLD_ORIGIN), **info,
+    doc = {"key": key, "case": "zero-defect", "source_name": source, "mesh": src_def.title,
+           "source": {"repository": f"github:{src_def.repo}", "file": src_def.entry, "licence": src_def.licence},
+           "crs": src_def.crs, "world_origin": list(src_def.world_origin), **info,
            "faces": len(faces), "area_m2": round(float(area.sum()), 3),
            "face_classes": {c.name.lower(): int((cls == int(c)).sum()) for c in FaceClass if (cls == int(c)).any()},
-           "scan": {**stats, "street_y_m": -street_m, "lane_offset_m": TrajectoryParams().lane_offset_m,
+           "scan": {**stats, "road_local_m": np.round(road, 3).tolist(), "street_y_m": float(road[0, 1]),
+                    "lane_offset_m": TrajectoryParams().lane_offset_m,
                     "speed_m_s": TrajectoryParams().speed_m_s, "scanner": "synth.mls MlsParams.vmx450"},
            "seconds": round(time.perf_counter() - t0, 1)}
     meta.write_text(json.dumps(doc, indent=1))
@@ -232,14 +333,16 @@ def build_zero_defect(out: Path, mirror: Path = DEFAULT_MIRROR, street_m: float 
 
 def main(argv: list[str] | None = None) -> None:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    ap.add_argument("--out", type=Path, default=ROOT / "ms3d-work" / "real-cases" / "sceaux-zero")
-    ap.add_argument("--mirror", type=Path, default=DEFAULT_MIRROR, help="bare git folder of the fetched source")
+    ap.add_argument("--source", default="sceaux", choices=sorted(SOURCES))
+    ap.add_argument("--out", type=Path, default=None, help="default: ms3d-work/real-cases/<source>-zero")
+    ap.add_argument("--mirror", type=Path, default=None, help="bare git folder of the fetched source")
     ap.add_argument("--street-m", type=float, default=12.0, help="road centre line distance from the facade")
     ap.add_argument("--mls-density", type=float, default=0.25, help="synth.mls density_scale")
     ap.add_argument("--seed", type=int, default=0)
     ap.add_argument("--force", action="store_true")
     a = ap.parse_args(argv)
-    out = build_zero_defect(a.out, a.mirror, a.street_m, a.mls_density, a.seed, a.force)
+    out = a.out or ROOT / "ms3d-work" / "real-cases" / f"{a.source}-zero"
+    out = build_zero_defect(out, a.mirror, a.street_m, a.mls_density, a.seed, a.force, a.source)
     print(json.dumps({k: v for k, v in json.loads((out / "case.json").read_text()).items()
                       if k != "rotation_mvs_to_upright"}, indent=1))
 

@@ -1,10 +1,11 @@
 """Real meshes: no harm on a good one, repair of a defective one, per checkpoint, with the synth beside.
 
-    .venv/bin/python benchmarks/real_mesh_bench.py [--case DIR] [--work-root DIR] [--models default,geo]
-        [--defect-seeds 2] [--synth WORK_DIR ...]
+    .venv/bin/python benchmarks/real_mesh_bench.py [--sources sceaux,ccstreet] [--work-root DIR]
+        [--models default,geo] [--defect-seeds 2] [--synth WORK_DIR ...]
 
-The case (:mod:`benchmarks.real_cases`: the Sceaux castle MVS mesh scaled to metres in EPSG:2154 and an
-MLS ray-cast from it along a street) is built once and reused while its key holds. Each checkpoint runs the
+The cases (:mod:`benchmarks.real_cases`, one per real source: the Sceaux castle MVS mesh scaled to metres in
+EPSG:2154, and a ContextCapture 3MXB street corner, each with an MLS ray-cast from it along a street) are
+built once and reused while their keys hold. Each checkpoint runs the
 whole pipeline inline (``--set runner=inline``, ``classify.model`` set for the non-default ones) in its own
 work dir. Figures per checkpoint:
 
@@ -44,7 +45,7 @@ import pandas as pd
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 
-from real_cases import DEFAULT_MIRROR, build_zero_defect
+from real_cases import SOURCES, build_zero_defect
 from real_defects import build_defect_case
 
 from storage.contracts.tile_mesh import SOURCE_REBUILT, read_tile_mesh
@@ -197,11 +198,13 @@ def synth_rows(work_dirs: list[str], names: list[str], data: Path) -> dict:
 
 def print_table(case_doc: dict, rows: list[dict]) -> None:
     scan = case_doc["scan"]
+    road = scan.get("road_local_m")
+    street = (f"street {abs(scan['street_y_m']):g} m off the facade" if road is None or case_doc.get("source_name") == "sceaux"
+              else f"along the lane {road}")
     print(f"zero-defect real mesh: {case_doc['mesh']} ({case_doc['faces']:,} faces, {case_doc['area_m2']:.1f} m^2, "
           f"scale {case_doc['scale_factor_m_per_unit']} m/unit, {case_doc['crs']}); MLS {scan['points']:,} points, "
-          f"({scan['points'] / case_doc['area_m2']:,.0f} per m^2 of mesh), {scan['passes']} passes, street "
-          f"{abs(scan['street_y_m']):g} m off the facade; scan to mesh: median {scan['scan_to_mesh_median_m']} m, "
-          f"p99 {scan['scan_to_mesh_p99_m']} m")
+          f"({scan['points'] / case_doc['area_m2']:,.0f} per m^2 of mesh), {scan['passes']} passes, {street}; "
+          f"scan to mesh: median {scan['scan_to_mesh_median_m']} m, p99 {scan['scan_to_mesh_p99_m']} m")
     print(f"goal: bad <= {GOAL['bad_share']:.0%}, F@5cm >= {GOAL['f5']}, area within +-{GOAL['area_change']:.0%}"
           + (f"; runs with {' '.join(rows[0]['sets'])}" if rows and rows[0]["sets"] else ""))
     head = (f"{'checkpoint':<10} {'graded':>6} {'bad':>5} {'unk':>4} {'bad %':>6} {'F@5cm':>6} {'P@5':>6} "
@@ -216,9 +219,12 @@ def print_table(case_doc: dict, rows: list[dict]) -> None:
 
 def main(argv: list[str] | None = None) -> None:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    ap.add_argument("--case", type=Path, default=ROOT / "ms3d-work" / "real-cases" / "sceaux-zero")
+    ap.add_argument("--sources", default=",".join(SOURCES), help=f"real meshes among {','.join(SOURCES)} "
+                    "(each case in ms3d-work/real-cases/<source>-zero)")
+    ap.add_argument("--case", type=Path, default=None, help="one zero-defect case folder instead (its source: "
+                    "the first of --sources)")
     ap.add_argument("--work-root", type=Path, default=ROOT / "ms3d-work" / "real-mesh-bench")
-    ap.add_argument("--mirror", type=Path, default=DEFAULT_MIRROR, help="bare git folder of the fetched source")
+    ap.add_argument("--mirror", type=Path, default=None, help="bare git folder of the fetched source (one source)")
     ap.add_argument("--mls-density", type=float, default=0.25, help="the case's synth.mls density_scale (give "
                     "another --case and --work-root for another density)")
     ap.add_argument("--street-m", type=float, default=12.0, help="the case's road distance from the facade")
@@ -234,20 +240,28 @@ def main(argv: list[str] | None = None) -> None:
                     help="extra config override for every run (a diagnosis, e.g. classify.evidence=false); "
                          "its runs get their own work dirs")
     a = ap.parse_args(argv)
-    case = build_zero_defect(a.case, a.mirror, street_m=a.street_m, density=a.mls_density)
-    case_doc = json.loads((case / "case.json").read_text())
     for kv in a.model:
         k, _, v = kv.partition("=")
         MODELS[k] = Path(v).absolute()
     names = a.models.split(",")
-    rows = [bench_model(case, a.work_root, name, a.force, tuple(a.sets)) for name in names]
-    print_table(case_doc, rows)
-    defect_rows = []
-    for seed in [int(x) for x in a.defect_seeds.split(",") if x.strip()]:
-        dcase = build_defect_case(case, case.parent / f"{case.name.replace('-zero', '')}-defects-{seed}", seed)
-        defect_rows += [bench_defect_case(dcase, a.work_root, name, a.force) for name in names]
-    if defect_rows:
-        print_defect_table(defect_rows)
+    sources = [x for x in a.sources.split(",") if x.strip()]
+    rows, defect_rows, cases = [], [], {}
+    for src in (sources[:1] if a.case else sources):
+        folder = a.case or ROOT / "ms3d-work" / "real-cases" / f"{src}-zero"
+        case = build_zero_defect(folder, a.mirror, street_m=a.street_m, density=a.mls_density, source=src)
+        case_doc = json.loads((case / "case.json").read_text())
+        cases[src] = str(case)
+        root = a.work_root if src == "sceaux" else a.work_root / src  # the first source's work dirs as they were
+        src_rows = [bench_model(case, root, name, a.force, tuple(a.sets)) | {"source": src} for name in names]
+        print_table(case_doc, src_rows)
+        rows += src_rows
+        src_defects = []
+        for seed in [int(x) for x in a.defect_seeds.split(",") if x.strip()]:
+            dcase = build_defect_case(case, case.parent / f"{case.name.replace('-zero', '')}-defects-{seed}", seed)
+            src_defects += [bench_defect_case(dcase, root, name, a.force) | {"source": src} for name in names]
+        if src_defects:
+            print_defect_table(src_defects)
+        defect_rows += src_defects
     synth = synth_rows(a.synth, names, a.work_root / "evaluate") if a.synth else {}
     if synth:
         from flows.evaluate_path import spread_table
@@ -255,7 +269,7 @@ def main(argv: list[str] | None = None) -> None:
         print(spread_table(synth))
     out = a.work_root / ("real_mesh_bench-" + "+".join(names) + "".join(f"-{kv.replace('=', '_')}" for kv in a.sets)
                          + ".json")  # one file per checkpoint list: a later run of others does not overwrite it
-    out.write_text(json.dumps({"case": str(case), "rows": rows, "defect_rows": defect_rows, "synth": synth},
+    out.write_text(json.dumps({"cases": cases, "rows": rows, "defect_rows": defect_rows, "synth": synth},
                               indent=1, default=str))
     print(f"rows: {out}")
 
