@@ -51,11 +51,9 @@ sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
 from storage.formats.meshes import read_mesh
 from storage.formats.ply import write_ply
-from storage.formats.points import LasChunkWriter, PointChunk
-from synth.frames import asprs_classes
-from synth.mls import MlsParams, simulate_mls, with_density
-from synth.scene import FaceClass, Mesh, Scene
-from synth.trajectory import TrajectoryParams, build_trajectories
+from synth.scan_mesh import face_classes, write_mesh_scan
+from synth.scene import FaceClass
+from synth.trajectory import TrajectoryParams
 from tasks.geometry.distance import MeshDistance
 
 ROOT = Path(__file__).resolve().parents[1]
@@ -163,16 +161,6 @@ def upright(v: np.ndarray, f: np.ndarray) -> np.ndarray:
     return np.stack([np.cross(y, up), y, up])
 
 
-def face_classes(v: np.ndarray, f: np.ndarray, z_ground: float, height: float) -> np.ndarray:
-    """(m,) uint8 FaceClass from the normal: up-facing faces low down are ground, high up roof, others wall."""
-    c, n, _ = _face_geometry(v, f)
-    cls = np.full(len(f), int(FaceClass.WALL), np.uint8)
-    flat = n[:, 2] > 0.7
-    cls[flat & (c[:, 2] < z_ground + 0.3 * height)] = int(FaceClass.GROUND)
-    cls[(n[:, 2] > 0.4) & (c[:, 2] >= z_ground + 0.3 * height)] = int(FaceClass.ROOF)
-    return cls
-
-
 def metric_mesh(src: Path, facade_height_m: float = FACADE_HEIGHT_M) -> tuple[np.ndarray, np.ndarray, dict]:
     """An MVS mesh upright, scaled to metres, facade plane at y = 0, ground at z = 0, centred in x:
     (vertices (n, 3) float64 local metres, faces (m, 3), info for case.json)."""
@@ -231,35 +219,6 @@ def road_of(source: RealSource, local: np.ndarray, street_m: float) -> np.ndarra
     return np.array([[x0, -street_m], [x1, -street_m]])
 
 
-def scan(local: np.ndarray, faces: np.ndarray, cls: np.ndarray, road: np.ndarray, seed: int) -> tuple[Scene, list]:
-    """The scene and trajectories of a vehicle along ``road`` (k, 2), two passes."""
-    mesh = Mesh(local, faces, cls, np.zeros(len(faces), np.int32), np.full((len(faces), 3), 180, np.uint8))
-    lo, hi = np.minimum(local[:, :2].min(0), road.min(0)) - 10.0, np.maximum(local[:, :2].max(0), road.max(0)) + 10.0
-    scene = Scene(truth=mesh, occluders=None, buildings=[], roads=[road], extent=(lo[0], lo[1], hi[0], hi[1]))
-    trajs = build_trajectories([road], TrajectoryParams(), np.random.default_rng(seed), truth=None)
-    return scene, trajs
-
-
-def write_scan(out: Path, scene, trajs, density: float, seed: int, crs: str = CRS,
-               world_origin=WORLD_ORIGIN) -> dict:
-    """One LAZ per pass under ``out/mls``, world coordinates in ``crs``; returns scan stats."""
-    params = with_density(MlsParams.vmx450(), density)
-    origin, rng = np.asarray(world_origin), np.random.default_rng(seed + 1)
-    stats = {"rays": 0, "points": 0, "passes": len(trajs), "density_scale": density}
-    (out / "mls").mkdir(parents=True, exist_ok=True)
-    for traj in trajs:
-        with LasChunkWriter(out / "mls" / f"pass_{traj.traj_id:03d}.laz", crs=crs,
-                            offset=np.round(origin / 1000) * 1000) as w:
-            for ch in simulate_mls(scene, [traj], params, rng):
-                stats["rays"] += ch.n_rays
-                if len(ch):
-                    w.write(PointChunk(xyz=ch.xyz + origin, rgb=ch.rgb, intensity=ch.intensity,
-                                       gps_time=ch.gps_time,
-                                       classification=asprs_classes(ch.source, ch.face_class)))
-                    stats["points"] += len(ch)
-    return stats
-
-
 def scan_agreement(out: Path, world: np.ndarray, faces: np.ndarray, n: int = 200_000) -> dict:
     """Distances (m) of up to ``n`` scan points (evenly taken) to the mesh: does the scan agree with it?"""
     pts = np.concatenate([laspy.read(p).xyz for p in sorted((out / "mls").glob("*.laz"))])
@@ -313,8 +272,7 @@ def build_zero_defect(out: Path, mirror: Path | None = None, street_m: float = 1
          "note": "zero-defect real-mesh case: the scan is simulated from the truth mesh, co-registered"}))
     (out / "truth" / "defects.json").write_text(json.dumps({"frame_origin": list(src_def.world_origin), "defects": []}))
     road = road_of(src_def, local, street_m)
-    scene, trajs = scan(local, faces, cls, road, seed)
-    stats = write_scan(out, scene, trajs, density, seed, src_def.crs, src_def.world_origin)
+    stats = write_mesh_scan(out / "mls", local, faces, cls, road, density, seed, src_def.crs, src_def.world_origin)
     stats.update(scan_agreement(out, world, faces))
     write_campus_yaml(out, f"real-{source}-zero", src_def.crs)
     _, _, area = _face_geometry(local, faces)
