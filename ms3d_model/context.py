@@ -17,13 +17,16 @@ from .cues import (  # noqa: F401 - the doctests use some
     CUE_NAMES,
     OWN_CUE_NAMES,
     PAIR_CUE_NAMES,
+    RELATIVE_SOURCES,
     SURFACE_CONTEXT_SOURCES,
     SURFACE_CUE_NAMES,
 )
 
 _SOURCE_COLS = np.array([PAIR_CUE_NAMES.index(n) for n in CONTEXT_SOURCES])
 _SURFACE_SOURCE_COLS = np.array([OWN_CUE_NAMES.index(n) for n in SURFACE_CONTEXT_SOURCES])
-# the columns of CUE_NAMES that describe a pair's neighbours, not the pair (clean-context copies swap them)
+_RELATIVE_SOURCE_COLS = np.array([OWN_CUE_NAMES.index(n) for n in RELATIVE_SOURCES])
+# the columns of CUE_NAMES that describe a pair's neighbours, not the pair (clean-context copies swap them); the
+# "around_" / "vs_around_" columns stay with their pair (a copy keeps its own offset against its own neighbours)
 CONTEXT_COLUMNS = np.array([i for i, n in enumerate(CUE_NAMES) if n.startswith("nb_")])
 _OFFSETS = np.array([(a, b, c) for a in (-1, 0, 1) for b in (-1, 0, 1) for c in (-1, 0, 1) if (a, b, c) != (0, 0, 0)])
 
@@ -79,9 +82,11 @@ def with_context(own_cues: np.ndarray, ijk: np.ndarray) -> np.ndarray:
     own = np.asarray(own_cues, np.float32)
     if own.shape[1] != len(OWN_CUE_NAMES):
         raise ValueError(f"expected {len(OWN_CUE_NAMES)} own cue columns, got {own.shape[1]}")
-    n_pair = len(PAIR_CUE_NAMES)
+    n_pair, n_rel = len(PAIR_CUE_NAMES), len(RELATIVE_SOURCES)
+    around = context_cues(own, ijk, _RELATIVE_SOURCE_COLS, with_count=False)[:, n_rel:]  # the neighbours' means
     return np.concatenate([own[:, :n_pair], context_cues(own, ijk), own[:, n_pair:],
-                           context_cues(own, ijk, _SURFACE_SOURCE_COLS, with_count=False)], axis=1)
+                           context_cues(own, ijk, _SURFACE_SOURCE_COLS, with_count=False), around,
+                           own[:, _RELATIVE_SOURCE_COLS] - around], axis=1)
 
 
 def clean_context_copies(cues: np.ndarray, labels: np.ndarray, share: float, seed: int = 0,

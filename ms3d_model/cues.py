@@ -68,7 +68,14 @@ SURFACE_CONTEXT_SOURCES = ("surf_lateral_frac_10cm",)
 SURFACE_CONTEXT_NAMES = (tuple(f"nb_max_{n}" for n in SURFACE_CONTEXT_SOURCES)
                          + tuple(f"nb_mean_{n}" for n in SURFACE_CONTEXT_SOURCES))
 OWN_CUE_NAMES = PAIR_CUE_NAMES + SURFACE_CUE_NAMES  # what :func:`batch_cues` gives per pair, in this order
-CUE_NAMES = PAIR_CUE_NAMES + CONTEXT_CUE_NAMES + SURFACE_CUE_NAMES + SURFACE_CONTEXT_NAMES
+# Appended last: the pair's offset from the mesh against its neighbours' (:mod:`ms3d_model.context`): the mean of
+# these signed and unsigned distance statistics over the pairs in the 26 neighbouring cells ("around_"), and the
+# pair's own value minus that mean ("vs_around_"). A dent or a warp moves the scan a few centimetres off the mesh
+# over a few cells, as range noise and registration do everywhere; the difference from the neighbourhood tells
+# the two apart without reading the mesh's own shape.
+RELATIVE_SOURCES = ("p2m_signed_median", "p2m_signed_mean", "p2m_signed_p10", "p2m_signed_p90", "p2m_median")
+RELATIVE_CUE_NAMES = tuple(f"around_{n}" for n in RELATIVE_SOURCES) + tuple(f"vs_around_{n}" for n in RELATIVE_SOURCES)
+CUE_NAMES = PAIR_CUE_NAMES + CONTEXT_CUE_NAMES + SURFACE_CUE_NAMES + SURFACE_CONTEXT_NAMES + RELATIVE_CUE_NAMES
 N_CUES = len(CUE_NAMES)
 LATERAL_MIN_M = 0.10  # the offsets the surface cues count (a crack or a seam leaves millimetres)
 MAX_CUE_POINTS = 1024

@@ -83,3 +83,14 @@ def test_clean_context_copies_keep_the_own_cues_and_labels_and_take_a_clean_cont
         np.testing.assert_array_equal(c[own], cues[s, own])
     assert clean_context_copies(cues, labels, 0.0)[0] is cues
     assert clean_context_copies(cues[:, :N_PAIR_CUES], labels, 0.25)[0].shape == (n, N_PAIR_CUES)  # no context
+
+
+def test_a_cell_off_the_mesh_against_its_neighbours_reads_in_the_relative_cues():
+    """A dent: the middle cell's scan 5 cm in front of the mesh, its neighbours' on it."""
+    own = np.zeros((3, len(OWN_CUE_NAMES)), np.float32)
+    own[:, OWN_CUE_NAMES.index("p2m_signed_median")] = [0.0, 0.05, 0.0]
+    got = dict(zip(CUE_NAMES, with_context(own, np.array([[0, 0, 0], [1, 0, 0], [2, 0, 0]])).T))
+    np.testing.assert_allclose(got["around_p2m_signed_median"], [0.05, 0.0, 0.05], atol=1e-7)
+    np.testing.assert_allclose(got["vs_around_p2m_signed_median"], [-0.05, 0.05, -0.05], atol=1e-7)
+    alone = dict(zip(CUE_NAMES, with_context(own[:1], np.zeros((1, 3), int)).T))  # no neighbour: around is 0
+    assert alone["around_p2m_signed_median"][0] == 0.0 and alone["vs_around_p2m_signed_median"][0] == 0.0
