@@ -36,17 +36,24 @@ def family_scores(models: dict[str, str], work_dirs: list[str], cache: str) -> d
     from ms3d_model.train import checkpoint_threshold, load_checkpoint, predict
     from tasks.classify import campus_pair_set
 
+    keys = ("n", "ap_bad", "precision_bad", "recall_bad", "flagged_share")
     out, sets = {}, {}
     for name, path in models.items():
         net, prof, meta = load_checkpoint(path)
         size = (prof.max_points, prof.max_faces, prof.k_centre, prof.seed)
         if size not in sets:
-            sets[size] = PairSet.concat([campus_pair_set(w, Path(w).name, *size, cache_dir=cache) for w in work_dirs])
-        ps = sets[size]
+            sets[size] = [campus_pair_set(w, Path(w).name, *size, cache_dir=cache) for w in work_dirs]
+        parts = sets[size]
+        ps = PairSet.concat(parts)
         thr = checkpoint_threshold(meta)
-        rep = with_flagged(classification_report(ps.labels, predict(net, ps, 1024), thr))
-        out[name] = {k: rep[k] for k in ("n", "ap_bad", "precision_bad", "recall_bad", "flagged_share")} | {
-            "labelled_bad": int((ps.labels == 1).sum()), "threshold": thr}
+        p = predict(net, ps, 1024)
+        rep = with_flagged(classification_report(ps.labels, p, thr))
+        out[name] = {k: rep[k] for k in keys} | {"labelled_bad": int((ps.labels == 1).sum()), "threshold": thr}
+        if len(parts) > 1:  # each campus apart too: the spread
+            bounds = np.cumsum([0] + [len(q) for q in parts])
+            out[name]["campuses"] = {
+                Path(w).name: {k: r[k] for k in keys} for w, a, b in zip(work_dirs, bounds[:-1], bounds[1:])
+                if (r := with_flagged(classification_report(ps.labels[a:b], p[a:b], thr)))}
     return out
 
 
@@ -111,6 +118,17 @@ def print_table(rows: dict[str, dict[str, dict]], models: list[str]) -> None:
             print(f"{fam:<24} {m:<14} {r['n'] or 0:>6} {r['labelled_bad']:>5} {fmt(r['ap_bad']):>7} "
                   f"{fmt(r['precision_bad']):>6} {fmt(r['recall_bad']):>6} {100 * r['flagged_share']:>7.1f}% "
                   f"{goal_margin(r):>+7.3f}")
+    spread = [(fam, m, r["campuses"]) for fam, per_model in rows.items() for m in models
+              if (r := per_model.get(m)) and r.get("campuses")]
+    if spread:
+        print("per campus, mean [min, max]:")
+        for fam, m, camps in spread:
+            cells = []
+            for k in ("ap_bad", "precision_bad", "recall_bad"):
+                x = np.array([c[k] for c in camps.values()], np.float64)
+                x = x[np.isfinite(x)]
+                cells.append(f"{k} {x.mean():.3f} [{x.min():.3f}, {x.max():.3f}]" if len(x) else f"{k} -")
+            print(f"  {fam:<22} {m:<14} " + "  ".join(cells))
     print("worst family per model (the smallest margin against its goal):")
     for m in models:
         fams = {f: goal_margin(p[m]) for f, p in rows.items() if m in p}
