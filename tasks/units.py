@@ -38,7 +38,7 @@ STAGE_VERSIONS = {
     "partition": 3,  # v3: runs merged in content-digest order, not by name; v2: store schema 2 (vertex ids, ...)
     "labels": 1,
     "outliers": 2,   # v2: flags in outliers.parquet, not in patches.parquet
-    "classify": 3,   # v3: cue subsets by the points' coordinates, not their rows; v2: points-only patches inside the solid are bad (evidence.inside_solid)
+    "classify": 4,   # v4: point -> mesh cues against the tile's whole surface (+ in-plane and neighbour-relative cues); v3: cue subsets by the points' coordinates, not their rows; v2: points-only patches inside the solid are bad (evidence.inside_solid)
     "regions": 1,
     "region": 4,     # v4: the MLS strips of quality.holdout_* left out of fusion and meshing; v3: zone faces the MLS did not see kept as they are; v2: conformal charts, one vertex-id namespace
     "merge": 3,      # v3: per-face scan-to-model distance and grader score (face_deviation, face_score); v2: faces graded under repair.grades (the regions stage's rule), not grades-else-labels
