@@ -27,6 +27,7 @@ from collections.abc import Iterator
 from dataclasses import dataclass
 
 from storage.errors import InputError, Ms3dError
+from storage.objstore.honest import check_conditional_writes
 from storage.objstore.store import PreconditionFailed, Store
 from storage.workdir.housekeeping import work_dir_lock
 from storage.workdir.layout import WorkDir
@@ -106,7 +107,9 @@ def acquire_lease(store: Store, owner: str | None = None, ttl_s: float = DEFAULT
                   now: float | None = None) -> Lease:
     """Take the store's run lock, or take over an expired one.
 
-    Raises InputError (one line, naming the holder and its expiry) when a live lease is held."""
+    Raises InputError (one line, naming the holder and its expiry) when a live lease is held, or when the
+    endpoint does not honour conditional writes (:mod:`storage.objstore.honest`)."""
+    check_conditional_writes(store)
     owner = owner or default_owner()
     now = time.time() if now is None else now
     lease = Lease(store, owner, uuid.uuid4().hex, ttl_s, "", now + ttl_s)

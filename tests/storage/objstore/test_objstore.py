@@ -296,3 +296,17 @@ def test_secrets_never_in_repr_errors_or_logs(s3_env, caplog):
     assert SECRET not in everything and KEY_ID not in everything
     assert redact(f"https://h/k?X-Amz-Credential={KEY_ID}%2F&X-Amz-Signature=deadbeef") == \
         "https://h/k?X-Amz-Credential=***&X-Amz-Signature=***"
+
+
+def test_an_endpoint_that_ignores_conditional_writes_is_refused_before_a_lease(s3_store, monkeypatch):
+    from storage.objstore import honest
+
+    monkeypatch.setattr(honest, "_CHECKED", {})
+    honest.check_conditional_writes(s3_store)  # moto honours If-None-Match and If-Match
+    assert not [o for o in s3_store.list("") if o.key.startswith(honest.PROBE_PREFIX)]  # the probe is gone
+    monkeypatch.setattr(honest, "_CHECKED", {})
+    real = s3_store._put_object
+    monkeypatch.setattr(s3_store, "_put_object", lambda key, data, **cond: real(key, data))  # a gateway that drops them
+    with pytest.raises(InputError, match="does not honour conditional writes .a second create-if-absent") as e:
+        acquire_lease(s3_store, owner="run-x", ttl_s=30)
+    assert "\n" not in str(e.value) and not s3_store.exists(LOCK_KEY)
