@@ -31,8 +31,8 @@ from tasks.config import CampusConfig
 
 log = logging.getLogger("ms3d.flow")
 
-__all__ = ["SyncExecutor", "is_remote", "local_truth_plan", "local_view", "mirror_for", "remote_run", "synced",
-           "uses_urls", "work_dir_of"]
+__all__ = ["EPOCH_KEY", "SyncExecutor", "is_remote", "local_truth_plan", "local_view", "mirror_for", "remote_run", "synced",
+           "uses_urls", "with_epoch", "work_dir_of"]
 
 SWEEP_GRACE_S = 600.0  # unrecorded objects younger than this may belong to a task of a killed run still writing
 
@@ -73,27 +73,59 @@ def _cfg_json_of(args, kwargs) -> dict | None:
     return cj
 
 
+EPOCH_KEY = "_ms3d_run_epoch"  # the run epoch the driver hands its tasks, inside their config dict
+
+
+def with_epoch(value, epoch: int | None):
+    """``value`` with the run epoch added to it if it is a task's config dict (a dict with "work_dir" and
+    "inputs"); anything else as it is."""
+    if epoch is not None and isinstance(value, dict) and "work_dir" in value and "inputs" in value:
+        return {**value, EPOCH_KEY: epoch}
+    return value
+
+
+def _split_epoch(args: tuple, kwargs: dict) -> tuple[tuple, dict, int | None]:
+    """(args, kwargs) with the run epoch taken out of the config dict, and the epoch (None when absent)."""
+    epoch = None
+
+    def strip(v):
+        nonlocal epoch
+        if isinstance(v, dict) and EPOCH_KEY in v:
+            epoch = int(v[EPOCH_KEY])
+            return {k: x for k, x in v.items() if k != EPOCH_KEY}
+        return v
+
+    return tuple(strip(a) for a in args), {k: strip(v) for k, v in kwargs.items()}, epoch
+
+
 def synced(spec):
     """Decorate a stage's task function (``spec``: its ``tasks.stages.StageSpec``): with a work dir by URL,
     pull what the declaration says the task reads (``spec.reads_for`` its batch, or all but ``spec.skips``)
     before, and push after (a task that raises pushes nothing: its units are not recorded and run again).
-    Inside planning it only runs ``fn``."""
+    The task acts under the run epoch the driver gave it: it stops (RunSuperseded) without reading or
+    committing when a later run has begun. Inside planning it only runs ``fn``."""
     def decorate(fn):
         @functools.wraps(fn)
         def wrapper(*args, **kwargs):
-            from tasks.units import is_planning
+            from tasks.units import is_planning, on_unit_recorded
 
+            args, kwargs, epoch = _split_epoch(args, kwargs)
             cj = _cfg_json_of(args, kwargs)
             if cj is None or not is_remote(cj.get("work_dir")) or is_planning():
                 return fn(*args, **kwargs)
             mirror = mirror_for(cj["work_dir"])
+            if epoch is not None:
+                mirror.epoch = epoch
+                mirror.check_current()
             first = args[0] if args else kwargs.get(next(iter(inspect.signature(fn).parameters)))
             reads = spec.reads_for(first if isinstance(first, list) else [])
             skips = spec.skips
             mirror.pull((lambda rel: rel.startswith(reads)) if reads is not None else
                         (lambda rel: not rel.startswith(skips)) if skips else None)
-            out = fn(*args, **kwargs)
-            mirror.push(getattr(fn, "__name__", "task"))
+            label = getattr(fn, "__name__", "task")
+            with on_unit_recorded(lambda stage, unit: mirror.push(f"{label} {stage} {unit}")):
+                out = fn(*args, **kwargs)  # each unit is published as it is recorded
+            mirror.push(label)
             return out
         return wrapper
     return decorate
@@ -104,12 +136,15 @@ def remote_run(cfg: CampusConfig):
     """The driver's hold on a work dir by URL: the run lease, a sweep of unrecorded leftovers older than
     SWEEP_GRACE_S, a pull; at exit (also on error) a push of the driver's writes. Yields the Mirror."""
     from storage.objstore.commit import sweep_unrecorded
+    from storage.objstore.epoch import begin_epoch
     from storage.objstore.lock import DEFAULT_TTL_S, run_lock
 
     mirror = mirror_for(cfg.work_dir)
     ttl_s = float(os.environ.get("MS3D_LEASE_TTL_S", DEFAULT_TTL_S))  # how long a killed run blocks the next
     with run_lock(mirror.store, ttl_s=ttl_s) as lease:
         mirror.lease = lease  # SyncExecutor checks it before every stage's tasks
+        if lease is not None:  # the run's epoch: seals what earlier runs committed, fences what they commit late
+            mirror.epoch = begin_epoch(mirror.store, lease.token, mirror.record_keys()).number
         mirror.pull()
         mirror.compact()  # one record for the current state: superseded objects become sweepable
         gone = sweep_unrecorded(mirror.store, grace_s=float(os.environ.get("MS3D_SWEEP_GRACE_S", SWEEP_GRACE_S)))
@@ -152,12 +187,15 @@ class SyncExecutor:
         if getattr(tsk, "name", "") in self.LOCAL_TASKS:
             return _Pulled(_Value([r for b in batches for r in tsk.fn(b, **consts)]), self.mirror)
         self.mirror.push("driver")
+        epoch = getattr(self.mirror, "epoch", None)
+        consts = {k: with_epoch(v, epoch) for k, v in consts.items()}
         return _Pulled(self.inner.map(tsk, batches, label, **consts), self.mirror)
 
     def submit(self, tsk, *args):
         _check_lease(self.mirror)
         self.mirror.push("driver")
-        return _Pulled(self.inner.submit(tsk, *args), self.mirror)
+        epoch = getattr(self.mirror, "epoch", None)
+        return _Pulled(self.inner.submit(tsk, *(with_epoch(a, epoch) for a in args)), self.mirror)
 
     def recycle_workers(self, over_mb: float) -> dict:
         return {"restarted": 0, "largest_mb": 0.0}  # a restarted worker would pull its mirror again

@@ -121,6 +121,27 @@ class _Step:
         return {"peak_rss_mb": peak_rss_mb(), "cpu_seconds": round(time.process_time() - self.c0, 3)}
 
 
+_ON_RECORDED: ContextVar[Callable[[str, str], None] | None] = ContextVar("ms3d_on_recorded", default=None)
+
+
+@contextlib.contextmanager
+def on_unit_recorded(hook: Callable[[str, str], None]) -> Iterator[None]:
+    """Call ``hook(stage, unit)`` after each unit's manifest record is written inside the block (this thread
+    and context): a work dir on a bucket publishes each unit as it finishes, not when its task returns, so a
+    killed worker loses at most the unit in progress."""
+    token = _ON_RECORDED.set(hook)
+    try:
+        yield
+    finally:
+        _ON_RECORDED.reset(token)
+
+
+def _recorded(stage: str, unit: str) -> None:
+    hook = _ON_RECORDED.get()
+    if hook is not None:
+        hook(stage, unit)
+
+
 def record_step(wd: WorkDir, stage: str, unit: str, work: Callable[[], dict], fingerprint: str = "",
                 params: str = "") -> dict:
     """Run a step that is not skipped by fingerprint (a campus-wide step, an export node) and record it.
@@ -138,12 +159,14 @@ def record_step(wd: WorkDir, stage: str, unit: str, work: Callable[[], dict], fi
         with contextlib.suppress(OSError):  # a full disk may refuse the record too; the result still says it
             write_record(wd, ManifestRecord(stage, unit, "failed", fingerprint, params, error=msg,
                                             seconds=step.seconds()))
+        _recorded(stage, unit)
         return {"status": "failed", "error": msg}
     status = out.get("status", "done")
     summary = {k: v for k, v in out.items() if isinstance(v, (int, float, str, bool)) or v is None}
     summary |= step.summary()
     write_record(wd, ManifestRecord(stage, unit, status, fingerprint, params, seconds=step.seconds(),
                                     summary=summary))
+    _recorded(stage, unit)
     return {**out, "status": status}
 
 
@@ -251,9 +274,11 @@ def run_unit(wd: WorkDir, stage: str, unit: str, fingerprint: str, params: dict,
             write_record(wd, ManifestRecord(stage, unit, "failed", fingerprint, ph, error=msg, seconds=secs))
         if on_fail is not None:
             on_fail()
+        _recorded(stage, unit)
         return {"unit": unit, "status": "failed", "error": msg, "skipped": False, "seconds": secs}
     secs = step.seconds()
     summary = {**out.summary, "unit": unit, "status": out.status, **step.summary()}
     write_record(wd, ManifestRecord(stage, unit, out.status, fingerprint, ph, seconds=secs,
                                     outputs=out.outputs, summary=summary))
+    _recorded(stage, unit)
     return {**summary, "skipped": False, "seconds": secs}

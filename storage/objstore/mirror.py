@@ -19,8 +19,19 @@ it, and publishes what it changed as one commit of :mod:`storage.objstore.commit
   A task's manifest records (``manifest.d/``) are files like any other, so a unit's outputs and its
   "done" record become visible together, or not at all.
 
-``seq`` is the pusher's clock in ns plus a random suffix: commits of one stage never touch the same file
-(units write disjoint outputs), and stages are separated by the driver, so wall-clock order suffices.
+Commits are **fenced by the run** (:mod:`storage.objstore.epoch`): a run takes an epoch with its lease, and
+every commit of the run (the driver's and its tasks') is recorded under it as
+``records/sync/{epoch:010d}-{lamport:012d}-{token}.json``. Readers fold only the records the rule of
+:func:`storage.objstore.epoch.accepted` accepts (the latest epoch's, and the earlier ones its seal names), in
+(epoch, Lamport counter) order, never by a writer's clock: a superseded run's late commit is ignored by every
+reader, and its tasks learn before they commit that a later run has begun (:class:`RunSuperseded`). When a
+mirror sees a later epoch than the state it holds, it reads that state afresh (a compaction may have
+replaced the records it folded) and deletes its local copies of files the state no longer names: a
+long-lived worker never acts on a file it did not read from the store for this run.
+
+Each thread of each process has its own mirror folder (:func:`mirror_root`: the URL's hash, the process id,
+a token of this process instance and the thread), so a push publishes only what its own task wrote; folders
+of processes that are gone are deleted when a process opens its first mirror of a URL.
 """
 
 from __future__ import annotations
@@ -29,16 +40,21 @@ import hashlib
 import json
 import os
 import threading
-import time
 import uuid
 from pathlib import Path
 
-from storage.errors import InputError
+from storage.errors import InputError, Ms3dError
 from storage.objstore.commit import RECORDS, UnitRecord, put_unit_outputs
+from storage.objstore.epoch import accepted, is_current, latest_epoch, parse_record_unit, record_unit
 from storage.objstore.store import Store
 
 SYNC_STAGE = "sync"
 _SKIP_DIRS = ("prefect",)  # the driver's own Prefect database stays local
+_INSTANCE = uuid.uuid4().hex[:8]  # this process instance (a restarted process may reuse the pid)
+
+
+class RunSuperseded(Ms3dError):
+    """A later run has begun on the work dir: this run's task stops without committing anything."""
 
 
 class Mirror:
@@ -59,25 +75,47 @@ class Mirror:
         self.last_utc = 0.0  # written_utc of the latest commit folded
         self.lock = threading.RLock()
         self.lease = None  # the run's Lease while the driver holds it (flows.remote.remote_run)
+        self.epoch: int | None = None  # the run epoch this mirror commits under (None: unfenced, tests)
+        self.state_epoch = 0  # the latest epoch the folded state was read under
+        self.lamport = 0  # the largest commit counter seen or written
         self.stats = {"pulled_files": 0, "pushed_files": 0, "commits": 0, "records_read": 0}
 
     # ------------------------------------------------------------------ pull
+    def record_keys(self) -> list[str]:
+        """Every sync record key in the store (one LIST)."""
+        return [i.key for i in self.store.list(f"{RECORDS}/{SYNC_STAGE}") if i.key.endswith(".json")]
+
+    def check_current(self) -> None:
+        """RunSuperseded when a later run than this mirror's epoch has begun (one HEAD); nothing unfenced."""
+        if self.epoch is not None and not is_current(self.store, self.epoch):
+            raise RunSuperseded(f"{self.store.describe()}: a later ms3d run has begun on this work dir; this run's "
+                                "task stops without committing")
+
+    def _reset(self) -> None:
+        """Forget the folded state (its local files stay until :meth:`pull` finds them unnamed)."""
+        self.files, self.refs, self._pending, self.seen = {}, {}, {}, set()
+
     def _records(self) -> list[UnitRecord]:
-        prefix = f"{RECORDS}/{SYNC_STAGE}"
+        latest = latest_epoch(self.store)
+        n = latest.number if latest is not None else 0
+        if n > self.state_epoch and self.seen:  # a later run's state: read it afresh
+            self._reset()
+        self.state_epoch = max(self.state_epoch, n)
         new = []
-        for info in self.store.list(prefix):
-            if not info.key.endswith(".json") or info.key in self.seen:
-                continue
+        for key in sorted(accepted(self.record_keys(), latest) - self.seen):
             try:
-                d = json.loads(self.store.get(info.key))
+                d = json.loads(self.store.get(key))
                 new.append(UnitRecord.from_json(d))
             except FileNotFoundError:
                 continue
             except (ValueError, KeyError, TypeError) as exc:
-                raise InputError(f"{self.store.describe()}: {info.key}", f"not a valid sync record ({exc})") from None
-            self.seen.add(info.key)
+                raise InputError(f"{self.store.describe()}: {key}", f"not a valid sync record ({exc})") from None
+            self.seen.add(key)
         self.stats["records_read"] += len(new)
-        return sorted(new, key=lambda r: (r.written_utc, r.unit))
+        order = sorted(new, key=lambda r: (*parse_record_unit(r.unit), r.unit))
+        if order:
+            self.lamport = max(self.lamport, max(parse_record_unit(r.unit)[1] for r in order))
+        return order
 
     def pull(self, only=None) -> int:
         """Bring the mirror up to the recorded state (``only``: a predicate on relative paths limiting what
@@ -97,6 +135,9 @@ class Mirror:
                     self.files[rel] = (ref.size, int(meta["mtime_ns"][rel]))
                     self.refs[rel] = ref
                     self._pending[rel] = ref.key
+            for rel in [r for r in self.known if r not in self.files]:  # gone from the state read afresh
+                (self.root / rel).unlink(missing_ok=True)
+                self.known.pop(rel, None)
             n = 0
             for rel in sorted(self._pending):
                 if only is not None and not only(rel):
@@ -150,13 +191,17 @@ class Mirror:
         return changed, deleted
 
     def push(self, label: str = "") -> UnitRecord | None:
-        """Publish this process's changes as one commit (None when there are none)."""
+        """Publish this mirror's changes as one commit under its run epoch (None when there are none).
+        Raises RunSuperseded, committing nothing, when a later run has begun."""
         with self.lock:
             changed, deleted = self.changes()
             if not changed and not deleted:
                 return None
-            seq = f"{time.time_ns():020d}-{uuid.uuid4().hex[:8]}"
-            meta = {"mtime_ns": {r: s[1] for r, s in changed.items()}, "deleted": deleted, "label": label}
+            self.check_current()
+            self.lamport += 1
+            seq = record_unit(self.epoch or 0, self.lamport, uuid.uuid4().hex[:8])
+            meta = {"mtime_ns": {r: s[1] for r, s in changed.items()}, "deleted": deleted, "label": label,
+                    "epoch": self.epoch}
             rec = put_unit_outputs(self.store, SYNC_STAGE, seq, {r: self.root / r for r in sorted(changed)}, meta)
             self.seen.add(f"{RECORDS}/{SYNC_STAGE}/{seq}.json")
             for r, s in changed.items():
@@ -174,17 +219,19 @@ class Mirror:
 
 
     def compact(self) -> int:
-        """Fold every commit this mirror has pulled into one record naming each live file's current object,
-        then delete the folded records: superseded objects become unrecorded, for the sweep. Call with
-        the run lease held, after :meth:`pull`. Returns the number of records folded away."""
+        """Fold every commit this mirror has pulled into one record of its epoch naming each live file's
+        current object (Lamport counter 0: before every commit of the run), then delete the folded records
+        and every record no reader accepts (a superseded run's late commits): their objects become
+        unrecorded, for the sweep. Call with the run lease held, right after the run's epoch began and
+        :meth:`pull`. Returns the number of records deleted."""
         with self.lock:
-            old = sorted(self.seen)
-            if len(old) < 2:
+            old = sorted(set(self.record_keys()) | self.seen)
+            if len(old) < 2 and set(old) <= self.seen:
                 return 0
-            seq = f"{time.time_ns():020d}-{uuid.uuid4().hex[:8]}"
-            meta = {"mtime_ns": {r: self.files[r][1] for r in self.refs}, "deleted": [], "label": "compacted"}
-            # dated as the last commit it folds, so a commit it did not see (a task of a killed run still
-            # finishing) sorts after it and is not undone
+            self.check_current()
+            seq = record_unit(self.epoch or 0, 0, f"compacted{uuid.uuid4().hex[:8]}")
+            meta = {"mtime_ns": {r: self.files[r][1] for r in self.refs}, "deleted": [], "label": "compacted",
+                    "epoch": self.epoch}
             rec = UnitRecord(SYNC_STAGE, seq, "compacted", dict(self.refs), self.last_utc, meta)
             key = f"{RECORDS}/{SYNC_STAGE}/{seq}.json"
             self.store.put(key, json.dumps(rec.to_json(), sort_keys=True).encode())  # the new state first
@@ -198,19 +245,61 @@ _MIRRORS: dict[tuple[str, str], Mirror] = {}
 _MIRRORS_LOCK = threading.Lock()
 
 
+def _url_hash(url: str) -> str:
+    return hashlib.sha256(url.encode()).hexdigest()[:12]
+
+
 def mirror_root(url: str, cache: str | Path) -> Path:
-    """This process's mirror folder of the work dir ``url`` under the cache folder ``cache``."""
-    return Path(cache) / "work" / f"{hashlib.sha256(url.encode()).hexdigest()[:12]}-{os.getpid()}"
+    """This thread's mirror folder of the work dir ``url`` under the cache folder ``cache``:
+    ``work/{url hash}-{pid}-{process instance}-{thread}``."""
+    return Path(cache) / "work" / f"{_url_hash(url)}-{os.getpid()}-{_INSTANCE}-{threading.get_ident()}"
+
+
+def _pid_alive(pid: int) -> bool:
+    try:
+        os.kill(pid, 0)
+    except ProcessLookupError:
+        return False
+    except PermissionError:
+        return True
+    return True
+
+
+def sweep_stale_mirrors(url: str, cache: str | Path) -> int:
+    """Delete the mirror folders of ``url`` under ``cache`` that belong to no live process instance: another
+    instance of this pid (a restarted process) or a pid that is gone. Returns how many were deleted."""
+    import shutil
+
+    base, mine, gone = Path(cache) / "work", f"{os.getpid()}-{_INSTANCE}", 0
+    for d in base.glob(f"{_url_hash(url)}-*") if base.is_dir() else []:
+        parts = d.name.split("-")
+        if len(parts) < 4 or not parts[1].isdigit():
+            continue
+        pid, inst = int(parts[1]), f"{parts[1]}-{parts[2]}"
+        if inst != mine and (pid == os.getpid() or not _pid_alive(pid)):
+            shutil.rmtree(d, ignore_errors=True)
+            gone += 1
+    return gone
+
+
+_SWEPT: set[tuple[str, str]] = set()
 
 
 def mirror_of(store: Store, cache: str | Path) -> Mirror:
-    """The process-wide :class:`Mirror` of ``store`` (one per work dir URL and process)."""
+    """This thread's :class:`Mirror` of ``store`` (one per work dir URL, process instance and thread; a new one
+    starts empty). The first in a process sweeps the folders of process instances that are gone."""
     root = mirror_root(store.url, cache)
     with _MIRRORS_LOCK:
+        if (store.url, str(cache)) not in _SWEPT:
+            _SWEPT.add((store.url, str(cache)))
+            sweep_stale_mirrors(store.url, cache)
         m = _MIRRORS.get((store.url, str(root)))
         if m is None:
+            import shutil
+
+            shutil.rmtree(root, ignore_errors=True)  # never a leftover of another instance
             m = _MIRRORS[(store.url, str(root))] = Mirror(store, root)
     return m
 
 
-__all__ = ["SYNC_STAGE", "Mirror", "mirror_of", "mirror_root"]
+__all__ = ["SYNC_STAGE", "Mirror", "RunSuperseded", "mirror_of", "mirror_root", "sweep_stale_mirrors"]
