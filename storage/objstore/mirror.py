@@ -31,7 +31,10 @@ long-lived worker never acts on a file it did not read from the store for this r
 
 Each thread of each process has its own mirror folder (:func:`mirror_root`: the URL's hash, the process id,
 a token of this process instance and the thread), so a push publishes only what its own task wrote; folders
-of processes that are gone are deleted when a process opens its first mirror of a URL.
+of processes that are gone are deleted when a process opens its first mirror of a URL. Downloads go through
+the node's content-addressed cache of recorded objects (:mod:`storage.objstore.cas`, ``{cache}/objects``,
+keyed by each object's recorded sha256, bounded by ``MS3D_CACHE_MAX_GB``): a thread, a restarted process or
+a new driver on the same node copies an object it already holds instead of downloading it again.
 """
 
 from __future__ import annotations
@@ -44,6 +47,7 @@ import uuid
 from pathlib import Path
 
 from storage.errors import InputError, Ms3dError
+from storage.objstore.cas import content_cache
 from storage.objstore.commit import RECORDS, UnitRecord, put_unit_outputs
 from storage.objstore.epoch import accepted, is_current, latest_epoch, parse_record_unit, record_unit
 from storage.objstore.store import Store
@@ -78,7 +82,8 @@ class Mirror:
         self.epoch: int | None = None  # the run epoch this mirror commits under (None: unfenced, tests)
         self.state_epoch = 0  # the latest epoch the folded state was read under
         self.lamport = 0  # the largest commit counter seen or written
-        self.stats = {"pulled_files": 0, "pushed_files": 0, "commits": 0, "records_read": 0}
+        self.cas = None  # a ContentCache of recorded objects shared by the node's mirrors (mirror_of sets it)
+        self.stats = {"pulled_files": 0, "pushed_files": 0, "commits": 0, "records_read": 0, "cache_hits": 0}
 
     # ------------------------------------------------------------------ pull
     def record_keys(self) -> list[str]:
@@ -156,10 +161,17 @@ class Mirror:
                 return 0
         except OSError:
             pass
+        ref = self.refs.get(rel)
         try:
-            self.store.get_file(key, local)
+            if self.cas is not None and ref is not None and ref.sha256:
+                hit = self.cas.materialise(ref.sha256, size, lambda tmp: self.store.get_file(key, tmp), local)
+                self.stats["cache_hits"] += int(hit)
+            else:
+                self.store.get_file(key, local)
         except FileNotFoundError:
             raise InputError(f"{self.store.describe()}: {key}", f"recorded object of {rel} is missing") from None
+        except ValueError as exc:
+            raise InputError(f"{self.store.describe()}: {key}", f"recorded object of {rel}: {exc}") from None
         os.utime(local, ns=(mtime_ns, mtime_ns))
         self.known[rel] = (size, mtime_ns)
         return 1
@@ -299,6 +311,7 @@ def mirror_of(store: Store, cache: str | Path) -> Mirror:
 
             shutil.rmtree(root, ignore_errors=True)  # never a leftover of another instance
             m = _MIRRORS[(store.url, str(root))] = Mirror(store, root)
+            m.cas = content_cache(Path(cache) / "objects")
     return m
 
 
