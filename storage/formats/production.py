@@ -12,8 +12,9 @@ and ``metadata.xml`` reads::
     <ModelMetadata version="1"><SRS>EPSG:32650</SRS><SRSOrigin>589000,2712000,15</SRSOrigin>...</ModelMetadata>
 
 The OBJ coordinates are metres from SRSOrigin, in the SRS. ms3d reads ``EPSG:<code>`` SRSs (optionally
-compound, ``EPSG:32650+5773``); "ENU:lat,lon", a WKT, or any other SRS is refused with one line naming
-the file ("unknown SRS ..."): re-export the production in a projected EPSG system.
+compound, ``EPSG:32650+5773``), a projected WKT that identifies with an EPSG code, and ``ENU:<lat>,<lon>``
+local frames, placed into ``inputs.crs`` (:mod:`storage.formats.srs`); any other SRS is refused with one
+line naming the file ("unknown SRS ...").
 
 Which files belong to a production is decided from the file's own path (so each ingest unit, which sees
 one file, knows it): a file in a ``Tile_*`` folder is a tile of the production rooted at that folder's
@@ -32,22 +33,24 @@ from dataclasses import dataclass
 from pathlib import Path
 
 from storage.errors import InputError
+from storage.formats.srs import parse_srs
 from storage.inputs.location import Location
 
 METADATA_NAME = "metadata.xml"
 TILE_PREFIX = "Tile_"
-_EPSG = re.compile(r"^EPSG:\d+(\+\d+)?$", re.IGNORECASE)
 _LOD = re.compile(r"^(?P<tile>.+?)_L(?P<level>\d+)(?:_\d+)?$")  # Tile_+000_+000_L19 or _L19_01 (a subtile)
 
 
 @dataclass(frozen=True)
 class ProductionMetadata:
-    """What ``metadata.xml`` says. path: absolute; srs: "EPSG:<code>"; origin: SRSOrigin, float64 metres
-    in the SRS, added to the OBJ coordinates ((0, 0, 0) when the file has no SRSOrigin)."""
+    """What ``metadata.xml`` says. path: absolute; srs: "EPSG:<code>[+<code>]" or "ENU:<lat>,<lon>";
+    origin: SRSOrigin, float64 metres in the SRS, added to the OBJ coordinates ((0, 0, 0) when the file has
+    no SRSOrigin); enu: (lat, lon) degrees of a local ENU frame's tangent point, None for a map CRS."""
 
     path: str
     srs: str
     origin: tuple[float, float, float]
+    enu: tuple[float, float] | None = None
 
 
 @dataclass(frozen=True)
@@ -67,7 +70,8 @@ class Production:
 
 def read_metadata(path: str | Path) -> ProductionMetadata:
     """Parse a ContextCapture ``metadata.xml``. Raises InputError naming the file when it is not valid
-    XML, not a ``ModelMetadata``, has no SRS, an SRS other than EPSG:<code>, or a bad SRSOrigin."""
+    XML, not a ``ModelMetadata``, has no SRS or one it cannot use (:func:`storage.formats.srs.parse_srs`), or a
+    bad SRSOrigin."""
     path = Path(path).absolute()
     try:
         root = ET.parse(path).getroot()
@@ -78,13 +82,10 @@ def read_metadata(path: str | Path) -> ProductionMetadata:
     if root.tag != "ModelMetadata":
         raise InputError(path, f"not a ContextCapture metadata file (root element <{root.tag}>, "
                                "expected <ModelMetadata>)")
-    srs = (root.findtext("SRS") or "").strip()
-    if not srs:
+    srs_text = (root.findtext("SRS") or "").strip()
+    if not srs_text:
         raise InputError(path, "no <SRS>: the production cannot be georeferenced")
-    if not _EPSG.match(srs):
-        short = srs if len(srs) <= 60 else srs[:57] + "..."
-        raise InputError(path, f"unknown SRS {short!r}: ms3d reads EPSG:<code> (a projected CRS in metres); "
-                               "re-export the production in a projected EPSG system")
+    srs = parse_srs(srs_text, path)
     text = (root.findtext("SRSOrigin") or "0,0,0").strip()
     try:
         origin = tuple(float(v) for v in text.split(","))
@@ -94,7 +95,7 @@ def read_metadata(path: str | Path) -> ProductionMetadata:
         origin = (*origin, 0.0)
     if len(origin) != 3 or not all(math.isfinite(v) for v in origin):
         raise InputError(path, f"SRSOrigin {text!r} is not three finite numbers 'x,y,z'")
-    return ProductionMetadata(str(path), srs.upper(), origin)  # type: ignore[arg-type]
+    return ProductionMetadata(str(path), srs.name, origin, srs.enu)  # type: ignore[arg-type]
 
 
 def production_key(root: str | Path) -> int:
@@ -125,19 +126,15 @@ def production_root(mesh_path: str | Path) -> Path | None:
 def scene_production(scene_path: str | Path) -> Production:
     """A 3MX scene file (``.3mx``) as a production: its first mesh layer's SRS and SRSOrigin are the
     metadata (the scene file is the metadata path; :func:`storage.formats.threemx.read_3mx` places further
-    layers relative to the first). InputError naming the scene when its SRS is missing or not EPSG:<code>."""
+    layers relative to the first). InputError naming the scene when its SRS is missing or unusable."""
     from storage.formats.threemx import read_scene
 
     path = Path(scene_path).absolute()
     layer = read_scene(path)[0]
-    srs = layer.srs.strip()
-    if not srs:
+    if not layer.srs.strip():
         raise InputError(path, "the 3MX scene's layer has no SRS: the production cannot be georeferenced")
-    if not _EPSG.match(srs):
-        short = srs if len(srs) <= 60 else srs[:57] + "..."
-        raise InputError(path, f"unknown SRS {short!r}: ms3d reads EPSG:<code> (a projected CRS in metres); "
-                               "re-export the production in a projected EPSG system")
-    meta = ProductionMetadata(str(path), srs.upper(), layer.origin)
+    srs = parse_srs(layer.srs, path)
+    meta = ProductionMetadata(str(path), srs.name, layer.origin, srs.enu)
     return Production(str(path.parent), meta, production_key(path))
 
 

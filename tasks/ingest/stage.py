@@ -34,7 +34,7 @@ from tasks.ingest.kernels import (
     weld_vertex_index,
 )
 from tasks.ingest.plan import LAS_SUFFIXES, IngestUnit
-from tasks.scan import mesh_placement
+from tasks.scan import mesh_placement, place_mesh
 from tasks.units import Done, run_unit
 
 
@@ -73,7 +73,8 @@ def _route_mesh(unit: IngestUnit, cfg: CampusConfig, frame: CampusFrame, wd: Wor
     mesh's clean-up counts."""
     grid = cfg.grid()
     placement = mesh_placement(unit.path, cfg)  # a production's metadata.xml, else inputs.mesh_offset
-    mesh = read_mesh(local_input(unit.path, siblings=True), offset=placement.offset, units_scale=cfg.inputs.units_scale)
+    local = local_input(unit.path, siblings=True)
+    mesh = place_mesh(read_mesh(local, offset=placement.offset, units_scale=cfg.inputs.units_scale), placement, local)
     vids = vertex_ids(unit.source, mesh.faces, weld_vertex_index(mesh.vertices), mesh.vertices, placement.seam_key)
     normals = face_normals(mesh.vertices, mesh.faces)
     local64 = to_campus(mesh.vertices, frame, None, unit.path)

@@ -27,10 +27,10 @@ STAGE = StageSpec("scan", "file", scan_task_batches, reads=("manifest.d/scan/", 
 # nothing, and a worker loads only the modules its tasks run
 __getattr__ = lazy_exports(__name__, {
     "tasks.scan.frame": "campus_frame",
-    "tasks.scan.placement": "MeshPlacement mesh_placement",
+    "tasks.scan.placement": "MeshPlacement mesh_placement place_mesh",
     "tasks.scan.plan": "file_size scan_batches scan_files scan_task_batches scanned_records",
     "tasks.scan.stage": "run_scan_file",
 })
 
-__all__ = ["STAGE", "MeshPlacement", "campus_frame", "file_size", "mesh_placement", "run_scan_file", "scan_batches", "scan_files",
+__all__ = ["STAGE", "MeshPlacement", "campus_frame", "file_size", "mesh_placement", "place_mesh", "run_scan_file", "scan_batches", "scan_files",
            "scanned_records"]

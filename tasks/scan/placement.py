@@ -12,6 +12,9 @@ and the metadata must agree:
 - ``inputs.crs`` set and different from the SRS: an error naming ``metadata.xml``.
 - A production without ``metadata.xml`` (tiles in ``Tile_*`` folders) cannot be georeferenced: an error
   naming the folder, unless ``inputs.mesh_offset`` is set, which is then used for its tiles (one warning).
+- A production in a local ``ENU:<lat>,<lon>`` frame is placed into ``inputs.crs`` (which it then needs):
+  SRSOrigin is the offset in the ENU frame, and :func:`place_mesh` moves the vertices to the CRS
+  (:func:`storage.formats.srs.enu_to_crs`, exact to PROJ's precision; no flat-earth approximation).
 
 Reads only ``metadata.xml`` files (a few hundred bytes each), never a mesh.
 """
@@ -39,15 +42,36 @@ class MeshPlacement:
     """offset: world metres added to the file's coordinates after ``inputs.units_scale``
     (:func:`storage.formats.meshes.read_mesh`); crs: from the production's metadata
     (None for an ordinary file); seam_key: the production key whose seams weld (None: an ordinary
-    file); metadata: path of the ``metadata.xml`` used ("" when none)."""
+    file); metadata: path of the ``metadata.xml`` used ("" when none); enu: (lat, lon) of the tangent
+    point of a production in a local ENU frame (its offset is then in that frame, and :func:`place_mesh`
+    moves the vertices into ``crs``), None otherwise."""
 
     offset: tuple[float, float, float]
     crs: str | None = None
     seam_key: int | None = None
     metadata: str = ""
+    enu: tuple[float, float] | None = None
 
     def to_json(self) -> dict:
-        return {"offset": list(self.offset), "crs": self.crs, "seam_key": self.seam_key, "metadata": self.metadata}
+        out = {"offset": list(self.offset), "crs": self.crs, "seam_key": self.seam_key, "metadata": self.metadata}
+        if self.enu is not None:  # only then: placements of map-CRS productions keep their fingerprints
+            out["enu"] = list(self.enu)
+        return out
+
+
+def place_mesh(mesh, placement: MeshPlacement, path: str | Path = ""):
+    """The mesh (``storage.formats.MeshData``, read with ``placement.offset``) in the campus CRS: unchanged
+    for a map-CRS placement; its vertices moved from the ENU frame into ``placement.crs`` otherwise.
+    Raises InputError naming ``path`` when PROJ cannot place it."""
+    if placement.enu is None:
+        return mesh
+    from storage.formats.srs import enu_to_crs
+
+    try:
+        mesh.vertices = enu_to_crs(mesh.vertices, *placement.enu, placement.crs)
+    except ValueError as e:
+        raise InputError(path or placement.metadata, str(e)) from None
+    return mesh
 
 
 def _offset_configured(cfg: CampusConfig) -> bool:
@@ -70,6 +94,11 @@ def placement_of(prod: Production | None, cfg: CampusConfig) -> MeshPlacement:
         raise InputError(meta.path, f"SRSOrigin {list(meta.origin)} disagrees with inputs.mesh_offset "
                                     f"{list(configured)}: remove inputs.mesh_offset (the production's metadata "
                                     "places it) or fix the metadata")
+    if meta.enu is not None:
+        if not cfg.inputs.crs:
+            raise InputError(meta.path, f"the production is in a local frame ({meta.srs}): set inputs.crs to the "
+                                        "campus's projected CRS to place it there")
+        return MeshPlacement(meta.origin, cfg.inputs.crs.strip().upper(), prod.key, meta.path, meta.enu)
     if cfg.inputs.crs and cfg.inputs.crs.strip().upper() != meta.srs:
         raise InputError(meta.path, f"SRS {meta.srs} disagrees with the configured inputs.crs {cfg.inputs.crs}: "
                                     "reproject the production or fix inputs.crs")

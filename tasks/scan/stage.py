@@ -34,7 +34,7 @@ from storage.inputs.remote import local_input
 from storage.workdir.layout import WorkDir
 from storage.workdir.manifest import combine_fingerprints
 from tasks.config import CampusConfig
-from tasks.scan.placement import MeshPlacement, mesh_placement
+from tasks.scan.placement import MeshPlacement, mesh_placement, place_mesh
 from tasks.scan.salvage import salvage_cloud_bounds, salvage_mesh_bounds
 from tasks.units import Done, run_unit
 
@@ -57,7 +57,7 @@ def _scan_mesh(rec: InputFile, cfg: CampusConfig, wd: WorkDir, placement: MeshPl
     path = Path(local_input(rec.path, siblings=True))  # an input by URL is read from a staged copy
     rec.crs = placement.crs
     try:
-        mesh = read_mesh(path, offset=placement.offset, units_scale=cfg.inputs.units_scale)
+        mesh = place_mesh(read_mesh(path, offset=placement.offset, units_scale=cfg.inputs.units_scale), placement, path)
     except InputError as e:
         rec.error = str(e)
         rec.lo, rec.hi = salvage_mesh_bounds(path, cfg, placement.offset)

@@ -34,7 +34,21 @@ def test_metadata_gives_srs_and_origin(tmp_path):
     assert read_metadata(write_metadata(tmp_path, "EPSG:32650+5773")).srs == "EPSG:32650+5773"
 
 
-@pytest.mark.parametrize("srs", ["ENU:24.51,117.65", 'PROJCS["WGS 84 / UTM zone 50N",GEOGCS["WGS 84"]]', "Local"])
+def test_wkt_and_enu_srs_are_read(tmp_path):
+    from pyproj import CRS
+
+    utm = CRS.from_epsg(32650)
+    for wkt in (utm.to_wkt("WKT1_GDAL"), utm.to_wkt("WKT2_2019")):
+        assert read_metadata(write_metadata(tmp_path, wkt)).srs == "EPSG:32650"
+    rd_nap = CRS.from_user_input("EPSG:7415").to_wkt()
+    assert read_metadata(write_metadata(tmp_path, rd_nap)).srs == "EPSG:28992+5709"
+    m = read_metadata(write_metadata(tmp_path, "ENU:24.51, 117.65", "1,2,3"))
+    assert (m.srs, m.enu, m.origin) == ("ENU:24.51,117.65", (24.51, 117.65), (1.0, 2.0, 3.0))
+
+
+@pytest.mark.parametrize("srs", ['PROJCS["WGS 84 / UTM zone 50N",GEOGCS["WGS 84"]]', "Local", "ENU:95,10",
+                                 'GEOGCS["WGS 84",DATUM["WGS_1984",SPHEROID["WGS 84",6378137,298.257223563]],'
+                                 'PRIMEM["Greenwich",0],UNIT["degree",0.0174532925199433]]'])
 def test_unknown_srs_is_one_line_naming_the_file(tmp_path, srs):
     p = write_metadata(tmp_path, srs)
     with pytest.raises(InputError, match="unknown SRS") as e:

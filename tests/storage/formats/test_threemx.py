@@ -110,5 +110,8 @@ def test_bad_productions_fail_with_one_line_naming_the_file(tmp_path):
     doc = json.loads(scene.read_text())
     doc["layers"][0]["SRS"] = "ENU:48.8,2.3"
     scene.write_text(json.dumps(doc))
-    with pytest.raises(InputError, match="unknown SRS 'ENU:48.8,2.3'"):
+    assert production_of(scene).metadata.enu == (48.8, 2.3)  # a local frame, placed into inputs.crs
+    doc["layers"][0]["SRS"] = "Local"
+    scene.write_text(json.dumps(doc))
+    with pytest.raises(InputError, match="unknown SRS 'Local'"):
         production_of(scene)

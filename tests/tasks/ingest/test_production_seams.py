@@ -154,7 +154,48 @@ def test_production_without_metadata_is_refused_unless_placed_by_the_config(tmp_
 
 
 def test_unknown_srs_is_refused_before_anything_is_read(tmp_path):
-    write_production(tmp_path / "prod", srs="ENU:24.51,117.65")
+    write_production(tmp_path / "prod", srs="Local")
     meshes = mesh_files(tmp_path / "prod")
-    with pytest.raises(InputError, match="unknown SRS 'ENU:24.51,117.65'"):
+    with pytest.raises(InputError, match="unknown SRS 'Local'"):
         check_productions(meshes, cfg_for(tmp_path / "prod"))
+
+
+def _enu_production(root: Path) -> np.ndarray:
+    """A single-file production in a local ENU frame at (24.51 N, 117.65 E), SRSOrigin (10, 20, 5): four
+    vertices at the origin, 100 m east, 100 m north and 10 m up of it (file coordinates)."""
+    v = np.array([[0.0, 0.0, 0.0], [100.0, 0.0, 0.0], [0.0, 100.0, 0.0], [0.0, 0.0, 10.0]])
+    write_obj(root / "m.obj", v, np.array([[0, 1, 2], [0, 1, 3]]))
+    (root / "metadata.xml").write_text('<ModelMetadata version="1"><SRS>ENU:24.51,117.65</SRS>'
+                                       "<SRSOrigin>10,20,5</SRSOrigin></ModelMetadata>")
+    return v
+
+
+def test_enu_production_is_placed_into_the_campus_crs(tmp_path):
+    """ENU -> ECEF -> UTM: the tangent point lands where PROJ puts (24.51 N, 117.65 E); distances keep the
+    UTM scale factor; the east axis turns by the grid convergence; up stays up."""
+    from pyproj import Proj, Transformer
+
+    from tasks.scan import place_mesh
+
+    _enu_production(tmp_path / "enu")
+    with pytest.raises(InputError, match="local frame .*set inputs.crs"):
+        mesh_placement(tmp_path / "enu" / "m.obj", cfg_for(tmp_path / "enu"))
+    cfg = cfg_for(tmp_path / "enu", crs="EPSG:32650")
+    place = mesh_placement(tmp_path / "enu" / "m.obj", cfg)
+    assert place.crs == "EPSG:32650" and place.enu == (24.51, 117.65) and place.to_json()["enu"] == [24.51, 117.65]
+    v = place_mesh(read_mesh(tmp_path / "enu" / "m.obj", offset=place.offset), place).vertices
+    x0, y0 = Transformer.from_crs("EPSG:4326", "EPSG:32650", always_xy=True).transform(117.65, 24.51)
+    # the file's origin is SRSOrigin (10, 20, 5) from the tangent point
+    k = Proj("EPSG:32650").get_factors(117.65, 24.51)
+    o = v[0] - [x0, y0, 0.0]
+    assert np.hypot(*o[:2]) == pytest.approx(np.hypot(10, 20) * k.meridional_scale, abs=2e-3)
+    assert o[2] == pytest.approx(5.0, abs=1e-3)
+    east, north, up = v[1] - v[0], v[2] - v[0], v[3] - v[0]
+    assert np.hypot(*east[:2]) == pytest.approx(100 * k.meridional_scale, abs=2e-3)
+    assert np.hypot(*north[:2]) == pytest.approx(100 * k.meridional_scale, abs=2e-3)
+    turn = np.degrees(np.arctan2(east[1], east[0]))
+    assert abs(turn) == pytest.approx(abs(k.meridian_convergence), abs=0.01) and abs(turn) > 0.2
+    assert up[2] == pytest.approx(10.0, abs=1e-3) and np.hypot(*up[:2]) < 1e-3
+    # a map-CRS production's placement keeps its fingerprint: no "enu" key
+    write_production(tmp_path / "prod")
+    assert "enu" not in mesh_placement(mesh_files(tmp_path / "prod")[0], cfg_for(tmp_path / "prod")).to_json()
