@@ -4,7 +4,9 @@
 the recorded work dir (:mod:`storage.objstore.mirror`). A task pulls before it runs and pushes what it
 changed when it returns (:func:`synced`); the driver holds the run lease (:func:`remote_run`), sweeps
 unrecorded leftovers, and pulls after each stage and pushes its own writes before the next
-(:class:`SyncExecutor`). Everything else is the local code, unchanged, on the mirror.
+(:class:`SyncExecutor`). Everything else is the local code, unchanged, on the mirror. Each process writes
+its cumulative object-store figures under its cache folder when the driver's hold ends and after each task
+(:func:`note_io`, :mod:`storage.objstore.iostats`): what a benchmark reads per process.
 
 **Inputs by URL**: local views of the inputs that stages owned by others read through the config
 (texture cameras and images, the synth truth beside the labels).
@@ -31,8 +33,8 @@ from tasks.config import CampusConfig
 
 log = logging.getLogger("ms3d.flow")
 
-__all__ = ["EPOCH_KEY", "SyncExecutor", "is_remote", "local_truth_plan", "local_view", "mirror_for", "remote_run", "synced",
-           "uses_urls", "with_epoch", "work_dir_of"]
+__all__ = ["EPOCH_KEY", "SyncExecutor", "is_remote", "local_truth_plan", "local_view", "mirror_for", "note_io", "remote_run",
+           "synced", "uses_urls", "with_epoch", "work_dir_of"]
 
 SWEEP_GRACE_S = 600.0  # unrecorded objects younger than this may belong to a task of a killed run still writing
 
@@ -64,6 +66,17 @@ def work_dir_of(cfg: CampusConfig) -> WorkDir:
     if not is_remote(cfg):
         return WorkDir(cfg.work_dir)
     return WorkDir(mirror_for(cfg.work_dir).root)
+
+
+def note_io(role: str) -> None:
+    """Write this process's cumulative object-store figures under its cache folder
+    (:mod:`storage.objstore.iostats`); a figure that cannot be written is only logged."""
+    from storage.objstore.iostats import write_io_stats
+
+    try:
+        write_io_stats(cache_dir(), role)
+    except OSError as e:
+        log.warning("could not write this process's I/O figures: %s", e)
 
 
 def _cfg_json_of(args, kwargs) -> dict | None:
@@ -123,9 +136,12 @@ def synced(spec):
             mirror.pull((lambda rel: rel.startswith(reads)) if reads is not None else
                         (lambda rel: not rel.startswith(skips)) if skips else None)
             label = getattr(fn, "__name__", "task")
-            with on_unit_recorded(lambda stage, unit: mirror.push(f"{label} {stage} {unit}")):
-                out = fn(*args, **kwargs)  # each unit is published as it is recorded
-            mirror.push(label)
+            try:
+                with on_unit_recorded(lambda stage, unit: mirror.push(f"{label} {stage} {unit}")):
+                    out = fn(*args, **kwargs)  # each unit is published as it is recorded
+                mirror.push(label)
+            finally:
+                note_io("worker")
             return out
         return wrapper
     return decorate
@@ -156,6 +172,7 @@ def remote_run(cfg: CampusConfig):
             mirror.lease = None
             if lease is None or lease.lost is None:  # a run that lost its lease writes nothing more
                 mirror.push("driver")
+            note_io("driver")
             st = mirror.store.stats
             log.info("work dir %s: driver %d commits, %d files pushed, %d pulled; %d requests, %.1f MB read, "
                      "%.1f MB written", mirror.store.describe(), mirror.stats["commits"], mirror.stats["pushed_files"],

@@ -57,6 +57,12 @@ def bucket_store(url: str) -> tuple[Store, str]:
     return store, key
 
 
+def input_stores() -> list[Store]:
+    """Every input bucket's Store this process has opened (their ``stats``: what staging inputs cost)."""
+    with _LOCK:
+        return list(_STORES.values())
+
+
 def cache_root() -> Path:
     """This process's input cache: ``$MS3D_CACHE/inputs`` or ``./.ms3d-cache/inputs``."""
     return Path(os.environ.get(CACHE_ENV) or Path.cwd() / ".ms3d-cache").absolute() / "inputs"
@@ -261,6 +267,7 @@ __all__ = [
     "head",
     "input_exists",
     "input_is_file",
+    "input_stores",
     "is_url",
     "list_url",
     "local_input",

@@ -165,4 +165,10 @@ def content_cache(root: str | Path) -> ContentCache:
     return c
 
 
-__all__ = ["ContentCache", "content_cache", "default_max_bytes"]
+def content_caches() -> list[ContentCache]:
+    """Every content cache this process has opened."""
+    with _CACHES_LOCK:
+        return list(_CACHES.values())
+
+
+__all__ = ["ContentCache", "content_cache", "content_caches", "default_max_bytes"]

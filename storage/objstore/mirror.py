@@ -297,6 +297,17 @@ def sweep_stale_mirrors(url: str, cache: str | Path) -> int:
 _SWEPT: set[tuple[str, str]] = set()
 
 
+def process_instance() -> str:
+    """This process instance's token (a restarted process may reuse the pid, never the token)."""
+    return _INSTANCE
+
+
+def live_mirrors() -> list[Mirror]:
+    """Every mirror this process has opened (one per work dir URL and thread)."""
+    with _MIRRORS_LOCK:
+        return list(_MIRRORS.values())
+
+
 def mirror_of(store: Store, cache: str | Path) -> Mirror:
     """This thread's :class:`Mirror` of ``store`` (one per work dir URL, process instance and thread; a new one
     starts empty). The first in a process sweeps the folders of process instances that are gone."""
@@ -315,4 +326,5 @@ def mirror_of(store: Store, cache: str | Path) -> Mirror:
     return m
 
 
-__all__ = ["SYNC_STAGE", "Mirror", "RunSuperseded", "mirror_of", "mirror_root", "sweep_stale_mirrors"]
+__all__ = ["SYNC_STAGE", "Mirror", "RunSuperseded", "live_mirrors", "mirror_of", "mirror_root", "process_instance",
+           "sweep_stale_mirrors"]
