@@ -9,6 +9,7 @@ import { TilesRenderer } from '3d-tiles-renderer';
 import { GLTFExtensionsPlugin, ReorientationPlugin } from '3d-tiles-renderer/plugins';
 import { NO_DEVIATION, deviationColour } from './deviation.js';
 import { setupLabelling } from './label.js';
+import { describeMeasure, measureBetween } from './measure.js';
 
 const params = new URLSearchParams(location.search);
 const tilesetUrl = params.get('tileset') || '/output/tileset.json';
@@ -170,18 +171,56 @@ function updatePoints() {
 }
 
 let framed = false;
+// The camera is framed in the model's local east-north-up frame, wherever on Earth it is: the local vertical
+// (the WGS 84 normal at the model's centre) is the camera's up, and the camera looks at the centre from the
+// south-south-west, VIEW_PITCH_DEG below the local horizon. A tileset not on the globe (a local frame) takes
+// its +Z as up. state.view() reports the framing for tests: the camera up against the local vertical, the
+// pitch below the horizon, and the centre's latitude / longitude.
+const VIEW_PITCH_DEG = 45;
+const view = { upDot: null, pitchDeg: null, lat: null, lon: null, localUp: null };
+function localAxes(centre) {
+  const east = new THREE.Vector3(1, 0, 0), north = new THREE.Vector3(0, 1, 0), up = new THREE.Vector3(0, 0, 1);
+  const ell = tiles.ellipsoid;
+  if (ell && centre.length() > 0.5 * Math.min(ell.radius.x, ell.radius.y, ell.radius.z)) {
+    const cart = {};
+    ell.getPositionToCartographic(centre, cart);
+    ell.getEastNorthUpAxes(cart.lat, cart.lon, east, north, up);
+    view.lat = THREE.MathUtils.radToDeg(cart.lat); view.lon = THREE.MathUtils.radToDeg(cart.lon);
+  }
+  return { east, north, up };
+}
 function frameCamera() {
   const sphere = new THREE.Sphere();
   if (!tiles.getBoundingSphere(sphere)) return false;
   tiles.group.updateMatrixWorld(true);
-  sphere.applyMatrix4(tiles.group.matrixWorld);  // the sphere is in the tileset's (ECEF) frame
+  const m = tiles.group.matrixWorld;  // the sphere is in the tileset's (ECEF) frame
+  const { east, north, up } = localAxes(sphere.center);
+  const centre = sphere.center.clone().applyMatrix4(m);
+  for (const v of [east, north, up]) v.transformDirection(m);
   const r = Math.max(sphere.radius, 1);
-  camera.position.copy(sphere.center).add(new THREE.Vector3(0.45 * r, 0.9 * r, 1.3 * r));
+  const pitch = THREE.MathUtils.degToRad(VIEW_PITCH_DEG);
+  const back = north.clone().multiplyScalar(-0.94).addScaledVector(east, -0.34).normalize();
+  const dir = back.multiplyScalar(Math.cos(pitch)).addScaledVector(up, Math.sin(pitch));
+  camera.up.copy(up);
+  camera.position.copy(centre).addScaledVector(dir, 2.0 * r);
   camera.near = r / 200; camera.far = r * 50; camera.updateProjectionMatrix();
-  controls.target.copy(sphere.center);
+  camera.lookAt(centre);
+  // OrbitControls keeps the up it was built with: orbit about the local vertical instead
+  controls._quat.setFromUnitVectors(camera.up, new THREE.Vector3(0, 1, 0));
+  controls._quatInverse.copy(controls._quat).invert();
+  controls.target.copy(centre);
   controls.update();
+  view.localUp = up.toArray();
   return true;
 }
+state.view = () => {
+  const up = new THREE.Vector3().fromArray(view.localUp || [0, 1, 0]);
+  const look = new THREE.Vector3();
+  camera.getWorldDirection(look);
+  const camUp = new THREE.Vector3(0, 1, 0).applyQuaternion(camera.quaternion);  // the image's up, in the world
+  return { upDot: +camera.up.dot(up).toFixed(6), imageUpDot: +camUp.dot(up).toFixed(4),
+           pitchDeg: +THREE.MathUtils.radToDeg(Math.asin(-look.dot(up))).toFixed(2), lat: view.lat, lon: view.lon };
+};
 
 document.getElementById('mode').addEventListener('change', (e) => {
   mode = e.target.value;
@@ -210,7 +249,36 @@ function pickAt(x, y) {
 }
 state.pickAt = pickAt;
 if (params.get('label') === '1') setupLabelling({ tiles, camera, controls, scene, renderer, raycaster, state });
+// Measure mode (the "measure" checkbox): two clicks on the model give the distance, the height difference
+// along the local vertical and the horizontal distance between the points; a line joins them.
+const measureState = { points: [], line: null };
+state.measure = null;
+function measureAt(x, y) {
+  const ndc = new THREE.Vector2((x / innerWidth) * 2 - 1, -(y / innerHeight) * 2 + 1);
+  raycaster.setFromCamera(ndc, camera);
+  const hit = raycaster.intersectObject(tiles.group, true)[0];
+  if (!hit) return null;
+  if (measureState.points.length === 2) measureState.points = [];
+  measureState.points.push(hit.point.clone());
+  if (measureState.line) { scene.remove(measureState.line); measureState.line = null; }
+  if (measureState.points.length < 2) { state.measure = { points: [hit.point.toArray()] }; return state.measure; }
+  const [a, b] = measureState.points;
+  const m = measureBetween(a.toArray(), b.toArray(), view.localUp || [0, 1, 0]);
+  measureState.line = new THREE.Line(new THREE.BufferGeometry().setFromPoints([a, b]),
+    new THREE.LineBasicMaterial({ color: 0xffd400, depthTest: false }));
+  measureState.line.renderOrder = 10;
+  scene.add(measureState.line);
+  state.measure = { ...m, points: [a.toArray(), b.toArray()] };
+  return state.measure;
+}
+state.measureAt = measureAt;
 renderer.domElement.addEventListener('click', (e) => {
+  if (document.getElementById('measure').checked) {
+    const m = measureAt(e.clientX, e.clientY);
+    document.getElementById('pick').textContent = !m ? 'nothing there'
+      : m.distance === undefined ? 'click the second point' : describeMeasure(m);
+    return;
+  }
   const p = pickAt(e.clientX, e.clientY);
   state.pick = p;
   document.getElementById('pick').textContent = p
@@ -220,6 +288,8 @@ renderer.domElement.addEventListener('click', (e) => {
           `\np(bad) ${Number.isFinite(p.confidence) ? p.confidence.toFixed(2) : 'not graded'}` : '')
     : 'nothing there';
 });
+// ?measure=x1,y1,x2,y2 (screen pixels): measure between those two points once the view has settled
+const measureParam = (params.get('measure') || '').split(',').map(Number);
 
 addEventListener('resize', () => {
   camera.aspect = innerWidth / innerHeight; camera.updateProjectionMatrix();
@@ -238,7 +308,12 @@ function loop() {
   const s = tiles.stats;
   const busy = s.downloading + s.parsing + (s.queued || 0) + pointsBusy;
   settled = framed && state.models > 0 && busy === 0 ? settled + 1 : 0;
-  if (settled > 20 && !state.ready) state.ready = true;
+  if (settled > 20 && !state.ready) {
+    if (measureParam.length === 4 && measureParam.every(Number.isFinite)) {
+      measureAt(measureParam[0], measureParam[1]); measureAt(measureParam[2], measureParam[3]);
+    }
+    state.ready = true;
+  }
   const f = state.faces;
   document.getElementById('status').textContent =
     `${state.models} tile contents loaded; their faces: good ${f.good} · bad ${f.bad} · rebuilt ${f.rebuilt} · unknown ${f.unknown}` +

@@ -135,3 +135,57 @@ def test_headless_viewer_overlays_the_points_tileset(tiny_export, tmp_path):
     assert off["available"] and not off["shown"] and off["models"] == 0  # not loaded while hidden
     magenta = [((rgb[..., 0] > 150) & (rgb[..., 2] > 120) & (rgb[..., 1] < 90)).mean() for _, rgb in shots.values()]
     assert magenta[0] < 0.001 and magenta[1] > 0.01, magenta
+
+
+def _relocate(work: Path, lat: float, lon: float, height: float) -> None:
+    """Move the exported tileset (and its points overlay, if any) to (lat, lon, height): its root transform
+    becomes the ENU -> ECEF frame there (the content stays in its ENU frame)."""
+    from storage.formats.srs import geodetic_to_ecef
+    from tasks.export.georef import enu_rotation
+
+    m = np.eye(4)
+    m[:3, :3] = enu_rotation(lon, lat).T  # columns: east, north, up in ECEF
+    m[:3, 3] = geodetic_to_ecef(lat, lon, height)
+    path = work / "output" / "tileset.json"
+    doc = json.loads(path.read_text())
+    doc["root"]["transform"] = [float(v) for v in m.T.reshape(-1)]
+    path.write_text(json.dumps(doc))
+
+
+@pytest.mark.parametrize("place", ["demo", "amsterdam"])
+def test_viewer_frames_the_model_upright_in_its_local_frame(tiny_export, tmp_path, place):
+    """At the demo's latitude and at Amsterdam's (52.37 N), the camera's up is the local vertical, the view
+    looks down at about 45 degrees, the image's up is the local up, and the model fills the frame."""
+    _tools_or_fail()
+    from PIL import Image
+
+    work = tmp_path / "work"
+    shutil.copytree(tiny_export[0], work)
+    if place == "amsterdam":
+        _relocate(work, 52.3676, 4.9041, 43.0)
+    shot = tmp_path / f"{place}.png"
+    server = start_viewer(work)
+    try:
+        run = subprocess.run(["node", str(VIEWER_DIR / "screenshot.mjs"), server.url + "&measure=420,560,620,560",
+                              str(shot), "1024", "700", "120000"], check=False, capture_output=True, text=True,
+                             timeout=180)  # fmt: skip
+    finally:
+        server.stop()
+    assert run.returncode == 0, run.stderr[-2000:]
+    result = json.loads(run.stdout)
+    assert result["ready"] and not result["state"]["errors"], result
+    v = result["view"]
+    if place == "amsterdam":
+        assert v["lat"] == pytest.approx(52.3676, abs=0.05) and v["lon"] == pytest.approx(4.9041, abs=0.05), v
+    assert v["upDot"] > 0.9999, v  # the camera's up is the local vertical
+    assert v["imageUpDot"] > 0.6, v  # the image's up points up (cos 45 deg ~ 0.71), not sideways
+    assert 40.0 <= v["pitchDeg"] <= 50.0, v  # looking down at the model, above its horizon
+    m = result["measure"]  # two points picked on the model, 200 px apart on screen
+    a, b = (np.array(p) for p in m["points"])
+    assert m["distance"] == pytest.approx(np.linalg.norm(b - a), abs=1e-6) and m["distance"] > 0.5, m
+    assert m["horizontal"] ** 2 + m["height"] ** 2 == pytest.approx(m["distance"] ** 2, rel=1e-6), m
+    rgb = np.asarray(Image.open(shot).convert("RGB")).astype(np.int32)[150:]
+    drawn = np.abs(rgb - BACKGROUND).sum(axis=2) > 30
+    assert drawn.mean() > 0.1, f"only {drawn.mean():.1%} of the pixels show the model"
+    if os.environ.get("MS3D_UPDATE_DOCS"):
+        shutil.copyfile(shot, DOCS_PNG.with_name(f"viewer-{place}.png"))
