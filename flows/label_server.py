@@ -75,7 +75,8 @@ class LabelApi:
 
             try:
                 g = json.loads(self._georef_path.read_text())
-                ref = make_georef(g["source_crs"], g["frame_origin"], g["enu_origin_local"], g.get("vertical_datum"))
+                ref = make_georef(g["source_crs"], g["frame_origin"], g["enu_origin_local"], g.get("vertical_datum"),
+                                  g.get("geoid"))
             except (OSError, ValueError, KeyError) as exc:
                 raise InputError(self._georef_path, f"cannot georeference the viewer's picks ({exc})") from None
             self._projector = (EnuProjector(ref), ref)

@@ -264,6 +264,7 @@ class ExportConfig(_Model):
     compression: Literal["none", "draco"] = Field("none", description="glb geometry compression: none, or Draco (KHR_draco_mesh_compression via DracoPy)")
     max_texture_px: int = Field(4096, ge=64, le=4096, description="texture atlases are cropped to what a tile uses and downscaled to at most this side length")
     jpeg_quality: int = Field(85, ge=10, le=100, description="quality of re-encoded JPEG textures")
+    geoid_grid: str | None = Field(None, description="a PROJ vertical grid file (GeoTIFF or GTX: geoid undulation N by longitude/latitude, e.g. a national geoid) that makes the campus's orthometric heights ellipsoidal when PROJ has no geoid grid of its own for its vertical CRS; None: the EGM96 geoid shipped with ms3d (storage/geoid.py); recorded in georef.json")
     lod_reduction: float = Field(4.0, gt=1.0, description="each quadtree level keeps 1/lod_reduction of its children's faces")
     hausdorff_samples: int = Field(20_000, ge=1000, description="points sampled per direction to measure a decimation's deviation")
     decimator: Literal["auto", "fqmr", "pymeshlab"] = Field("auto", description="quadric decimation: pyfqmr (Fast Quadric Mesh Simplification, ~6x faster) or pymeshlab (GPL: the optional gpl extra, pip install 'ms3d[gpl]'); auto = fqmr")

@@ -6,10 +6,13 @@ metres at 1 km from the origin, so every vertex goes projected (float64 world = 
 ``transform`` is the float64 ENU->ECEF matrix.
 
 Heights: ECEF needs ellipsoidal heights. A compound CRS (e.g. EPSG:7415 = RD New + NAP height) is passed to
-PROJ whole; when the geoid grid it needs is not installed (none can be downloaded here) PROJ's best
-available operation is a "ballpark" vertical step that takes orthometric heights as ellipsoidal. A 2D
-projected CRS gets ellipsoidal heights of its own datum (``CRS.to_3d``); a ``vertical_datum`` of the form
-"EPSG:nnnn" (a vertical CRS) is composed with it. Whatever was assumed is recorded in ``georef.json``.
+PROJ whole; when the geoid grid it needs is installed, PROJ's operation applies it. When it is not (none can
+be downloaded here), PROJ's best operation is a "ballpark" vertical step that takes orthometric heights as
+ellipsoidal; ms3d then adds the geoid undulation itself (:class:`GeoidCorrected`): from the user's grid
+(``export.geoid_grid``, a PROJ vertical grid file) or else from the EGM96 geoid it ships
+(:mod:`storage.geoid`), along the ellipsoid normal, h = H + N. A 2D projected CRS gets ellipsoidal heights of
+its own datum (``CRS.to_3d``); a ``vertical_datum`` of the form "EPSG:nnnn" (a vertical CRS) is composed
+with it. The operation and whatever was assumed are recorded in ``georef.json``.
 """
 
 from __future__ import annotations
@@ -46,6 +49,7 @@ class GeoRef:
     enu_to_ecef: np.ndarray
     operation: str
     assumptions: list[str] = field(default_factory=list)
+    geoid: str | None = None  # storage.geoid.geoid_of spec of the geoid ms3d applied (None: PROJ's op alone)
 
     @property
     def ecef_to_enu_rotation(self) -> np.ndarray:
@@ -68,6 +72,7 @@ class GeoRef:
             "enu_to_ecef_column_major": self.tileset_transform(),
             "gltf_axes": "glTF y-up: (x, y, z)_gltf = (east, up, -north); 3D Tiles rotates y-up to z-up",
             "operation": self.operation,
+            "geoid": self.geoid,
             "assumptions": list(self.assumptions),
         }  # fmt: skip
 
@@ -145,11 +150,61 @@ def _choose_operation(src, lon_lat: tuple[float, float] | None):
     return chosen, notes
 
 
-def make_georef(crs: str, frame_origin, enu_origin_local, vertical_datum: str | None = None) -> GeoRef:
+def _is_ballpark_vertical(description: str) -> bool:
+    d = description.lower()
+    return "ballpark vertical" in d or "without ellipsoid height" in d
+
+
+class GeoidCorrected:
+    """A PROJ operation to ECEF that took orthometric heights as ellipsoidal (a ballpark vertical step),
+    corrected by a geoid: each point moves N(lat, lon) metres along the ellipsoid normal (h = H + N).
+    ``transform(x, y, z)`` as a pyproj Transformer's (scalars or arrays); ``description`` names both."""
+
+    def __init__(self, inner, geoid):
+        from pyproj import Transformer
+
+        self.inner, self.geoid = inner, geoid
+        self._geodetic = Transformer.from_crs(ECEF_CRS, GEODETIC_3D_CRS, always_xy=True)
+        self.description = f"{inner.description} + heights made ellipsoidal with the {geoid.name}"
+
+    def transform(self, x, y, z):
+        scalar = np.ndim(x) == 0
+        ex, ey, ez = (np.atleast_1d(np.asarray(v, np.float64)) for v in self.inner.transform(x, y, z))
+        lon, lat, _ = self._geodetic.transform(ex, ey, ez)
+        n = self.geoid.undulation(np.asarray(lat), np.asarray(lon))
+        la, lo = np.radians(lat), np.radians(lon)
+        ex, ey, ez = ex + n * np.cos(la) * np.cos(lo), ey + n * np.cos(la) * np.sin(lo), ez + n * np.sin(la)
+        return (float(ex[0]), float(ey[0]), float(ez[0])) if scalar else (ex, ey, ez)
+
+
+def _with_geoid(src, to_ecef, notes: list[str], geoid_grid: str | None):
+    """(operation, notes, geoid spec): ``to_ecef`` corrected by a geoid when it treats orthometric heights as
+    ellipsoidal; else unchanged (a configured grid is then not needed, and the notes say so)."""
+    from storage.geoid import geoid_of
+
+    if not _is_ballpark_vertical(to_ecef.description):
+        if geoid_grid:
+            notes = notes + [f"export.geoid_grid {geoid_grid} not used: PROJ's operation applies its own geoid"]
+        return to_ecef, notes, None
+    geoid = geoid_of(geoid_grid)
+    vert = [c for c in (src.sub_crs_list if src.is_compound else [src]) if c.is_vertical]
+    vname = vert[0].name if vert else "the vertical CRS"
+    notes = [n for n in notes if "treated as ellipsoidal" not in n]
+    notes.append(f"orthometric heights ({vname}) made ellipsoidal with the {geoid.name}: h = H + N")
+    if geoid.spec == "egm96" and "egm96" not in vname.lower():
+        notes.append(f"EGM96 stands in for the geoid model of {vname} (its grid is not installed; name one in "
+                     "export.geoid_grid): heights may be off by the difference of the two geoids, typically "
+                     "decimetres, up to about a metre")
+    return GeoidCorrected(to_ecef, geoid), notes, geoid.spec
+
+
+def make_georef(crs: str, frame_origin, enu_origin_local, vertical_datum: str | None = None,
+                geoid_grid: str | None = None) -> GeoRef:
     """A GeoRef with ENU origin at campus-local ``enu_origin_local`` (e.g. the campus centre on the ground).
 
     crs: the campus CRS ("EPSG:32650", "EPSG:7415", ...); frame_origin: (3,) float64 world metres of the
-    campus frame; enu_origin_local: (3,) float64 campus-local metres.
+    campus frame; enu_origin_local: (3,) float64 campus-local metres; geoid_grid: a PROJ vertical grid file
+    for orthometric heights when PROJ has none of its own (None: the shipped EGM96; module doc).
     """
     from pyproj import Transformer
 
@@ -159,6 +214,7 @@ def make_georef(crs: str, frame_origin, enu_origin_local, vertical_datum: str | 
     to_geodetic = Transformer.from_crs(src, GEODETIC_3D_CRS, always_xy=True)
     lon_guess, lat_guess, _ = to_geodetic.transform(*centre_world)
     to_ecef, more = _choose_operation(src, (lon_guess, lat_guess) if np.isfinite(lon_guess) else None)
+    to_ecef, more, geoid = _with_geoid(src, to_ecef, more, geoid_grid)
     ecef0 = np.array(to_ecef.transform(*centre_world), np.float64)
     if not np.isfinite(ecef0).all():
         raise ValueError(f"{crs}: the campus origin {tuple(centre_world)} is outside the CRS's area of use")
@@ -170,7 +226,7 @@ def make_georef(crs: str, frame_origin, enu_origin_local, vertical_datum: str | 
         source_crs=str(crs), vertical_datum=vertical_datum, frame_origin=tuple(map(float, origin)),
         enu_origin_local=tuple(map(float, enu_origin_local)), lon_deg=float(lon), lat_deg=float(lat),
         height_m=float(h), ecef_origin=tuple(map(float, ecef0)), enu_to_ecef=m, operation=to_ecef.description,
-        assumptions=notes + more,
+        assumptions=notes + more, geoid=geoid,
     )  # fmt: skip
 
 
@@ -178,8 +234,12 @@ class EnuProjector:
     """Maps campus-local coordinates to ECEF / ENU (float64) with the PROJ operation of ``georef``."""
 
     def __init__(self, georef: GeoRef):
+        from storage.geoid import geoid_of
+
         src, _ = _source_crs_3d(georef.source_crs, georef.vertical_datum)
         self._to_ecef, _ = _choose_operation(src, (georef.lon_deg, georef.lat_deg))  # the one make_georef chose
+        if georef.geoid is not None:
+            self._to_ecef = GeoidCorrected(self._to_ecef, geoid_of(georef.geoid))
         if self._to_ecef.description != georef.operation:
             raise ValueError(f"PROJ now picks {self._to_ecef.description!r}, the georef used {georef.operation!r}")
         self._origin = np.asarray(georef.frame_origin, np.float64)

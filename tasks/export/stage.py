@@ -165,7 +165,7 @@ def run_export(work_dir: str | Path, config: ExportConfig | None = None, tiles: 
         raise InputError(wd.root / "tiles", "no merged tiles (tiles/*/merged.json): run the merge stage first")
     tree = plan_quadtree(list(tiles))
     georef = make_georef(frame.crs, frame.origin, _enu_centre(campus, frame.origin_array, tiles),
-                         frame.vertical_datum)
+                         frame.vertical_datum, cfg.geoid_grid)
     base = content_hash(EXPORT_VERSION, cfg.model_dump(mode="json"), georef.to_json())
     state_path = out / "tileset.fingerprints.json"
     old = json.loads(state_path.read_text()).get("nodes", {}) if state_path.exists() else {}

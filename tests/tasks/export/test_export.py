@@ -20,12 +20,20 @@ from tasks.export.tree import plan_quadtree
 
 
 def _ecef_direct(crs: str, world: np.ndarray) -> np.ndarray:
-    """ECEF straight from projected world coordinates with pyproj (heights as ellipsoidal)."""
+    """ECEF straight from projected world coordinates with pyproj; the orthometric heights of a compound CRS
+    (PROJ without its geoid grid takes them as ellipsoidal) raised by the shipped EGM96 N along the normal."""
     from pyproj import CRS, Transformer
+
+    from storage.geoid import egm96_undulation
 
     src = CRS(crs)
     src = src if src.is_compound else src.to_3d()
     x, y, z = Transformer.from_crs(src, "EPSG:4978", always_xy=True).transform(*world.T)
+    if not src.is_compound:
+        return np.stack([x, y, z], axis=1)
+    lon, lat, h = Transformer.from_crs(src, "EPSG:4979", always_xy=True).transform(*world.T)
+    x, y, z = Transformer.from_crs("EPSG:4979", "EPSG:4978", always_xy=True).transform(
+        lon, lat, np.asarray(h) + egm96_undulation(np.asarray(lat), np.asarray(lon)))
     return np.stack([x, y, z], axis=1)
 
 
@@ -102,9 +110,33 @@ def test_compound_crs_records_vertical_assumption():
     georef = make_georef("EPSG:7415", (155000.0, 463000.0, 0.0), (0.0, 0.0, 0.0))
     doc = georef.to_json()
     assert doc["source_crs"] == "EPSG:7415" and "NAP" in " ".join(doc["assumptions"])
-    assert any("ellipsoidal" in a for a in doc["assumptions"])
-    assert "Ballpark geographic offset" not in doc["operation"]
+    assert any("made ellipsoidal with the EGM96" in a for a in doc["assumptions"]) and doc["geoid"] == "egm96"
+    assert any("EGM96 stands in for the geoid model of NAP height" in a for a in doc["assumptions"])
+    assert "Ballpark geographic offset" not in doc["operation"] and "EGM96 geoid" in doc["operation"]
     assert 52.0 < doc["enu_origin_wgs84"]["lat_deg"] < 52.3
+
+
+def test_nap_zero_lands_at_the_geoid_in_amsterdam(tmp_path):
+    """NAP 0 m in Amsterdam: ~43 m above the ellipsoid with the shipped EGM96 (42.94 m), exactly a user grid's
+    N with export.geoid_grid; a CRS with ellipsoidal heights applies no geoid."""
+    from storage.geoid import egm96_undulation, write_gtx
+
+    ams = (121000.0, 487000.0, 0.0)  # RD New, NAP 0 m
+    g = make_georef("EPSG:7415", ams, (0.0, 0.0, 0.0))
+    assert g.height_m == pytest.approx(float(egm96_undulation(g.lat_deg, g.lon_deg)), abs=1e-3)
+    assert 42.5 < g.height_m < 43.5
+    # the same point through the projector chain: local (0, 0, 0) is the ENU origin
+    assert np.abs(EnuProjector(g).local_to_enu(np.zeros((1, 3)))).max() < 1e-6
+    lat, lon = np.arange(50.0, 54.01, 0.25), np.arange(3.0, 7.01, 0.25)
+    n = 40.0 + (lat[:, None] - 50.0) + 0.5 * (lon[None, :] - 3.0)  # a linear "national" geoid
+    grid = write_gtx(tmp_path / "nl.gtx", 50.0, 3.0, 0.25, 0.25, n)
+    g2 = make_georef("EPSG:7415", ams, (0.0, 0.0, 0.0), geoid_grid=str(grid))
+    assert g2.height_m == pytest.approx(40.0 + (g2.lat_deg - 50.0) + 0.5 * (g2.lon_deg - 3.0), abs=1e-3)
+    assert g2.geoid == str(grid) and "nl.gtx" in g2.operation
+    p2 = EnuProjector(g2)  # rebuilt from the georef alone, as export nodes and the label server do
+    assert np.abs(p2.local_to_enu(np.array([[0.0, 0.0, 0.0]]))).max() < 1e-6
+    plain = make_georef("EPSG:32650", (589000.0, 2712000.0, 15.0), (0.0, 0.0, 0.0))
+    assert plain.geoid is None and plain.height_m == pytest.approx(15.0, abs=1e-3)
 
 
 def test_export_writes_a_valid_tileset(tiny_export):
