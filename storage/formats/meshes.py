@@ -1,4 +1,6 @@
-"""Mesh readers (OBJ+MTL, PLY, GLB/glTF, 3MX/3MXB, folders of tiles) and OBJ / PLY writers.
+"""Mesh readers (OBJ+MTL, PLY, GLB/glTF, 3MX/3MXB, 3D Tiles ``tileset.json``, folders of tiles) and OBJ / PLY
+writers. A tileset's vertices are ECEF metres (:mod:`storage.formats.tiles3d`; placed into the campus CRS by
+the scan and ingest stages); a ``.json`` is read only when named, never picked up from a folder.
 
 Readers form a registry keyed by extension (``READERS``). Each returns the file's faces in file order,
 after the same checks. They degrade where a user's tool would (trimesh, MeshLab): faces that touch a
@@ -41,6 +43,7 @@ from storage.formats.obj import read_obj, write_obj
 from storage.formats.ply import read_ply_mesh, write_ply
 from storage.formats.production import finest_lod
 from storage.formats.threemx import read_3mx, select_3mx
+from storage.formats.tiles3d import read_tileset
 from storage.inputs.remote import readable
 
 
@@ -91,7 +94,7 @@ def _finish(path: Path, mesh: MeshData, offset, units_scale: float) -> MeshData:
 
 READERS: dict[str, Callable[[Path], MeshData]] = {
     ".obj": read_obj, ".ply": read_ply_mesh, ".glb": read_gltf, ".gltf": read_gltf, ".3mx": read_3mx,
-    ".3mxb": read_3mx,
+    ".3mxb": read_3mx, ".json": read_tileset,
 }  # fmt: skip
 
 

@@ -12,6 +12,9 @@ and the metadata must agree:
 - ``inputs.crs`` set and different from the SRS: an error naming ``metadata.xml``.
 - A production without ``metadata.xml`` (tiles in ``Tile_*`` folders) cannot be georeferenced: an error
   naming the folder, unless ``inputs.mesh_offset`` is set, which is then used for its tiles (one warning).
+- A 3D Tiles tileset (``tileset.json``) is read in ECEF (:mod:`storage.formats.tiles3d`) and placed into
+  ``inputs.crs`` (which it then needs), heights made orthometric with ``export.geoid_grid``'s geoid where
+  the CRS's vertical datum needs one PROJ lacks (the inverse of the export); ``inputs.mesh_offset`` must stay 0.
 - A production in a local ``ENU:<lat>,<lon>`` frame is placed into ``inputs.crs`` (which it then needs):
   SRSOrigin is the offset in the ENU frame, and :func:`place_mesh` moves the vertices to the CRS
   (:func:`storage.formats.srs.enu_to_crs`, exact to PROJ's precision; no flat-earth approximation).
@@ -51,11 +54,15 @@ class MeshPlacement:
     seam_key: int | None = None
     metadata: str = ""
     enu: tuple[float, float] | None = None
+    ecef: bool = False
+    geoid: str | None = None
 
     def to_json(self) -> dict:
         out = {"offset": list(self.offset), "crs": self.crs, "seam_key": self.seam_key, "metadata": self.metadata}
         if self.enu is not None:  # only then: placements of map-CRS productions keep their fingerprints
             out["enu"] = list(self.enu)
+        if self.ecef:
+            out["ecef"], out["geoid"] = True, self.geoid
         return out
 
 
@@ -63,12 +70,16 @@ def place_mesh(mesh, placement: MeshPlacement, path: str | Path = ""):
     """The mesh (``storage.formats.MeshData``, read with ``placement.offset``) in the campus CRS: unchanged
     for a map-CRS placement; its vertices moved from the ENU frame into ``placement.crs`` otherwise.
     Raises InputError naming ``path`` when PROJ cannot place it."""
-    if placement.enu is None:
+    if placement.enu is None and not placement.ecef:
         return mesh
     from storage.formats.srs import enu_to_crs
+    from storage.formats.tiles3d import ecef_to_crs
 
     try:
-        mesh.vertices = enu_to_crs(mesh.vertices, *placement.enu, placement.crs)
+        if placement.ecef:
+            mesh.vertices = ecef_to_crs(mesh.vertices, placement.crs, placement.geoid)
+        else:
+            mesh.vertices = enu_to_crs(mesh.vertices, *placement.enu, placement.crs)
     except ValueError as e:
         raise InputError(path or placement.metadata, str(e)) from None
     return mesh
@@ -105,8 +116,24 @@ def placement_of(prod: Production | None, cfg: CampusConfig) -> MeshPlacement:
     return MeshPlacement(meta.origin, meta.srs, prod.key, meta.path)
 
 
+def tileset_placement(path: str | Path, cfg: CampusConfig) -> MeshPlacement:
+    """The placement of a 3D Tiles tileset (module doc). InputError naming it without ``inputs.crs`` or with
+    an ``inputs.mesh_offset``."""
+    if not cfg.inputs.crs:
+        raise InputError(path, "a 3D Tiles tileset is in ECEF: set inputs.crs to the campus's projected CRS to "
+                               "place it there")
+    if _offset_configured(cfg):
+        raise InputError(path, "a 3D Tiles tileset places itself (ECEF): remove inputs.mesh_offset")
+    return MeshPlacement((0.0, 0.0, 0.0), cfg.inputs.crs.strip().upper(), None, "", None, True,
+                         cfg.export.geoid_grid)
+
+
 def mesh_placement(path: str | Path, cfg: CampusConfig) -> MeshPlacement:
     """The placement of one mesh file (module doc); reads its production's ``metadata.xml`` if any."""
+    from storage.formats.tiles3d import is_tileset
+
+    if is_tileset(path):
+        return tileset_placement(path, cfg)
     return placement_of(production_of(path), cfg)
 
 
