@@ -7,6 +7,11 @@ COLMAP (``cameras.txt``: ``CAMERA_ID MODEL WIDTH HEIGHT PARAMS...``; ``images.tx
 (Hamilton, w first) and t map world to camera. Models: SIMPLE_PINHOLE (f cx cy), PINHOLE (fx fy cx cy),
 SIMPLE_RADIAL (f cx cy k), RADIAL (f cx cy k1 k2), OPENCV (fx fy cx cy k1 k2 p1 p2) and FULL_OPENCV when its
 rational terms k4..k6 are 0. COLMAP's principal point counts from the image corner: cx = cx_colmap - 0.5.
+COLMAP's binary model (``cameras.bin``, ``images.bin``: COLMAP's default output) is read the same way when
+the folder has no text model: little-endian, ``cameras.bin`` = uint64 count, then per camera uint32 id,
+int32 model id, uint64 width, height, float64 params; ``images.bin`` = uint64 count, then per image uint32
+id, float64 qw qx qy qz tx ty tz, uint32 camera id, a NUL-terminated name, uint64 number of 2D points and
+that many (float64 x, y, int64 point id).
 
 BlocksExchange: ``Block/Photogroups/Photogroup`` with ``ImageDimensions`` (Width, Height), ``FocalLengthPixels``
 or ``FocalLength`` (mm) with ``SensorSize`` (mm, the larger image side), ``PrincipalPoint`` (x, y pixels, taken
@@ -108,12 +113,17 @@ def _floats(path: Path, lineno: int, tokens: list[str]) -> list[float]:
 
 
 COLMAP_FILES = ("images.txt", "cameras.txt")  # a COLMAP text model's files ms3d reads (and fingerprints)
+COLMAP_BIN_FILES = ("images.bin", "cameras.bin")  # the binary model's, read when the text files are absent
+_MODEL_IDS = {0: "SIMPLE_PINHOLE", 1: "PINHOLE", 2: "SIMPLE_RADIAL", 3: "RADIAL", 4: "OPENCV", 5: "OPENCV_FISHEYE",
+              6: "FULL_OPENCV", 7: "FOV", 8: "SIMPLE_RADIAL_FISHEYE", 9: "RADIAL_FISHEYE", 10: "THIN_PRISM_FISHEYE"}
+_MODEL_PARAMS = {0: 3, 1: 4, 2: 4, 3: 5, 4: 8, 5: 8, 6: 12, 7: 5, 8: 4, 9: 5, 10: 12}
 
 
 def is_colmap(path: str | Path) -> bool:
-    """Whether a camera path names a COLMAP text model: its folder, its cameras.txt or its images.txt."""
+    """Whether a camera path names a COLMAP model: its folder, or one of its cameras / images files (.txt
+    or .bin)."""
     p = Path(path)
-    return p.is_dir() or p.name.lower() in COLMAP_FILES
+    return p.is_dir() or p.name.lower() in COLMAP_FILES + COLMAP_BIN_FILES
 
 
 def camera_files(path: str | Path) -> list[Path]:
@@ -128,23 +138,97 @@ def camera_files(path: str | Path) -> list[Path]:
 
 
 def _colmap_model(path: Path) -> list[Path]:
+    """The model's (images, cameras) files: the text ones, or the binary ones when the folder has them and
+    no text model."""
     folder = path if path.is_dir() else path.parent
-    return [folder / name for name in COLMAP_FILES]
+    text = [folder / name for name in COLMAP_FILES]
+    binary = [folder / name for name in COLMAP_BIN_FILES]
+    if not any(p.is_file() for p in text) and any(p.is_file() for p in binary):
+        return binary
+    return text
 
 
 def _colmap_files(path: Path) -> tuple[Path, Path]:
     imgs, cams = _colmap_model(path)
+    kind = "binary" if imgs.suffix == ".bin" else "text"
     for p in (cams, imgs):
         if not p.is_file():
-            binary = " (a binary model: convert it with `colmap model_converter --output_type TXT`)" \
-                if p.with_suffix(".bin").exists() else ""
-            raise InputError(p, f"COLMAP text model incomplete: {p.name} not found{binary}")
+            raise InputError(p, f"COLMAP {kind} model incomplete: {p.name} not found")
     return cams, imgs
 
 
+class _Bin:
+    """A little-endian reader over a COLMAP binary file; InputError naming it when it ends early."""
+
+    def __init__(self, path: Path):
+        self.path = path
+        try:
+            self.data = path.read_bytes()
+        except OSError as e:
+            raise InputError(path, f"cannot read ({e.strerror})") from None
+        self.pos = 0
+
+    def take(self, fmt: str):
+        import struct
+
+        n = struct.calcsize("<" + fmt)
+        if self.pos + n > len(self.data):
+            raise InputError(self.path, f"truncated at byte {self.pos:,} of {len(self.data):,}")
+        out = struct.unpack_from("<" + fmt, self.data, self.pos)
+        self.pos += n
+        return out
+
+    def name(self) -> str:
+        end = self.data.find(b"\x00", self.pos)
+        if end < 0:
+            raise InputError(self.path, f"truncated image name at byte {self.pos:,}")
+        raw, self.pos = self.data[self.pos:end], end + 1
+        return raw.decode("utf-8", errors="replace")
+
+
+def _read_colmap_bin(cams_bin: Path, imgs_bin: Path) -> CameraSet:
+    """A COLMAP binary model (module doc)."""
+    b = _Bin(cams_bin)
+    intr = {}
+    for k in range(b.take("Q")[0]):
+        cam_id, model_id, w, h = b.take("IiQQ")
+        if model_id not in _MODEL_PARAMS:
+            raise InputError(cams_bin, f"camera {cam_id}: unknown model id {model_id}")
+        params = list(b.take(f"{_MODEL_PARAMS[model_id]}d"))
+        if not np.isfinite(params).all():
+            raise InputError(cams_bin, f"camera {cam_id}: NaN or infinite parameter")
+        got = _colmap_intrinsics(_MODEL_IDS[model_id], params)
+        if isinstance(got, str):
+            raise InputError(cams_bin, f"camera {cam_id}: {got}")
+        intr[cam_id] = (got, int(w), int(h))
+    b = _Bin(imgs_bin)
+    out = []
+    for _ in range(b.take("Q")[0]):
+        image_id, *v = b.take("I7d")
+        (cam_id,) = b.take("I")
+        name = b.name()
+        (n2d,) = b.take("Q")
+        if b.pos + 24 * n2d > len(b.data):
+            raise InputError(imgs_bin, f"image {image_id}: truncated 2D points")
+        b.pos += 24 * n2d
+        if not np.isfinite(v).all():
+            raise InputError(imgs_bin, f"image {image_id}: NaN or infinite pose")
+        if cam_id not in intr:
+            raise InputError(imgs_bin, f"image {image_id}: camera {cam_id} is not in {cams_bin.name}")
+        (K, d), w, h = intr[cam_id]
+        if np.linalg.norm(v[:4]) < 1e-9:
+            raise InputError(imgs_bin, f"image {image_id}: zero quaternion")
+        out.append(check_pose(imgs_bin, name, K, quat_to_rot(v[:4]), v[4:7], w, h, d))
+    if not out:
+        raise InputError(imgs_bin, "no images in the COLMAP model")
+    return CameraSet(out, "mesh", (0.0, 0.0, 0.0), "colmap")
+
+
 def read_colmap(path: Path) -> CameraSet:
-    """A COLMAP sparse text model: ``path`` is its folder, its cameras.txt or its images.txt."""
+    """A COLMAP sparse model, text or binary: ``path`` is its folder or one of its files."""
     cams_txt, imgs_txt = _colmap_files(Path(path))
+    if cams_txt.suffix == ".bin":
+        return _read_colmap_bin(cams_txt, imgs_txt)
     intr = {}
     for lineno, line in _colmap_lines(cams_txt):
         tok = line.split()
@@ -180,6 +264,28 @@ def read_colmap(path: Path) -> CameraSet:
     if not out:
         raise InputError(imgs_txt, "no images in the COLMAP model")
     return CameraSet(out, "mesh", (0.0, 0.0, 0.0), "colmap")
+
+
+def write_colmap_bin(folder: Path, cams: list[Camera], points_per_image: int = 3) -> None:
+    """Write ``cams`` as a COLMAP binary model (one OPENCV / FULL_OPENCV camera per image, as
+    :func:`write_colmap`), each image with ``points_per_image`` dummy 2D points (for tests)."""
+    import struct
+
+    folder = Path(folder)
+    folder.mkdir(parents=True, exist_ok=True)
+    cb, ib = [struct.pack("<Q", len(cams))], [struct.pack("<Q", len(cams))]
+    for i, c in enumerate(cams, start=1):
+        k1, k2, p1, p2, k3 = np.asarray(c.dist, np.float64)
+        p = [c.K[0, 0], c.K[1, 1], c.K[0, 2] + 0.5, c.K[1, 2] + 0.5, k1, k2, p1, p2]
+        model = 4 if k3 == 0 else 6
+        if k3 != 0:
+            p += [k3, 0.0, 0.0, 0.0]
+        cb.append(struct.pack("<IiQQ", i, model, c.width, c.height) + struct.pack(f"<{len(p)}d", *p))
+        ib.append(struct.pack("<I7dI", i, *rot_to_quat(c.R), *c.t, i) + c.image.encode() + b"\x00"
+                  + struct.pack("<Q", points_per_image)
+                  + b"".join(struct.pack("<ddq", 1.5 * k, 2.5 * k, -1) for k in range(points_per_image)))
+    (folder / "cameras.bin").write_bytes(b"".join(cb))
+    (folder / "images.bin").write_bytes(b"".join(ib))
 
 
 def write_colmap(folder: Path, cams: list[Camera]) -> None:
@@ -325,7 +431,7 @@ def write_blocks_exchange(path: Path, cams: list[Camera], crs: str | None = None
 # ------------------------------------------------------------------------------------- dispatch
 
 def camera_format(path: str | Path) -> str:
-    """'colmap' (a folder, cameras.txt or images.txt), 'blocksexchange' (.xml) or 'cameras.json' (.json)."""
+    """'colmap' (a folder, cameras / images .txt or .bin), 'blocksexchange' (.xml) or 'cameras.json' (.json)."""
     p = Path(path)
     if is_colmap(p):
         return "colmap"
@@ -333,8 +439,8 @@ def camera_format(path: str | Path) -> str:
         return "blocksexchange"
     if p.suffix.lower() == ".json":
         return "cameras.json"
-    raise InputError(p, "unknown camera file: expected a cameras.json, a COLMAP text model (folder with "
-                        "cameras.txt + images.txt) or a ContextCapture BlocksExchange .xml")
+    raise InputError(p, "unknown camera file: expected a cameras.json, a COLMAP model (folder with cameras + images "
+                        ".txt or .bin) or a ContextCapture BlocksExchange .xml")
 
 
 CAMERA_READERS = {"colmap": read_colmap, "blocksexchange": read_blocks_exchange, "cameras.json": read_cameras_json}

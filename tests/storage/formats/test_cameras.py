@@ -15,6 +15,7 @@ from storage.formats.camera_files import (
     rot_to_quat,
     write_blocks_exchange,
     write_colmap,
+    write_colmap_bin,
 )
 from storage.formats.cameras import Camera, CameraSet, write_cameras_json
 
@@ -65,12 +66,15 @@ def test_every_format_projects_a_world_point_to_the_same_pixel(tmp_path, k3):
 
     write_cameras_json(tmp_path / "cameras.json", CameraSet([cam], "mesh"))
     write_colmap(tmp_path / "sparse" / "0", [cam])
+    write_colmap_bin(tmp_path / "bin" / "0", [cam])
     write_blocks_exchange(tmp_path / "block.xml", [cam], crs="EPSG:32650")
     write_blocks_exchange(tmp_path / "block_mm.xml", [cam], focal_mm=True)
     read = {
         "json": read_cameras(tmp_path / "cameras.json"),
         "colmap folder": read_cameras(tmp_path / "sparse" / "0"),
         "colmap images.txt": read_cameras(tmp_path / "sparse" / "0" / "images.txt"),
+        "colmap binary folder": read_cameras(tmp_path / "bin" / "0"),
+        "colmap images.bin": read_cameras(tmp_path / "bin" / "0" / "images.bin"),
         "blocks": read_cameras(tmp_path / "block.xml"),
         "blocks mm": read_cameras(tmp_path / "block_mm.xml"),
     }
@@ -114,6 +118,7 @@ def test_points_beyond_the_fold_of_the_radial_model_do_not_project():
 def test_format_is_chosen_by_name(tmp_path):
     assert camera_format(tmp_path) == "colmap"
     assert camera_format(tmp_path / "x" / "images.txt") == "colmap"
+    assert camera_format(tmp_path / "x" / "cameras.bin") == "colmap"
     assert camera_format(tmp_path / "AT.xml") == "blocksexchange"
     assert camera_format(tmp_path / "cameras.json") == "cameras.json"
     with pytest.raises(InputError, match="unknown camera file"):
@@ -137,7 +142,7 @@ def _edit(p, fn):
     (lambda c, i: _edit(c, lambda s: s.replace(" 2048 1536", " 2048 1536 7", 1)), "FULL_OPENCV takes 12"),
     (lambda c, i: _edit(i, lambda s: s.replace(" 1 DJI", " 9 DJI")), "camera 9 is not in cameras.txt"),
     (lambda c, i: c.unlink(), "cameras.txt: COLMAP text model incomplete"),
-    (lambda c, i: (i.unlink(), i.with_suffix(".bin").write_bytes(b"\0")), "model_converter"),
+    (lambda c, i: (i.unlink(), i.with_suffix(".bin").write_bytes(b"\0")), "COLMAP text model incomplete: images.txt"),
     (lambda c, i: i.write_text("# nothing\n"), "no images"),
 ])
 def test_broken_colmap_models_name_the_file_and_line(tmp_path, breaks, says):
@@ -145,6 +150,40 @@ def test_broken_colmap_models_name_the_file_and_line(tmp_path, breaks, says):
     breaks(c, i)
     with pytest.raises(InputError, match=says.replace("(", r"\(")):
         read_colmap(tmp_path)
+
+
+def _colmap_bin(tmp_path):
+    write_colmap_bin(tmp_path, [distorted_camera(), distorted_camera(0.0)])
+    return tmp_path / "cameras.bin", tmp_path / "images.bin"
+
+
+def _cut(p, n):
+    p.write_bytes(p.read_bytes()[:n])
+
+
+def _patch(p, offset, raw):
+    b = bytearray(p.read_bytes())
+    b[offset:offset + len(raw)] = raw
+    p.write_bytes(bytes(b))
+
+
+@pytest.mark.parametrize("breaks, says", [
+    (lambda c, i: _cut(i, 100), "images.bin: image 1: truncated"),
+    (lambda c, i: _cut(i, 60), "images.bin: truncated at byte 8"),
+    (lambda c, i: _cut(c, 30), "cameras.bin: truncated"),
+    (lambda c, i: _patch(c, 12, (99).to_bytes(4, "little")), "cameras.bin: camera 1: unknown model id 99"),
+    (lambda c, i: _patch(c, 12, (5).to_bytes(4, "little")), "OPENCV_FISHEYE is not supported"),
+    (lambda c, i: _patch(i, 8 + 4 + 56, (7).to_bytes(4, "little")), "image 1: camera 7 is not in cameras.bin"),
+    (lambda c, i: c.unlink(), "cameras.bin: COLMAP binary model incomplete"),
+    (lambda c, i: i.write_bytes((0).to_bytes(8, "little")), "no images"),
+])
+def test_broken_colmap_binary_models_name_the_file(tmp_path, breaks, says):
+    c, i = _colmap_bin(tmp_path)
+    assert len(read_colmap(tmp_path).cameras) == 2
+    breaks(c, i)
+    with pytest.raises(InputError, match=says) as e:
+        read_colmap(tmp_path)
+    assert "\n" not in str(e.value)
 
 
 @pytest.mark.parametrize("breaks, says", [
