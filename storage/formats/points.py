@@ -1,4 +1,4 @@
-"""Point-cloud readers (LAS/LAZ, PLY, PCD, XYZ/TXT/CSV) and the public API; LAS/LAZ writer re-exported.
+"""Point-cloud readers (LAS/LAZ, PLY, PCD, XYZ/TXT/CSV, E57) and the public API; LAS/LAZ writer re-exported.
 
 Readers form a registry keyed by extension (``READERS``); every format exposes the same two functions,
 ``read_header(path) -> CloudInfo`` and ``iter_points(path, chunk_points) -> Iterator[PointChunk]``.
@@ -9,8 +9,8 @@ Each format has its module: :mod:`storage.formats.las` (with the LAS 1.4 / LAZ w
 ``xyz``; this module is their registry and the public API. The shared values
 (``PointChunk``, ``CloudInfo``) in :mod:`storage.formats.point_chunk`. Both are re-exported here.
 
-Memory: LAS/LAZ and binary PLY are streamed, so memory is bounded by ``chunk_points``; PCD and
-XYZ/TXT/CSV are read whole, then chunked.
+Memory: LAS/LAZ and binary PLY are streamed, so memory is bounded by ``chunk_points``; E57 one scan at a
+time (:mod:`storage.formats.e57`); PCD and XYZ/TXT/CSV are read whole, then chunked.
 
 Every problem with an input file raises :class:`storage.errors.InputError` naming the file:
 missing, empty, no points, not a LAS file, truncated ("truncated after K of N points"),
@@ -34,6 +34,7 @@ from pathlib import Path
 import numpy as np
 
 from storage.errors import InputError
+from storage.formats.e57 import iter_e57
 from storage.formats.las import LasChunkWriter, choose_offset, iter_las, las_info, write_points
 from storage.formats.pcd import read_pcd
 from storage.formats.ply import iter_ply_points
@@ -83,8 +84,10 @@ _LAS = CloudFormat(las_info, iter_las)
 _PLY = CloudFormat(_info_by_scan(iter_ply_points), iter_ply_points)
 _PCD = CloudFormat(_info_by_scan(_whole_file_format(read_pcd)), _whole_file_format(read_pcd))
 _XYZ = CloudFormat(_info_by_scan(_whole_file_format(read_xyz)), _whole_file_format(read_xyz))
+_E57 = CloudFormat(_info_by_scan(iter_e57), iter_e57)
 READERS: dict[str, CloudFormat] = {
     ".las": _LAS, ".laz": _LAS, ".ply": _PLY, ".pcd": _PCD, ".xyz": _XYZ, ".txt": _XYZ, ".csv": _XYZ,
+    ".e57": _E57,
 }  # fmt: skip
 
 

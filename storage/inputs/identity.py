@@ -34,7 +34,7 @@ VERTEX_INDEX_BITS = 32  # up to 4.29e9 vertices per mesh file
 
 # Extensions a folder scan takes (a .txt or .csv of x y z is read when named explicitly, but in a folder it
 # is far more often a readme or a log).
-POINT_SUFFIXES = frozenset({".las", ".laz", ".ply", ".pcd", ".xyz", ".pts"})
+POINT_SUFFIXES = frozenset({".las", ".laz", ".ply", ".pcd", ".xyz", ".pts", ".e57"})
 MESH_SUFFIXES = frozenset({".obj", ".ply", ".glb", ".gltf", ".off", ".stl", ".3mx", ".3mxb"})
 
 

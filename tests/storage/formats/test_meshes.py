@@ -196,7 +196,7 @@ def test_meshes_with_nothing_usable_raise_input_errors_naming_the_file(tmp_path)
     with pytest.raises(InputError, match="not found"):
         read_mesh(tmp_path / "missing.obj")
     (tmp_path / "m.stl").write_text("solid")
-    with pytest.raises(InputError, match=r"supported: \.3mx, \.3mxb, \.glb, \.gltf, \.obj, \.ply"):
+    with pytest.raises(InputError, match=r"supported: \.3mx, \.3mxb, \.glb, \.gltf, \.json, \.obj, \.ply"):
         read_mesh(tmp_path / "m.stl")
 
 

@@ -148,9 +148,9 @@ def test_bad_inputs_name_the_file(tmp_path):
     with pytest.raises(InputError, match="signature") as err:
         read_header(tmp_path / "fake.las")
     assert "fake.las" in str(err.value)
-    (tmp_path / "cloud.e57").write_bytes(b"x")
-    with pytest.raises(InputError, match=r"supported: .*\.las.*\.laz.*\.ply"):
-        iter_points(tmp_path / "cloud.e57")
+    (tmp_path / "cloud.fls").write_bytes(b"x")
+    with pytest.raises(InputError, match=r"supported: .*\.e57.*\.las.*\.laz.*\.ply"):
+        iter_points(tmp_path / "cloud.fls")
 
 
 def test_failed_write_leaves_no_file(tmp_path):
