@@ -24,7 +24,7 @@ def _open(path: Path):
     check_cloud_file(path)
     try:
         return pye57.E57(str(path))
-    except Exception as err:  # libE57Format raises its own exception types
+    except Exception as err:  # noqa: BLE001 - libE57Format raises its own exception types
         msg = str(err).splitlines()[0] if str(err) else type(err).__name__
         raise InputError(path, f"not a readable E57 file ({msg})") from None
 
@@ -32,7 +32,7 @@ def _open(path: Path):
 def _scan(path: Path, e57, i: int) -> PointChunk:
     try:
         d = e57.read_scan(i, intensity=True, colors=True, ignore_missing_fields=True, transform=True)
-    except Exception as err:
+    except Exception as err:  # noqa: BLE001 - libE57Format raises its own exception types
         msg = str(err).splitlines()[0] if str(err) else type(err).__name__
         raise InputError(path, f"scan {i}: unreadable ({msg})") from None
     xyz = np.column_stack([d["cartesianX"], d["cartesianY"], d["cartesianZ"]]).astype(np.float64)

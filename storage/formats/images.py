@@ -12,7 +12,7 @@ from pathlib import Path
 import numpy as np
 from PIL import Image
 
-from storage.inputs.remote import readable
+from storage.formats.embedded import resolve_ref as readable  # URLs staged, embedded images extracted
 
 
 def read_rgb(path: str | Path) -> np.ndarray:

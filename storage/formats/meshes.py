@@ -44,7 +44,6 @@ from storage.formats.ply import read_ply_mesh, write_ply
 from storage.formats.production import finest_lod
 from storage.formats.threemx import read_3mx, select_3mx
 from storage.formats.tiles3d import read_tileset
-from storage.inputs.remote import readable
 
 
 def _drop_unusable(path: Path, mesh: MeshData) -> MeshData:
@@ -159,7 +158,9 @@ def texture_image(mesh: MeshData, index: int) -> np.ndarray:
     ref = mesh.textures[index]
     if ref in mesh.embedded_textures:
         return mesh.embedded_textures[ref]
-    with Image.open(readable(ref)) as image:
+    from storage.formats.embedded import resolve_ref
+
+    with Image.open(resolve_ref(ref)) as image:
         return np.asarray(image.convert("RGB"))
 
 

@@ -115,6 +115,22 @@ def _b3dm_glb(path: Path) -> tuple[bytes, np.ndarray]:
     return glb, rtc
 
 
+def _renamed_textures(mesh: MeshData, old: str, new: str) -> MeshData:
+    """Texture references of a b3dm's glb (read from a scratch copy) named after the b3dm itself, so they
+    stay resolvable (:mod:`storage.formats.embedded`) once the scratch copy is gone."""
+    rename = lambda t: new + t[len(old):] if t.startswith(old) else t
+    mesh.textures = [rename(t) for t in mesh.textures]
+    mesh.embedded_textures = {rename(k): v for k, v in mesh.embedded_textures.items()}
+    return mesh
+
+
+def read_content(path: str | Path) -> MeshData:
+    """One tile content file (glb or b3dm) in its tile frame (Z-up, RTC_CENTER applied; no tile transform)."""
+    path = Path(path).absolute()
+    with tempfile.TemporaryDirectory(prefix="ms3d-b3dm-") as tmp:
+        return _read_content(path, np.eye(4), Path(tmp), 0)
+
+
 def _read_content(path: Path, matrix: np.ndarray, scratch: Path, k: int) -> MeshData:
     from storage.formats.gltf import read_gltf
 
@@ -128,7 +144,7 @@ def _read_content(path: Path, matrix: np.ndarray, scratch: Path, k: int) -> Mesh
         glb, rtc = _b3dm_glb(path)
         local = scratch / f"{k:06d}-{path.stem}.glb"
         local.write_bytes(glb)
-        mesh = read_gltf(local)
+        mesh = _renamed_textures(read_gltf(local), f"{local.resolve()}#", f"{path}#")
     elif suffix in (".glb", ".gltf"):
         mesh = read_gltf(path)
     else:
@@ -186,4 +202,4 @@ def ecef_to_crs(ecef: np.ndarray, crs: str, geoid_spec: str | None = None, chunk
     return out
 
 
-__all__ = ["ecef_to_crs", "is_tileset", "read_tileset"]
+__all__ = ["ecef_to_crs", "is_tileset", "read_content", "read_tileset"]

@@ -69,3 +69,20 @@ class Location:
 
     def __str__(self) -> str:
         return self.raw
+
+
+EMBEDDED_CONTAINERS = (".glb", ".gltf", ".3mxb", ".b3dm")
+
+
+def split_embedded(ref) -> tuple[str, str] | None:
+    """(container path, image key) of a reference to an image embedded in a mesh container
+    (``<file.glb>#image0``; :mod:`storage.formats.embedded`), or None for an ordinary path.
+
+    >>> split_embedded("/d/a.glb#image0"), split_embedded("/d/t.jpg")
+    (('/d/a.glb', 'image0'), None)
+    """
+    s = str(ref)
+    head, sep, key = s.rpartition("#")
+    if not sep or not key or "/" in key or PurePosixPath(head).suffix.lower() not in EMBEDDED_CONTAINERS:
+        return None
+    return head, key

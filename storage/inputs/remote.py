@@ -30,7 +30,7 @@ from pathlib import Path
 
 from storage.errors import InputError
 from storage.formats.production import Production, production_root_of, read_metadata
-from storage.inputs.location import Location, is_url
+from storage.inputs.location import Location, is_url, split_embedded
 from storage.objstore.store import Store, open_store, redact
 
 CACHE_ENV = "MS3D_CACHE"
@@ -220,12 +220,15 @@ def staged_ref(local: str, url: str) -> str:
 
 def readable(ref) -> str:
     """A local path to open a recorded file reference: a URL is staged into this process's cache (once per
-    content), a path is returned as it is."""
+    content), a path is returned as it is (an embedded image: :func:`storage.formats.embedded.resolve_ref`)."""
     return local_input(ref) if is_url(ref) else ref
 
 
 def input_exists(path) -> bool:
-    """Whether an input file or folder exists (a local path, or an object / non-empty prefix)."""
+    """Whether an input file or folder exists (a local path, or an object / non-empty prefix); for an
+    embedded image (``<file.glb>#image0``), whether its container does."""
+    if (emb := split_embedded(path)) is not None and not is_url(path):
+        return Path(emb[0]).exists()
     if not is_url(path):
         return Path(path).exists()
     return head(path) is not None or bool(list_url(path.rstrip("/")))

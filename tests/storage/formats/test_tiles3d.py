@@ -17,8 +17,8 @@ from storage.workdir.layout import WorkDir
 
 def _merged_world(work):
     """The merged model of a work dir in world metres: (vertices (n, 3) float64, n_faces, area m^2)."""
-    from storage.workdir.layout import campus_frame, read_campus
     from storage.contracts.tile_mesh import read_tile_mesh
+    from storage.workdir.layout import campus_frame, read_campus
 
     origin = np.asarray(campus_frame(read_campus(WorkDir(work))).origin, np.float64)
     verts, n_faces, area = [], 0, 0.0
@@ -119,9 +119,9 @@ def test_bad_tilesets_are_one_line(tmp_path, what, says):
 
 
 def test_a_tileset_input_needs_a_crs_and_no_offset(tmp_path, tiny_export):
+    from storage.workdir.layout import campus_frame, read_campus
     from tasks.config import CampusConfig
     from tasks.scan import mesh_placement, place_mesh
-    from storage.workdir.layout import campus_frame, read_campus
 
     work, _ = tiny_export
     ts = work / "output" / "tileset.json"
@@ -137,3 +137,25 @@ def test_a_tileset_input_needs_a_crs_and_no_offset(tmp_path, tiny_export):
     mesh = place_mesh(read_mesh(ts, offset=place.offset), place, ts)
     truth, _, _ = _merged_world(work)
     assert np.abs(mesh.vertices.min(axis=0) - truth.min(axis=0)).max() < 1e-3
+
+
+def test_embedded_textures_stay_resolvable(tiny_export, tmp_path, monkeypatch):
+    """The tileset's embedded images are referenced as <content.glb>#imageK; readable() writes each to a PNG
+    in the input cache (once), with the same pixels; input_exists() checks the container."""
+    from PIL import Image
+
+    from storage.formats.embedded import resolve_ref as readable
+    from storage.inputs.location import split_embedded
+    from storage.inputs.remote import input_exists
+
+    monkeypatch.setenv("MS3D_CACHE", str(tmp_path / "cache"))
+    work, _ = tiny_export
+    mesh = read_mesh(work / "output" / "tileset.json")
+    assert mesh.textures, "the tiny export embeds textures"
+    ref = mesh.textures[0]
+    assert split_embedded(ref) is not None and input_exists(ref)
+    png = readable(ref)
+    assert png.endswith(".png") and str(tmp_path / "cache") in png
+    np.testing.assert_array_equal(np.asarray(Image.open(png).convert("RGB")), mesh.embedded_textures[ref])
+    assert readable(ref) == png  # written once
+    assert not input_exists(str(tmp_path / "gone.glb") + "#image0")
