@@ -28,7 +28,7 @@ import numpy as np
 
 from storage.atomic import atomic_path, file_fingerprint, file_sha256, read_json, write_json_atomic
 from storage.errors import InputError
-from storage.inputs.location import is_url
+from storage.inputs.location import is_url, split_embedded
 from storage.inputs.remote import url_fingerprint
 
 TILE_MESH_SCHEMA_VERSION = 1
@@ -135,8 +135,17 @@ def texture_refs(tile_dir: str | Path, recorded: list[str]) -> list[str]:
 
 
 def texture_fingerprint(ref: str) -> str:
-    """Content fingerprint of a texture reference: a URL's ETag and size, a file's size and mtime."""
-    return url_fingerprint(ref) if is_url(ref) else file_fingerprint(ref)
+    """Content fingerprint of a texture reference: a URL's ETag and size, a file's size and mtime; an image
+    embedded in a mesh container (``<file.glb>#image0``), its container's and the key."""
+    if is_url(ref):
+        return url_fingerprint(ref)
+    emb = split_embedded(ref)
+    return file_fingerprint(ref) if emb is None else f"{file_fingerprint(emb[0])}#{emb[1]}"
+
+
+def _texture_exists(ref: str) -> bool:
+    emb = split_embedded(ref)
+    return Path(ref if emb is None else emb[0]).is_file()
 
 
 def tile_mesh_content(tile_dir: str | Path) -> tuple[str, bytes, list[str]]:
@@ -159,7 +168,7 @@ def read_tile_mesh(tile_dir: str | Path) -> TileMesh:
         raise InputError(meta, f"schema_version {doc.get('schema_version')} is not {TILE_MESH_SCHEMA_VERSION}")
     textures = texture_refs(tile_dir, doc["textures"])
     for t in textures:
-        if not is_url(t) and not Path(t).is_file():
+        if not is_url(t) and not _texture_exists(t):
             raise InputError(meta, f"texture image {t} not found")
     arrays = _load_arrays(npz, _ARRAYS)
     try:
