@@ -5,6 +5,7 @@
 import * as THREE from 'three';
 import { OrbitControls } from 'three/addons/controls/OrbitControls.js';
 import { DRACOLoader } from 'three/addons/loaders/DRACOLoader.js';
+import { MeshoptDecoder } from 'three/addons/libs/meshopt_decoder.module.js';
 import { TilesRenderer } from '3d-tiles-renderer';
 import { GLTFExtensionsPlugin, ReorientationPlugin } from '3d-tiles-renderer/plugins';
 import { NO_DEVIATION, deviationColour } from './deviation.js';
@@ -37,7 +38,7 @@ const controls = new OrbitControls(camera, renderer.domElement);
 
 const draco = new DRACOLoader().setDecoderPath('/node_modules/three/examples/jsm/libs/draco/gltf/');
 const tiles = new TilesRenderer(tilesetUrl);
-tiles.registerPlugin(new GLTFExtensionsPlugin({ metadata: true, dracoLoader: draco }));
+tiles.registerPlugin(new GLTFExtensionsPlugin({ metadata: true, dracoLoader: draco, meshoptDecoder: MeshoptDecoder }));
 tiles.registerPlugin(new ReorientationPlugin({ recenter: true }));
 tiles.errorTarget = Number(params.get('errorTarget') || 8);  // pixels of screen-space error
 tiles.setCamera(camera);

@@ -261,7 +261,7 @@ def _set_dotted(d: dict, dotted: str, value) -> None:
 class ExportConfig(_Model):
     """3D Tiles export (tasks/export/build.py)."""
 
-    compression: Literal["none", "draco"] = Field("none", description="glb geometry compression: none, or Draco (KHR_draco_mesh_compression via DracoPy)")
+    compression: Literal["none", "draco", "meshopt"] = Field("none", description="glb geometry compression: none, Draco (KHR_draco_mesh_compression via DracoPy), or meshopt (EXT_meshopt_compression with KHR_mesh_quantization via glTF-Transform in node; keeps EXT_mesh_features / EXT_structural_metadata)")
     max_texture_px: int = Field(4096, ge=64, le=4096, description="texture atlases are cropped to what a tile uses and downscaled to at most this side length")
     jpeg_quality: int = Field(85, ge=10, le=100, description="quality of re-encoded JPEG textures")
     geoid_grid: str | None = Field(None, description="a PROJ vertical grid file (GeoTIFF or GTX: geoid undulation N by longitude/latitude, e.g. a national geoid) that makes the campus's orthometric heights ellipsoidal when PROJ has no geoid grid of its own for its vertical CRS; None: the EGM96 geoid shipped with ms3d (storage/geoid.py); recorded in georef.json")

@@ -41,8 +41,14 @@ def leaf_fingerprint(tile_dir: Path, base: str) -> str:
 
 
 def _write_glb(out: Path, uri: str, mesh: GltfMesh, compression: str) -> int:
-    """Stream the glb to a temporary name and rename it into place (never the whole glb in memory)."""
-    return write_parts_atomic(out / uri, glb_parts(mesh, compression))
+    """Stream the glb to a temporary name and rename it into place (never the whole glb in memory);
+    "meshopt": written plain, then compressed in place (:mod:`tasks.export.meshopt`). Returns its bytes."""
+    if compression != "meshopt":
+        return write_parts_atomic(out / uri, glb_parts(mesh, compression))
+    from tasks.export.meshopt import meshopt_compress
+
+    write_parts_atomic(out / uri, glb_parts(mesh, "none"))
+    return meshopt_compress([out / uri])[str(out / uri)][1]
 
 
 def _backend(cfg: ExportConfig) -> str | None:

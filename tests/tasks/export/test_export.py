@@ -321,3 +321,40 @@ def test_decimate_measures_its_deviation_and_keeps_borders(backend):
     kept = {(float(a), float(b)) for a, b, _ in dec.mesh.positions}
     assert len(border - kept) < 0.1 * len(border)  # open borders stay where the neighbour tile expects them
     assert set(np.unique(dec.mesh.region).tolist()) == {-1, 3}
+
+
+def test_meshopt_export_validates_keeps_metadata_and_is_smaller(tiny_merged, tiny_export, tmp_path):
+    """export.compression meshopt (glTF-Transform in node): 0 validator errors, smaller leaves, and the viewer
+    decodes them to the same per-face grades as the uncompressed export."""
+    import subprocess
+
+    from flows.view import VIEWER_DIR, start_viewer
+
+    node, reason = node_tools()
+    if node is None:
+        pytest.fail(reason)
+    work = tmp_path / "work"
+    shutil.copytree(tiny_merged, work)
+    summary = run_export(work, ExportConfig(compression="meshopt"))
+    out = work / "output"
+    assert summary["compression"] == "meshopt" and check_tileset(out, read_content=False) == []
+    for leaf in sorted((out / "content" / "tiles").glob("*.glb")):
+        doc, _ = read_glb(leaf.read_bytes())
+        assert "EXT_meshopt_compression" in doc["extensionsRequired"] and "EXT_structural_metadata" in doc["extensions"]
+        assert leaf.stat().st_size < (tiny_export[0] / "output" / "content" / "tiles" / leaf.name).stat().st_size
+    reports = validate_glbs(sorted(out.rglob("*.glb")))
+    assert all(r["errors"] == 0 for r in reports), [r["messages"] for r in reports if r["errors"]]
+    faces = {}
+    for name, w in (("plain", tiny_export[0]), ("meshopt", work)):
+        server = start_viewer(w)
+        try:
+            run = subprocess.run([node, str(VIEWER_DIR / "screenshot.mjs"), server.url + "&errorTarget=0",
+                                  str(tmp_path / f"{name}.png"), "800", "600", "120000"], check=False,
+                                 capture_output=True, text=True, timeout=180)
+        finally:
+            server.stop()
+        assert run.returncode == 0, run.stderr[-2000:]
+        result = json.loads(run.stdout)
+        assert result["ready"] and not result["state"]["errors"], result
+        faces[name] = result["state"]["faces"]
+    assert faces["meshopt"] == faces["plain"] and faces["plain"]["good"] > 0
