@@ -6,6 +6,7 @@ import * as THREE from 'three';
 import { OrbitControls } from 'three/addons/controls/OrbitControls.js';
 import { DRACOLoader } from 'three/addons/loaders/DRACOLoader.js';
 import { MeshoptDecoder } from 'three/addons/libs/meshopt_decoder.module.js';
+import { KTX2Loader } from 'three/addons/loaders/KTX2Loader.js';
 import { TilesRenderer } from '3d-tiles-renderer';
 import { GLTFExtensionsPlugin, ReorientationPlugin } from '3d-tiles-renderer/plugins';
 import { NO_DEVIATION, deviationColour } from './deviation.js';
@@ -38,7 +39,9 @@ const controls = new OrbitControls(camera, renderer.domElement);
 
 const draco = new DRACOLoader().setDecoderPath('/node_modules/three/examples/jsm/libs/draco/gltf/');
 const tiles = new TilesRenderer(tilesetUrl);
-tiles.registerPlugin(new GLTFExtensionsPlugin({ metadata: true, dracoLoader: draco, meshoptDecoder: MeshoptDecoder }));
+// KTX2 / Basis textures are transcoded for this GPU (detectSupport after the renderer exists)
+const ktx2 = new KTX2Loader().setTranscoderPath('/node_modules/three/examples/jsm/libs/basis/').detectSupport(renderer);
+tiles.registerPlugin(new GLTFExtensionsPlugin({ metadata: true, dracoLoader: draco, meshoptDecoder: MeshoptDecoder, ktxLoader: ktx2 }));
 tiles.registerPlugin(new ReorientationPlugin({ recenter: true }));
 tiles.errorTarget = Number(params.get('errorTarget') || 8);  // pixels of screen-space error
 tiles.setCamera(camera);

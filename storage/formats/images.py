@@ -28,12 +28,13 @@ def read_rgb_reduced(path: str, max_side: int) -> np.ndarray:
     return np.asarray(im.convert("RGB"))
 
 
-def embedded_texture(path: str, uv: np.ndarray, max_px: int, quality: int
+def embedded_texture(path: str, uv: np.ndarray, max_px: int, quality: int, multiple_of: int = 1
                      ) -> tuple[bytes, str, np.ndarray, np.ndarray]:
     """Crop an atlas (a local path or a URL) to the pixels ``uv`` (k, 2) (glTF convention) use, downscale to
     ``max_px``, encode. Returns (the image's bytes, their MIME type, its pixels (H, W, 3) uint8, uv remapped
     to the new image (k, 2) float32). The file's own bytes are embedded when neither crop nor downscale is
-    needed."""
+    needed. ``multiple_of``: each side rounded up to a multiple of it (4 for block-compressed KTX2 / Basis
+    textures; uv are relative, so a resize keeps them)."""
     path = readable(path)  # a texture of an input named by URL: staged in this process's cache
     with Image.open(path) as im:
         fmt, (w0, h0) = im.format, im.size
@@ -53,9 +54,11 @@ def embedded_texture(path: str, uv: np.ndarray, max_px: int, quality: int
         if rgb is not im:
             im.close()  # frees the decoded atlas now, not at the end of the block
         size = (max(1, round(cw * scale)), max(1, round(ch * scale)))
+        if multiple_of > 1:
+            size = tuple(-(-v // multiple_of) * multiple_of for v in size)
         if rgb.size != size:
             rgb = rgb.resize(size, Image.BILINEAR)
-        if whole and scale == 1.0 and fmt in ("JPEG", "PNG"):
+        if whole and scale == 1.0 and rgb.size == (w0, h0) and fmt in ("JPEG", "PNG"):
             data, mime = Path(path).read_bytes(), "image/jpeg" if fmt == "JPEG" else "image/png"
         else:
             buf = io.BytesIO()

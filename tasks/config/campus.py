@@ -264,8 +264,15 @@ class ExportConfig(_Model):
     compression: Literal["none", "draco", "meshopt"] = Field("none", description="glb geometry compression: none, Draco (KHR_draco_mesh_compression via DracoPy), or meshopt (EXT_meshopt_compression with KHR_mesh_quantization via glTF-Transform in node; keeps EXT_mesh_features / EXT_structural_metadata)")
     max_texture_px: int = Field(4096, ge=64, le=4096, description="texture atlases are cropped to what a tile uses and downscaled to at most this side length")
     jpeg_quality: int = Field(85, ge=10, le=100, description="quality of re-encoded JPEG textures")
+    texture: Literal["jpeg", "ktx2"] = Field("jpeg", description="texture encoding in the glb: jpeg (as cropped and re-encoded), or ktx2 (KTX2 / Basis Universal, KHR_texture_basisu, with mipmaps: UASTC in the leaves, ETC1S in textured parents; through ktx2-encoder in node, slow on CPU: about 30 s (ETC1S) to 90 s (UASTC) per 3k x 3k atlas on one core here); the viewer transcodes it for the GPU")
     geoid_grid: str | None = Field(None, description="a PROJ vertical grid file (GeoTIFF or GTX: geoid undulation N by longitude/latitude, e.g. a national geoid) that makes the campus's orthometric heights ellipsoidal when PROJ has no geoid grid of its own for its vertical CRS; None: the EGM96 geoid shipped with ms3d (storage/geoid.py); recorded in georef.json")
     lod_reduction: float = Field(4.0, gt=1.0, description="each quadtree level keeps 1/lod_reduction of its children's faces")
     hausdorff_samples: int = Field(20_000, ge=1000, description="points sampled per direction to measure a decimation's deviation")
     decimator: Literal["auto", "fqmr", "pymeshlab"] = Field("auto", description="quadric decimation: pyfqmr (Fast Quadric Mesh Simplification, ~6x faster) or pymeshlab (GPL: the optional gpl extra, pip install 'ms3d[gpl]'); auto = fqmr")
     overview_max_faces: int = Field(300_000, ge=1000, description="faces of output/overview.glb (whole campus, decimated)")
+
+    @model_validator(mode="after")
+    def _ktx2_without_draco(self):
+        if self.texture == "ktx2" and self.compression == "draco":
+            raise ValueError("export.texture ktx2 goes with export.compression none or meshopt, not draco")
+        return self

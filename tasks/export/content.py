@@ -41,11 +41,12 @@ def box_from_bounds(lo, hi) -> list[float]:
     return [*map(float, c), float(h[0]), 0.0, 0.0, 0.0, float(h[1]), 0.0, 0.0, 0.0, float(h[2])]
 
 
-def prepare_texture(path: str, uv: np.ndarray, max_px: int, quality: int) -> tuple[GltfImage, np.ndarray, np.ndarray]:
+def prepare_texture(path: str, uv: np.ndarray, max_px: int, quality: int, multiple_of: int = 1
+                    ) -> tuple[GltfImage, np.ndarray, np.ndarray]:
     """An atlas cropped to the pixels ``uv`` (k, 2) (glTF convention) use and downscaled to ``max_px``
     (:func:`storage.formats.images.embedded_texture`): (encoded image, its pixels (H, W, 3) uint8, uv
     remapped to the new image (k, 2) float32)."""
-    data, mime, pixels, new_uv = embedded_texture(path, uv, max_px, quality)
+    data, mime, pixels, new_uv = embedded_texture(path, uv, max_px, quality, multiple_of)
     return GltfImage(data, mime), pixels, new_uv
 
 
@@ -68,7 +69,8 @@ def leaf_content(tm: TileMesh, projector: EnuProjector, cfg: ExportConfig) -> tu
     for new_index, (k, a, b) in enumerate(zip(used_textures, starts, ends)):
         sel = order[a:b]
         uv_gltf = np.stack([tm.uv[src[sel], 0], 1.0 - tm.uv[src[sel], 1]], axis=1)
-        image, pixels, uv[sel] = prepare_texture(tm.textures[k], uv_gltf, cfg.max_texture_px, cfg.jpeg_quality)
+        image, pixels, uv[sel] = prepare_texture(tm.textures[k], uv_gltf, cfg.max_texture_px, cfg.jpeg_quality,
+                                                 4 if cfg.texture == "ktx2" else 1)
         colors[sel] = sample_colors(pixels, uv[sel])
         images.append(image)
         new_texture[k + 1] = new_index

@@ -40,15 +40,19 @@ def leaf_fingerprint(tile_dir: Path, base: str) -> str:
     return content_hash(base, *tile_mesh_content(tile_dir))
 
 
-def _write_glb(out: Path, uri: str, mesh: GltfMesh, compression: str) -> int:
+def _write_glb(out: Path, uri: str, mesh: GltfMesh, compression: str, texture: str = "jpeg",
+               leaf: bool = False) -> int:
     """Stream the glb to a temporary name and rename it into place (never the whole glb in memory);
-    "meshopt": written plain, then compressed in place (:mod:`tasks.export.meshopt`). Returns its bytes."""
-    if compression != "meshopt":
+    "meshopt" geometry or "ktx2" textures (UASTC in leaves, ETC1S in parents): written plain, then
+    compressed in place (:mod:`tasks.export.meshopt`). Returns its bytes."""
+    ktx = texture == "ktx2" and bool(mesh.images)
+    if compression != "meshopt" and not ktx:
         return write_parts_atomic(out / uri, glb_parts(mesh, compression))
-    from tasks.export.meshopt import meshopt_compress
+    from tasks.export.meshopt import compress_glbs
 
-    write_parts_atomic(out / uri, glb_parts(mesh, "none"))
-    return meshopt_compress([out / uri])[str(out / uri)][1]
+    nbytes = write_parts_atomic(out / uri, glb_parts(mesh, "none"))  # ExportConfig refuses draco + ktx2
+    return compress_glbs([out / uri], "meshopt" if compression == "meshopt" else "none",
+                         ("uastc" if leaf else "etc1s") if ktx else "keep").get(str(out / uri), (0, nbytes))[1]
 
 
 def _backend(cfg: ExportConfig) -> str | None:
@@ -74,7 +78,7 @@ def _build_leaf(job: NodeJob) -> dict:
     tm = read_tile_mesh(job.tile_dir)
     gltf, lod = leaf_content(tm, EnuProjector(job.georef), job.cfg)
     uri = f"content/tiles/{tm.tile}.glb"
-    nbytes = _write_glb(job.out, uri, gltf, job.cfg.compression)
+    nbytes = _write_glb(job.out, uri, gltf, job.cfg.compression, job.cfg.texture, leaf=True)
     texture_bytes = sum(len(im.data) for im in gltf.images)
     tile, n_faces = tm.tile, tm.n_faces
     del gltf, tm  # the decimation below needs only the LodMesh
@@ -92,7 +96,7 @@ def _build_parent(job: NodeJob) -> dict:
     n, kids = job.node, dict(job.children)
     content = weld(concat_lods([load_lod(job.cache / f"{k}.npz") for k in kids]))
     uri = f"content/lod{n.h}/{n.x}_{n.y}.glb"
-    nbytes = _write_glb(job.out, uri, lod_gltf(content), job.cfg.compression)
+    nbytes = _write_glb(job.out, uri, lod_gltf(content), job.cfg.compression, job.cfg.texture)
     dec = decimate(content, math.ceil(content.n_faces / job.cfg.lod_reduction), job.cfg.hausdorff_samples, _backend(job.cfg))
     save_lod(job.cache / f"{n.key}.npz", dec.mesh)
     lo, hi = content.bounds()
@@ -136,6 +140,6 @@ def _build_overview(job: NodeJob) -> dict:
     root_key = dict(job.children)["root"]["key"]
     ov = decimate(load_lod(job.cache / f"{root_key}.npz"), job.cfg.overview_max_faces, job.cfg.hausdorff_samples,
                   _backend(job.cfg)).mesh
-    nbytes = _write_glb(job.out, "overview.glb", lod_gltf(ov), job.cfg.compression)
+    nbytes = _write_glb(job.out, "overview.glb", lod_gltf(ov), job.cfg.compression, job.cfg.texture)
     return {"fingerprint": job.fingerprint, "uri": "overview.glb", "bytes": nbytes}
 

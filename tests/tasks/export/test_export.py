@@ -323,9 +323,10 @@ def test_decimate_measures_its_deviation_and_keeps_borders(backend):
     assert set(np.unique(dec.mesh.region).tolist()) == {-1, 3}
 
 
-def test_meshopt_export_validates_keeps_metadata_and_is_smaller(tiny_merged, tiny_export, tmp_path):
-    """export.compression meshopt (glTF-Transform in node): 0 validator errors, smaller leaves, and the viewer
-    decodes them to the same per-face grades as the uncompressed export."""
+def test_meshopt_and_ktx2_export_validate_and_keep_metadata(tiny_merged, tiny_export, tmp_path):
+    """export.compression meshopt + export.texture ktx2 (glTF-Transform and a Basis encoder in node; small
+    atlases to stay fast): 0 validator errors, both extensions in every textured leaf, and the viewer decodes
+    them to the same per-face grades as the uncompressed export, without errors."""
     import subprocess
 
     from flows.view import VIEWER_DIR, start_viewer
@@ -335,20 +336,22 @@ def test_meshopt_export_validates_keeps_metadata_and_is_smaller(tiny_merged, tin
         pytest.fail(reason)
     work = tmp_path / "work"
     shutil.copytree(tiny_merged, work)
-    summary = run_export(work, ExportConfig(compression="meshopt"))
+    summary = run_export(work, ExportConfig(compression="meshopt", texture="ktx2", max_texture_px=256))
     out = work / "output"
     assert summary["compression"] == "meshopt" and check_tileset(out, read_content=False) == []
     for leaf in sorted((out / "content" / "tiles").glob("*.glb")):
         doc, _ = read_glb(leaf.read_bytes())
         assert "EXT_meshopt_compression" in doc["extensionsRequired"] and "EXT_structural_metadata" in doc["extensions"]
-        assert leaf.stat().st_size < (tiny_export[0] / "output" / "content" / "tiles" / leaf.name).stat().st_size
+        if doc.get("images"):
+            assert "KHR_texture_basisu" in doc["extensionsRequired"]
+            assert all(im["mimeType"] == "image/ktx2" for im in doc["images"])
     reports = validate_glbs(sorted(out.rglob("*.glb")))
     assert all(r["errors"] == 0 for r in reports), [r["messages"] for r in reports if r["errors"]]
     faces = {}
-    for name, w in (("plain", tiny_export[0]), ("meshopt", work)):
+    for name, w in (("plain", tiny_export[0]), ("compressed", work)):
         server = start_viewer(w)
         try:
-            run = subprocess.run([node, str(VIEWER_DIR / "screenshot.mjs"), server.url + "&errorTarget=0",
+            run = subprocess.run([node, str(VIEWER_DIR / "screenshot.mjs"), server.url + "&errorTarget=0&mode=texture",
                                   str(tmp_path / f"{name}.png"), "800", "600", "120000"], check=False,
                                  capture_output=True, text=True, timeout=180)
         finally:
@@ -356,5 +359,10 @@ def test_meshopt_export_validates_keeps_metadata_and_is_smaller(tiny_merged, tin
         assert run.returncode == 0, run.stderr[-2000:]
         result = json.loads(run.stdout)
         assert result["ready"] and not result["state"]["errors"], result
+        bad = [m for m in result["console"] if m.startswith("pageerror") or any(
+            w in m.lower() for w in ("ktx", "basis", "transcod", "meshopt", "decod"))]
+        assert not bad, bad
         faces[name] = result["state"]["faces"]
-    assert faces["meshopt"] == faces["plain"] and faces["plain"]["good"] > 0
+    assert faces["compressed"] == faces["plain"] and faces["plain"]["good"] > 0
+    with pytest.raises(ValueError, match="ktx2 goes with"):
+        ExportConfig(compression="draco", texture="ktx2")
