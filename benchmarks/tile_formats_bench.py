@@ -1,0 +1,155 @@
+"""3D Tiles output formats side by side: geometry none / Draco / meshopt, textures JPEG / KTX2, on one merged work dir.
+
+Each variant exports a copy of the work dir's merged tiles (``run_export`` in this process, one after the
+other) and prints, per level (leaves, each parent level, the overview): files and bytes on disk (what a
+viewer downloads to show that level) and gzipped (with HTTP compression), texture bytes, the GPU memory the level's textures take once decoded
+(JPEG / PNG: RGBA8 with mipmaps, 4 x 4/3 bytes per pixel; KTX2: the transcoded block format, ETC1S -> BC1 /
+ETC1 at 0.5 byte per pixel, UASTC -> BC7 / ASTC 4x4 at 1 byte per pixel, with its mipmaps), the export's wall
+time, and the viewer's time to show the whole campus (headless chromium, software WebGL: page load until
+every tile is loaded and settled, ``errorTarget=0``) with the per-face grades it decoded.
+
+    .venv/bin/python benchmarks/tile_formats_bench.py --merged WORKDIR [--max-texture-px 1024] [--variants ...]
+
+Always exits 0: it reports. KTX2 encoding is slow on CPU (ktx2-encoder's Basis encoder in WebAssembly), so
+the default caps atlases at 1024 px for every variant (the same cap for JPEG, for a fair comparison).
+"""
+
+from __future__ import annotations
+
+import argparse
+import gzip
+import json
+import shutil
+import struct
+import subprocess
+import sys
+import tempfile
+import time
+from pathlib import Path
+
+sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
+
+from benchmarks._common import machine
+from benchmarks.export_bench import copy_merged
+
+VARIANTS = {"none+jpeg": ("none", "jpeg"), "draco+jpeg": ("draco", "jpeg"), "meshopt+jpeg": ("meshopt", "jpeg"),
+            "meshopt+ktx2": ("meshopt", "ktx2")}
+
+
+def _glb_json(data: bytes) -> dict:
+    n = struct.unpack("<I", data[12:16])[0]
+    return json.loads(data[20:20 + n])
+
+
+def _image_gpu_bytes(doc: dict, data: bytes) -> tuple[int, int]:
+    """(encoded texture bytes, estimated GPU bytes) of a glb's images."""
+    n = struct.unpack("<I", data[12:16])[0]
+    bin_start = 20 + n + 8
+    enc = gpu = 0
+    for im in doc.get("images", []):
+        bv = doc["bufferViews"][im["bufferView"]]
+        raw = data[bin_start + bv.get("byteOffset", 0): bin_start + bv.get("byteOffset", 0) + bv["byteLength"]]
+        enc += len(raw)
+        if im.get("mimeType") == "image/ktx2":
+            w, h = struct.unpack("<II", raw[20:28])
+            dfd_model = raw[struct.unpack("<I", raw[48:52])[0] + 12] if len(raw) > 64 else 0
+            per_px = 0.5 if dfd_model == 163 else 1.0  # KTX2 DFD colour model 163: ETC1S; else UASTC (166)
+        else:
+            from io import BytesIO
+
+            from PIL import Image
+
+            w, h = Image.open(BytesIO(raw)).size
+            per_px = 4.0
+        gpu += int(w * h * per_px * 4 / 3)
+    return enc, gpu
+
+
+def level_of(path: Path, out: Path) -> str:
+    rel = path.relative_to(out).as_posix()
+    if rel == "overview.glb":
+        return "overview"
+    return "leaves" if rel.startswith("content/tiles/") else rel.split("/")[1]  # content/lod{h}/...
+
+
+def measure(out: Path) -> dict:
+    levels: dict[str, dict] = {}
+    for p in sorted(out.rglob("*.glb")):
+        if "points" in p.relative_to(out).parts:
+            continue
+        data = p.read_bytes()
+        enc, gpu = _image_gpu_bytes(_glb_json(data), data)
+        lv = levels.setdefault(level_of(p, out), {"files": 0, "bytes": 0, "gzip_bytes": 0, "texture_bytes": 0,
+                                                  "gpu_texture_bytes": 0})
+        lv["files"] += 1
+        lv["bytes"] += len(data)
+        lv["gzip_bytes"] += len(gzip.compress(data, 6))  # the download with HTTP gzip
+        lv["texture_bytes"] += enc
+        lv["gpu_texture_bytes"] += gpu
+    return levels
+
+
+def viewer_time(work: Path) -> tuple[float, dict]:
+    from flows.view import VIEWER_DIR, start_viewer
+
+    node = shutil.which("node")
+    if node is None:
+        return float("nan"), {}
+    server = start_viewer(work)
+    try:
+        with tempfile.TemporaryDirectory() as tmp:
+            t0 = time.perf_counter()
+            run = subprocess.run([node, str(VIEWER_DIR / "screenshot.mjs"), server.url + "&errorTarget=0",
+                                  str(Path(tmp) / "shot.png"), "1024", "700", "600000"], capture_output=True,
+                                 text=True, check=False, timeout=900)
+            wall = time.perf_counter() - t0
+    finally:
+        server.stop()
+    try:
+        res = json.loads(run.stdout)
+    except json.JSONDecodeError:
+        return float("nan"), {}
+    return (wall if res.get("ready") else float("nan")), res.get("state", {}).get("faces", {})
+
+
+def main(argv=None) -> None:
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap.add_argument("--merged", type=Path, required=True, help="a processed work dir (its tiles/*/merged.*)")
+    ap.add_argument("--max-texture-px", type=int, default=1024)
+    ap.add_argument("--variants", nargs="+", default=list(VARIANTS), choices=list(VARIANTS))
+    ap.add_argument("--work", type=Path, help="where the copies go (default: a temporary folder)")
+    a = ap.parse_args(argv)
+    from tasks.config import ExportConfig
+    from tasks.export import run_export
+
+    tmp = tempfile.TemporaryDirectory(prefix="ms3d-formats-")
+    root = a.work or Path(tmp.name)
+    print(f"machine: {machine()}; merged tiles of {a.merged}; atlases capped at {a.max_texture_px} px")
+    rows = {}
+    for name in a.variants:
+        compression, texture = VARIANTS[name]
+        work = root / name
+        if work.exists():
+            shutil.rmtree(work)
+        copy_merged(a.merged, work, 0.0)  # texture paths made absolute: the copies read the source's textures
+        t0 = time.perf_counter()
+        run_export(work, ExportConfig(compression=compression, texture=texture, max_texture_px=a.max_texture_px))
+        export_s = time.perf_counter() - t0
+        view_s, faces = viewer_time(work)
+        rows[name] = {"export_s": export_s, "viewer_s": view_s, "faces": faces, "levels": measure(work / "output")}
+    print(f"\n{'variant':<14} {'level':<9} {'files':>5} {'MB on disk':>10} {'MB gzip':>8} {'MB textures':>11} "
+          f"{'MB GPU tex':>10}")
+    for name, r in rows.items():
+        for lv, m in sorted(r["levels"].items()):
+            print(f"{name:<14} {lv:<9} {m['files']:>5} {m['bytes'] / 1e6:>10.2f} {m['gzip_bytes'] / 1e6:>8.2f} "
+                  f"{m['texture_bytes'] / 1e6:>11.2f} {m['gpu_texture_bytes'] / 1e6:>10.2f}")
+    print(f"\n{'variant':<14} {'export s':>8} {'viewer s':>8} {'MB total':>8}  faces the viewer decoded")
+    for name, r in rows.items():
+        total = sum(m["bytes"] for m in r["levels"].values()) / 1e6
+        print(f"{name:<14} {r['export_s']:>8.1f} {r['viewer_s']:>8.1f} {total:>8.2f}  {r['faces']}")
+    if not a.work:
+        tmp.cleanup()
+
+
+if __name__ == "__main__":
+    main()
