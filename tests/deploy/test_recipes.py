@@ -272,3 +272,43 @@ def test_every_recipes_workers_start_with_the_heap_settings_of_local_workers():
     prologue = " ".join(_docs(DEPLOY / "slurm_cluster.yaml")[0]["cluster"]["job_script_prologue"])
     for k, v in WORKER_MALLOC_ENV.items():
         assert k8s[k] == v and compose[k] == v and f"{k}={v}" in prologue, k
+
+
+def _dockerfile() -> list[tuple[str, str]]:
+    """(instruction, arguments) of deploy/Dockerfile, continuation lines joined, comments dropped."""
+    text = re.sub(r"\\\n", " ", (DEPLOY / "Dockerfile").read_text())
+    out = []
+    for line in text.splitlines():
+        line = line.strip()
+        if line and not line.startswith("#"):
+            word, _, rest = line.partition(" ")
+            out.append((word.upper(), rest.strip()))
+    return out
+
+
+def test_dockerfile_installs_what_make_installs():
+    """Checked offline (no container runtime or registry here): the image installs the Makefile's Debian
+    packages, the pinned CPU torch before ms3d, ms3d itself with an import check, the viewer's npm packages
+    from the lock file, copies every code package, runs unprivileged, and the recipes name an image."""
+    steps = _dockerfile()
+    assert steps[0][0] == "FROM" and steps[0][1].startswith("python:3.11")
+    runs = " ".join(a for i, a in steps if i == "RUN")
+    make = (ROOT / "Makefile").read_text()
+    apt = re.search(r"^APT_PACKAGES := (.+)$", make, re.M).group(1).split()
+    assert all(p in runs for p in apt), apt
+    torch_pin = re.search(r'"(torch==[^"]+)"', (ROOT / "pyproject.toml").read_text()).group(1)
+    assert torch_pin in runs and runs.index(torch_pin) < runs.index("pip install .")
+    assert "import open3d, torch, prefect, laspy" in runs and "npm ci --prefix viewer" in runs
+    copied = {a.split()[0] for i, a in steps if i == "COPY"}
+    for pkg in ("flows", "tasks", "storage", "ms3d_model", "synth", "viewer", "pyproject.toml"):
+        assert pkg in copied, pkg
+    assert any(i == "USER" and a != "root" for i, a in steps)
+    assert not any(i == "ENTRYPOINT" for i, _ in steps)  # the recipes' commands run as given
+    assert ("CMD", '["ms3d", "--help"]') in steps
+    version = re.search(r'^version = "([^"]+)"', (ROOT / "pyproject.toml").read_text(), re.M).group(1)
+    images = {c["image"] for _, _, c in _containers()}
+    assert images == {f"registry.example.org/ms3d:{version}"}, images  # the image this Dockerfile builds
+    compose = yaml.safe_load((DEPLOY / "compose.yaml").read_text())["services"]
+    for name, svc in compose.items():
+        if name != "postgres":
+            assert svc["image"] == f"ms3d:{version}" and svc["build"]["dockerfile"] == "deploy/Dockerfile", name
