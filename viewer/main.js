@@ -126,7 +126,7 @@ function applyMode(mesh) {
 
 tiles.addEventListener('load-model', ({ scene: model }) => {
   state.models += 1;
-  model.traverse((o) => { if (o.isMesh) prepareMesh(o); });
+  model.traverse((o) => { if (o.isMesh) { prepareMesh(o); clipMesh(o, afterPlane); } });
 });
 tiles.addEventListener('load-error', (e) => state.errors.push(String(e.error || e)));
 
@@ -160,6 +160,67 @@ fetch(pointsUrl, { method: 'HEAD' }).then((r) => {
   scene.add(points.group);
 }).catch((e) => { state.points.probed = true; state.errors.push(`points overlay: ${e}`); });
 pointsBox.addEventListener('change', () => { settled = 0; state.ready = false; });
+
+// Before / after: output/before/tileset.json (the input mesh, written by the export with export.before) in
+// the same frame, shown left of a vertical split through the view's centre, the merged model right of it.
+// The split is a clipping plane whose normal is the camera's right vector; the slider moves it sideways.
+const beforeUrl = params.get('before') || new URL('before/tileset.json', new URL(tilesetUrl, location.href)).pathname;
+const compareBox = document.getElementById('compare');
+const splitSlider = document.getElementById('split');
+const afterPlane = new THREE.Plane(new THREE.Vector3(1, 0, 0), 0);   // keeps the right side: the merged model
+const beforePlane = new THREE.Plane(new THREE.Vector3(-1, 0, 0), 0); // keeps the left side: the input
+state.before = { probed: false, available: false, models: 0, shown: false, faces: 0 };
+let before = null;
+compareBox.checked = params.get('compare') === '1';
+splitSlider.value = params.get('split') || '0';
+function clipMesh(mesh, plane) {
+  const mats = [mesh.material, ...Object.values(mesh.userData.ms3d || {}).map((m) => m.material)];
+  for (const m of mats) if (m) { m.clippingPlanes = [plane]; m.clipShadows = true; }
+}
+fetch(beforeUrl, { method: 'HEAD' }).then((r) => {
+  state.before.probed = true;
+  if (!r.ok) { compareBox.disabled = true; compareBox.parentElement.title = 'no input tileset: export with export.before: true'; return; }
+  state.before.available = true;
+  before = new TilesRenderer(beforeUrl);
+  before.registerPlugin(new GLTFExtensionsPlugin({ metadata: true, dracoLoader: draco, meshoptDecoder: MeshoptDecoder, ktxLoader: ktx2 }));
+  before.errorTarget = tiles.errorTarget;
+  before.setCamera(camera);
+  before.setResolutionFromRenderer(camera, renderer);
+  before.group.matrixAutoUpdate = false;
+  before.addEventListener('load-model', ({ scene: model }) => {
+    state.before.models += 1;
+    model.traverse((o) => {
+      if (!o.isMesh) return;
+      const counts = { ...state.faces };
+      prepareMesh(o);
+      state.before.faces += Object.keys(counts).reduce((n, k) => n + state.faces[k] - counts[k], 0);
+      Object.assign(state.faces, counts);  // the merged model's counts stay the merged model's
+      clipMesh(o, beforePlane);
+    });
+  });
+  before.addEventListener('load-error', (e) => state.errors.push(String(e.error || e)));
+  scene.add(before.group);
+}).catch((e) => { state.before.probed = true; state.errors.push(`before tileset: ${e}`); });
+compareBox.addEventListener('change', () => { settled = 0; state.ready = false; });
+
+function updateBefore() {
+  state.before.shown = !!before && compareBox.checked;
+  renderer.localClippingEnabled = state.before.shown;
+  splitSlider.disabled = !state.before.shown;
+  if (!before) return compareBox.checked && !state.before.probed ? 1 : 0;
+  before.group.visible = state.before.shown;
+  if (!state.before.shown) return 0;
+  const right = new THREE.Vector3(1, 0, 0).applyQuaternion(camera.quaternion);
+  const at = controls.target.clone().addScaledVector(right, Number(splitSlider.value) * camera.position.distanceTo(controls.target) * 0.5);
+  afterPlane.setFromNormalAndCoplanarPoint(right, at);
+  beforePlane.setFromNormalAndCoplanarPoint(right.clone().negate(), at);
+  tiles.group.updateMatrix();
+  before.group.matrix.copy(tiles.group.matrix);
+  before.group.matrixWorldNeedsUpdate = true;
+  before.update();
+  const s = before.stats;
+  return s.downloading + s.parsing + (s.queued || 0) + (state.before.models ? 0 : 1);
+}
 
 function updatePoints() {
   state.points.shown = !!points && pointsBox.checked;
@@ -307,7 +368,7 @@ function loop() {
   controls.update();
   camera.updateMatrixWorld();
   tiles.update();
-  const pointsBusy = framed ? updatePoints() : 0;
+  const pointsBusy = framed ? updatePoints() + updateBefore() : 0;
   renderer.render(scene, camera);
   const s = tiles.stats;
   const busy = s.downloading + s.parsing + (s.queued || 0) + pointsBusy;

@@ -18,7 +18,7 @@ try {
   await page.waitForFunction(() => window.ms3d && window.ms3d.ready, null, { timeout: +timeout });
   result.ready = true;
   result.pick = await page.evaluate(() => window.ms3d.pickAt(innerWidth / 2, innerHeight / 2));
-  result.state = await page.evaluate(() => ({ models: window.ms3d.models, faces: window.ms3d.faces, errors: window.ms3d.errors, points: window.ms3d.points }));
+  result.state = await page.evaluate(() => ({ models: window.ms3d.models, faces: window.ms3d.faces, errors: window.ms3d.errors, points: window.ms3d.points, before: window.ms3d.before }));
   result.view = await page.evaluate(() => window.ms3d.view && window.ms3d.view());
   result.measure = await page.evaluate(() => window.ms3d.measure);
   await page.screenshot({ path: out });

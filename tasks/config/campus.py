@@ -265,6 +265,7 @@ class ExportConfig(_Model):
     max_texture_px: int = Field(4096, ge=64, le=4096, description="texture atlases are cropped to what a tile uses and downscaled to at most this side length")
     jpeg_quality: int = Field(85, ge=10, le=100, description="quality of re-encoded JPEG textures")
     texture: Literal["jpeg", "ktx2"] = Field("jpeg", description="texture encoding in the glb: jpeg (as cropped and re-encoded), or ktx2 (KTX2 / Basis Universal, KHR_texture_basisu, with mipmaps: UASTC in the leaves, ETC1S in textured parents; through ktx2-encoder in node, slow on CPU: about 30 s (ETC1S) to 90 s (UASTC) per 3k x 3k atlas on one core here); the viewer transcodes it for the GPU")
+    before: bool = Field(False, description="also write output/before/: the input mesh as a tileset in the same frame and format, for the viewer's before / after split (about doubles the export's time and size)")
     geoid_grid: str | None = Field(None, description="a PROJ vertical grid file (GeoTIFF or GTX: geoid undulation N by longitude/latitude, e.g. a national geoid) that makes the campus's orthometric heights ellipsoidal when PROJ has no geoid grid of its own for its vertical CRS; None: the EGM96 geoid shipped with ms3d (storage/geoid.py); recorded in georef.json")
     lod_reduction: float = Field(4.0, gt=1.0, description="each quadtree level keeps 1/lod_reduction of its children's faces")
     hausdorff_samples: int = Field(20_000, ge=1000, description="points sampled per direction to measure a decimation's deviation")

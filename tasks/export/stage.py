@@ -166,7 +166,7 @@ def run_export(work_dir: str | Path, config: ExportConfig | None = None, tiles: 
     tree = plan_quadtree(list(tiles))
     georef = make_georef(frame.crs, frame.origin, _enu_centre(campus, frame.origin_array, tiles),
                          frame.vertical_datum, cfg.geoid_grid)
-    base = content_hash(EXPORT_VERSION, cfg.model_dump(mode="json"), georef.to_json())
+    base = content_hash(EXPORT_VERSION, cfg.model_dump(mode="json", exclude={"before"}), georef.to_json())
     state_path = out / "tileset.fingerprints.json"
     old = json.loads(state_path.read_text()).get("nodes", {}) if state_path.exists() else {}
     run = map_jobs if map_jobs is not None else partial(_run_jobs, workers=workers)
@@ -180,6 +180,8 @@ def run_export(work_dir: str | Path, config: ExportConfig | None = None, tiles: 
     _remove_stale(out, cache, nodes)
     grades_mode = (campus.get("config") or {}).get("repair", {}).get("grades", "auto")  # what repair acted on
     points = write_points_overlay(wd.root / "tiles", out / "points", list(tiles), georef, grades_mode=grades_mode)
+    before = (_export_before(wd, list(tiles), georef, cfg, base, run, grades_mode) if cfg.before
+              else _drop_before(wd))
     leaves_built = [k for k in built if k.startswith("L0_")]
     return {
         "tiles": len(tiles), "nodes": len(nodes), "built": built, "reused": reused,
@@ -189,8 +191,57 @@ def run_export(work_dir: str | Path, config: ExportConfig | None = None, tiles: 
         "texture_bytes": int(sum(rec.get("texture_bytes", 0) for rec in nodes.values())),
         "root_geometric_error_m": nodes[root.key]["geometricError"], "seconds": time.perf_counter() - t0,
         "tileset": str(tileset), "overview": str(out / "overview.glb"), "georef": str(out / "georef.json"),
-        "points": points,
+        "points": points, "before": before,
     }  # fmt: skip
+
+
+# ------------------------------------------------------------------------------------- the input, for comparison
+
+BEFORE = "before"  # output/before/: the input mesh as a tileset (export.before), export/before/: its tiles
+
+
+def _drop_before(wd: WorkDir) -> None:
+    for d in (wd.output_dir / BEFORE, wd.root / "export" / BEFORE, wd.lod_cache_dir / BEFORE):
+        shutil.rmtree(d, ignore_errors=True)
+
+
+def _export_before(wd: WorkDir, tiles: list[str], georef: GeoRef, cfg: ExportConfig, base: str,
+                   run: Callable[[list[NodeJob]], list[dict]], grades_mode: str) -> dict:
+    """``output/before/``: the input mesh of every tile (its store's faces, :func:`tasks.merge.input_tile_mesh`)
+    as a tileset in the same frame, levels and format as the merged model's, for the viewer's before / after
+    split. Each tile's input mesh is rebuilt only when its store changed. Returns {"tiles", "tileset"}."""
+    from storage.contracts.tile_mesh import write_tile_mesh
+    from storage.errors import EmptyTileError
+    from storage.ids import TileId
+    from tasks.merge import input_tile_mesh
+
+    src = wd.root / "export" / BEFORE / "tiles"
+    kept = []
+    for key in tiles:
+        tile_dir, dst = wd.root / "tiles" / key, src / key
+        fp = store_fingerprint(tile_dir, sides=("grades",)) + grades_mode
+        mark = dst / "input.fingerprint"
+        if not (mark.exists() and mark.read_text() == fp and (dst / "merged.json").exists()):
+            try:
+                mesh = input_tile_mesh(TileId.from_key(key), tile_dir, grades_mode)
+            except EmptyTileError:
+                shutil.rmtree(dst, ignore_errors=True)
+                continue
+            write_tile_mesh(dst, mesh)
+            mark.write_text(fp)
+        kept.append(key)
+    if not kept:
+        _drop_before(wd)
+        return {"tiles": 0, "tileset": None}
+    tree = plan_quadtree(kept)
+    out, cache = wd.output_dir / BEFORE, wd.lod_cache_dir / BEFORE
+    state_path = out / "tileset.fingerprints.json"
+    old = json.loads(state_path.read_text()).get("nodes", {}) if state_path.exists() else {}
+    nodes, _, _ = _build_tree(tree, src, NodeJob(tree.root, content_hash(base, BEFORE), out, cache, georef, cfg),
+                              old, run)
+    tileset = _write_tileset(out, tileset_json(tree, nodes, georef), georef, nodes)
+    _remove_stale(out, cache, nodes)
+    return {"tiles": len(kept), "tileset": str(tileset)}
 
 
 # ------------------------------------------------------------------------------------- the points overlay

@@ -19,10 +19,12 @@ STAGE = StageSpec("merge", "tile", fixed_tile_batches, reads=(
 # nothing, and a worker loads only the modules its tasks run
 __getattr__ = lazy_exports(__name__, {
     "storage.contracts.region_mesh": "RegionMesh",
+    "tasks.merge.before": "input_tile_mesh",
     "tasks.merge.soup": "FaceSoup weld_soup",
     "tasks.merge.stage": "run_merge_tile",
     "tasks.merge.tile": "MergeStats faces_in_tile merge_tile retained_soup",
 })
 
-__all__ = ["STAGE", "FaceSoup", "MergeStats", "RegionMesh", "faces_in_tile", "merge_tile", "retained_soup",
+__all__ = ["STAGE", "FaceSoup", "MergeStats", "RegionMesh", "faces_in_tile", "input_tile_mesh", "merge_tile",
+           "retained_soup",
            "run_merge_tile", "weld_soup"]

@@ -189,3 +189,45 @@ def test_viewer_frames_the_model_upright_in_its_local_frame(tiny_export, tmp_pat
     assert drawn.mean() > 0.1, f"only {drawn.mean():.1%} of the pixels show the model"
     if os.environ.get("MS3D_UPDATE_DOCS"):
         shutil.copyfile(shot, DOCS_PNG.with_name(f"viewer-{place}.png"))
+
+
+def test_before_after_split_shows_the_input_beside_the_merged_model(tiny_work, tmp_path):
+    """export.before writes output/before/ (the input mesh as a tileset); the viewer loads it with
+    ?compare=1, clips it left of the split and the merged model right of it, and counts the input's faces
+    apart from the merged model's (which stay those of the view without the split)."""
+    _tools_or_fail()
+    from PIL import Image
+
+    from tasks.config import ExportConfig
+    from tasks.export import run_export
+    from tasks.export.check import check_tileset
+
+    work = tmp_path / "work"
+    shutil.copytree(tiny_work[1].root, work, ignore=shutil.ignore_patterns("staging", "output", "export", "prefect"))
+    summary = run_export(work, ExportConfig(before=True))
+    assert summary["before"]["tiles"] == summary["tiles"] and check_tileset(work / "output" / "before") == []
+    input_faces = sum(json.loads(p.read_text())["n_faces"] for p in (work / "export" / "before" / "tiles").glob("*/merged.json"))
+    shots = {}
+    server = start_viewer(work)
+    try:
+        for compare in ("0", "1"):
+            shot = tmp_path / f"compare{compare}.png"
+            run = subprocess.run(["node", str(VIEWER_DIR / "screenshot.mjs"), server.url + f"&errorTarget=0&compare={compare}",
+                                  str(shot), "1024", "700", "120000"], check=False, capture_output=True, text=True,
+                                 timeout=180)  # fmt: skip
+            assert run.returncode == 0, run.stderr[-2000:]
+            result = json.loads(run.stdout)
+            assert result["ready"] and not result["state"]["errors"], result
+            shots[compare] = (result["state"], np.asarray(Image.open(shot).convert("RGB")).astype(np.int32)[150:])
+    finally:
+        server.stop()
+    off, on = shots["0"][0], shots["1"][0]
+    assert off["before"]["available"] and not off["before"]["shown"] and off["before"]["models"] == 0
+    # every input leaf loaded (errorTarget 0); coarser levels loaded on the way count too
+    assert on["before"]["shown"] and on["before"]["faces"] >= input_faces > 0
+    assert on["faces"] == off["faces"]  # the merged model's counts are its own
+    # the input has no rebuilt (blue) faces: with the split, the left half loses blue, the right keeps it
+    blue = lambda rgb: ((rgb[..., 2] > rgb[..., 0] + 60) & (rgb[..., 2] > rgb[..., 1] + 30))  # noqa: E731
+    w = shots["1"][1].shape[1] // 2
+    assert blue(shots["1"][1][:, :w]).sum() < blue(shots["0"][1][:, :w]).sum()
+    assert blue(shots["1"][1][:, w:]).sum() > 0
