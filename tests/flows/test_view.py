@@ -227,7 +227,7 @@ def test_before_after_split_shows_the_input_beside_the_merged_model(tiny_work, t
     assert on["before"]["shown"] and on["before"]["faces"] >= input_faces > 0
     assert on["faces"] == off["faces"]  # the merged model's counts are its own
     # the input has no rebuilt (blue) faces: with the split, the left half loses blue, the right keeps it
-    blue = lambda rgb: ((rgb[..., 2] > rgb[..., 0] + 60) & (rgb[..., 2] > rgb[..., 1] + 30))  # noqa: E731
+    blue = lambda rgb: ((rgb[..., 2] > rgb[..., 0] + 60) & (rgb[..., 2] > rgb[..., 1] + 30))
     w = shots["1"][1].shape[1] // 2
     assert blue(shots["1"][1][:, :w]).sum() < blue(shots["0"][1][:, :w]).sum()
     assert blue(shots["1"][1][:, w:]).sum() > 0
