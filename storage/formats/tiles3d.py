@@ -5,7 +5,9 @@ the external tilesets its contents name), each content's positions taken through
 defines: glTF node transforms, glTF's Y-up to Z-up (:func:`storage.formats.gltf.y_up_to_z_up`), a b3dm's
 ``RTC_CENTER``, then the tile transforms from the root down. The result is one :class:`MeshData` whose
 vertices are **ECEF metres** (EPSG:4978, float64); the scan and ingest stages place it into the campus CRS
-(``tasks.scan.placement``: a tileset needs ``inputs.crs``). Textures embedded in the content are kept.
+(``tasks.scan.placement``: a tileset needs ``inputs.crs``). Textures embedded in the content are kept as
+references (``<content.glb>#imageK``, resolved on demand by :mod:`storage.formats.embedded`), not decoded:
+memory holds the geometry and one content's pixels at a time.
 
 Refused with one line naming the file: a JSON that is not a tileset, point-cloud / instanced / composite
 content (``.pnts``, ``.i3dm``, ``.cmpt``), implicit tiling, a content file that is missing or not a GLB /
@@ -154,6 +156,14 @@ def _read_content(path: Path, matrix: np.ndarray, scratch: Path, k: int) -> Mesh
     return mesh
 
 
+def _without_pixels(mesh: MeshData) -> MeshData:
+    """The mesh with its texture references but not their decoded pixels: a whole tileset's atlases would
+    not fit in memory, and every reference stays resolvable from its content file
+    (:func:`storage.formats.embedded.resolve_ref`)."""
+    mesh.embedded_textures = {}
+    return mesh
+
+
 def read_tileset(path: str | Path) -> MeshData:
     """The finest level of a 3D Tiles tileset as one mesh, vertices in ECEF metres (module doc).
     Raises InputError naming the tileset or the content file at fault."""
@@ -165,7 +175,7 @@ def read_tileset(path: str | Path) -> MeshData:
         raise InputError(path, "the tileset names no mesh content")
     leaves.sort(key=lambda pm: str(pm[0]))  # file order, whatever the tree's
     with tempfile.TemporaryDirectory(prefix="ms3d-b3dm-") as tmp:
-        parts = [_read_content(p, m, Path(tmp), k) for k, (p, m) in enumerate(leaves)]
+        parts = [_without_pixels(_read_content(p, m, Path(tmp), k)) for k, (p, m) in enumerate(leaves)]
     return MeshData.concat(parts, source=str(path))
 
 

@@ -5,6 +5,7 @@ from __future__ import annotations
 
 import json
 import struct
+from pathlib import Path
 
 import numpy as np
 import pytest
@@ -41,7 +42,7 @@ def test_own_export_reads_back_onto_the_merged_model(tiny_export):
     crs = campus_frame(read_campus(WorkDir(work))).crs
     mesh = read_mesh(work / "output" / "tileset.json")
     assert mesh.n_faces == summary["leaf_faces"]  # the finest level only, every face
-    assert mesh.embedded_textures or mesh.vertex_colors is not None or mesh.face_texture is not None
+    assert mesh.face_texture is not None and mesh.textures and not mesh.embedded_textures  # refs, no pixels
     world = ecef_to_crs(mesh.vertices, crs)
     truth, n_faces, area = _merged_world(work)
     assert mesh.n_faces == n_faces
@@ -156,6 +157,9 @@ def test_embedded_textures_stay_resolvable(tiny_export, tmp_path, monkeypatch):
     assert split_embedded(ref) is not None and input_exists(ref)
     png = readable(ref)
     assert png.endswith(".png") and str(tmp_path / "cache") in png
-    np.testing.assert_array_equal(np.asarray(Image.open(png).convert("RGB")), mesh.embedded_textures[ref])
+    from storage.formats.gltf import read_gltf
+
+    pixels = read_gltf(Path(split_embedded(ref)[0])).embedded_textures[ref]
+    np.testing.assert_array_equal(np.asarray(Image.open(png).convert("RGB")), pixels)
     assert readable(ref) == png  # written once
     assert not input_exists(str(tmp_path / "gone.glb") + "#image0")
