@@ -120,6 +120,7 @@ def synced(spec):
     def decorate(fn):
         @functools.wraps(fn)
         def wrapper(*args, **kwargs):
+            from storage.objstore.iostats import TaskMeter
             from tasks.units import is_planning, on_unit_recorded
 
             args, kwargs, epoch = _split_epoch(args, kwargs)
@@ -133,13 +134,15 @@ def synced(spec):
             first = args[0] if args else kwargs.get(next(iter(inspect.signature(fn).parameters)))
             reads = spec.reads_for(first if isinstance(first, list) else [])
             skips = spec.skips
-            mirror.pull((lambda rel: rel.startswith(reads)) if reads is not None else
-                        (lambda rel: not rel.startswith(skips)) if skips else None)
             label = getattr(fn, "__name__", "task")
             try:
-                with on_unit_recorded(lambda stage, unit: mirror.push(f"{label} {stage} {unit}")):
-                    out = fn(*args, **kwargs)  # each unit is published as it is recorded
-                mirror.push(label)
+                with TaskMeter(label) as meter:
+                    meter.timed("pull", mirror.pull, (lambda rel: rel.startswith(reads)) if reads is not None else
+                                (lambda rel: not rel.startswith(skips)) if skips else None)
+                    with on_unit_recorded(lambda stage, unit: meter.timed("push", mirror.push,
+                                                                          f"{label} {stage} {unit}")):
+                        out = fn(*args, **kwargs)  # each unit is published as it is recorded
+                    meter.timed("push", mirror.push, label)
             finally:
                 note_io("worker")
             return out
@@ -161,7 +164,7 @@ def remote_run(cfg: CampusConfig):
         mirror.lease = lease  # SyncExecutor checks it before every stage's tasks
         if lease is not None:  # the run's epoch: seals what earlier runs committed, fences what they commit late
             mirror.epoch = begin_epoch(mirror.store, lease.token, mirror.record_keys()).number
-        mirror.pull()
+        _driver_pull(mirror, "driver: pull at start")
         mirror.compact()  # one record for the current state: superseded objects become sweepable
         gone = sweep_unrecorded(mirror.store, grace_s=float(os.environ.get("MS3D_SWEEP_GRACE_S", SWEEP_GRACE_S)))
         if gone:
@@ -177,6 +180,14 @@ def remote_run(cfg: CampusConfig):
             log.info("work dir %s: driver %d commits, %d files pushed, %d pulled; %d requests, %.1f MB read, "
                      "%.1f MB written", mirror.store.describe(), mirror.stats["commits"], mirror.stats["pushed_files"],
                      mirror.stats["pulled_files"], st.n_requests, st.bytes_read / 1e6, st.bytes_written / 1e6)
+
+
+def _driver_pull(mirror, label: str) -> None:
+    """The driver's pull of ``mirror``, timed and counted under ``label`` (:mod:`storage.objstore.iostats`)."""
+    from storage.objstore.iostats import TaskMeter
+
+    with TaskMeter(label) as meter:
+        meter.timed("pull", mirror.pull)
 
 
 def _check_lease(mirror) -> None:
@@ -235,13 +246,13 @@ class _Pulled:
     def results(self):
         out = self.inner.results()
         _check_lease(self.mirror)
-        self.mirror.pull()
+        _driver_pull(self.mirror, "driver: pull after tasks")
         return out
 
     def result(self):
         out = self.inner.result()
         _check_lease(self.mirror)
-        self.mirror.pull()
+        _driver_pull(self.mirror, "driver: pull after tasks")
         return out
 
 

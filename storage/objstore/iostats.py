@@ -14,10 +14,14 @@ cache folder: bytes downloaded against bytes held on scratch.
      "inputs":   {...},          the input buckets (storage.inputs.remote): staged meshes, points, images
      "total":    {...},          both
      "mirror":   {"pulled_files": ..., "pushed_files": ..., "commits": ..., "records_read": ..., "cache_hits": ...},
-     "cas":      {"hits": ..., "misses": ..., "bytes_fetched": ..., "evicted": ...}}
+     "cas":      {"hits": ..., "misses": ..., "bytes_fetched": ..., "evicted": ...},
+     "tasks":    {"partition_task": {"runs": 3, "seconds": ..., "pull_s": ..., "push_s": ...,
+                                     "bytes_read": ..., "bytes_written": ..., "n_requests": ...}, ...}}
 
 Figures are sums over the process's stores, mirrors (one per thread) and content caches; a store shared by
-several mirrors counts once.
+several mirrors counts once. ``tasks`` splits them by task (:class:`TaskMeter`: the process's totals before
+and after each task, its wall seconds and the seconds spent pulling and pushing); a task's figures are its
+own when the process runs one task at a time (``--nthreads 1``, as the recipes do).
 """
 
 from __future__ import annotations
@@ -28,12 +32,15 @@ import threading
 import time
 from collections import Counter
 from pathlib import Path
+from typing import Self
 
 from storage.atomic import write_json_atomic
 
 IO_STATS_DIR = "io-stats"
 _ROLES: set[str] = set()
-_LOCK = threading.Lock()
+_TASKS: dict[str, Counter] = {}
+_LOCK = threading.RLock()
+_MOVED = ("bytes_read", "bytes_written", "n_requests")
 
 
 def _stores_figures(stores) -> dict:
@@ -62,8 +69,57 @@ def process_io() -> dict:
     cas = Counter()
     for c in content_caches():
         cas.update(c.stats)
+    with _LOCK:
+        tasks = {k: dict(v) for k, v in sorted(_TASKS.items())}
     return {"work_dir": _stores_figures(work), "inputs": _stores_figures(inputs),
-            "total": _stores_figures(work + inputs), "mirror": dict(mirror), "cas": dict(cas)}
+            "total": _stores_figures(work + inputs), "mirror": dict(mirror), "cas": dict(cas), "tasks": tasks}
+
+
+def _moved() -> dict:
+    total = process_io_totals()
+    return {k: total[k] for k in _MOVED}
+
+
+def process_io_totals() -> dict:
+    """{bytes_read, bytes_written, n_requests, requests} of every store of this process (work dir and inputs)."""
+    from storage.inputs.remote import input_stores
+    from storage.objstore.mirror import live_mirrors
+
+    return _stores_figures([m.store for m in live_mirrors()] + input_stores())
+
+
+class TaskMeter:
+    """What one task moved and how long it took, added to this process's ``tasks`` figures under ``label``
+    when the block ends (also when it raises)::
+
+        with TaskMeter("merge_task") as meter:
+            meter.timed("pull", mirror.pull)
+            ...
+    """
+
+    def __init__(self, label: str):
+        self.label = label
+        self.spent = Counter()
+
+    def __enter__(self) -> Self:
+        self.t0, self.before = time.perf_counter(), _moved()
+        return self
+
+    def timed(self, what: str, fn, *args, **kwargs):
+        """``fn(*args, **kwargs)``, its seconds added to ``{what}_s``."""
+        t0 = time.perf_counter()
+        try:
+            return fn(*args, **kwargs)
+        finally:
+            self.spent[f"{what}_s"] += time.perf_counter() - t0
+
+    def __exit__(self, *exc) -> None:
+        after = _moved()
+        add = Counter({k: after[k] - self.before[k] for k in _MOVED})
+        add.update({"runs": 1, "seconds": time.perf_counter() - self.t0, "pull_s": 0.0, "push_s": 0.0})
+        add.update(self.spent)
+        with _LOCK:
+            _TASKS.setdefault(self.label, Counter()).update(add)
 
 
 def io_stats_path(cache: str | Path) -> Path:
@@ -101,4 +157,5 @@ def read_io_stats(cache: str | Path) -> list[dict]:
     return out
 
 
-__all__ = ["IO_STATS_DIR", "io_stats_path", "process_io", "read_io_stats", "write_io_stats"]
+__all__ = ["IO_STATS_DIR", "TaskMeter", "io_stats_path", "process_io", "process_io_totals", "read_io_stats",
+           "write_io_stats"]

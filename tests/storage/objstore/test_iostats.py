@@ -19,9 +19,12 @@ from .test_objstore import s3_env, s3_server, s3_store  # noqa: F401 - fixtures
 
 @pytest.fixture
 def fresh_process(monkeypatch):
-    """No mirror, content cache or input store opened yet, as in a new process."""
+    """No mirror, content cache, input store or figure noted yet, as in a new process."""
     from storage.inputs import remote as remote_inputs
+    from storage.objstore import iostats
 
+    monkeypatch.setattr(iostats, "_ROLES", set())
+    monkeypatch.setattr(iostats, "_TASKS", {})
     monkeypatch.setattr(mirror_module, "_MIRRORS", {})
     monkeypatch.setattr(mirror_module, "_SWEPT", set())
     monkeypatch.setattr(cas_module, "_CACHES", {})
@@ -80,3 +83,20 @@ def test_a_store_shared_by_two_mirrors_counts_once(tmp_path, fresh_process):
     doc = json.loads(write_io_stats(cache, "worker").read_text())
     assert doc["work_dir"]["bytes_read"] == store.stats.bytes_read
     assert doc["mirror"]["pulled_files"] == 2 and doc["cas"]["misses"] == 1 and doc["cas"]["hits"] == 1
+
+
+def test_a_task_meter_splits_the_figures_by_task(tmp_path, fresh_process):
+    from storage.objstore.iostats import TaskMeter
+
+    store = open_store(str(tmp_path / "bucket"))
+    _publish(store, tmp_path / "w", {"a.bin": b"a" * 400, "b.bin": b"b" * 600})
+    m = mirror_of(store, tmp_path / "cache")
+    with TaskMeter("merge_task") as meter:
+        meter.timed("pull", m.pull, lambda rel: rel == "a.bin")
+    with pytest.raises(RuntimeError), TaskMeter("merge_task") as meter:
+        meter.timed("pull", m.pull)
+        raise RuntimeError("a task that fails still counts")
+    doc = json.loads(write_io_stats(tmp_path / "cache", "worker").read_text())
+    task = doc["tasks"]["merge_task"]
+    assert task["runs"] == 2 and task["bytes_read"] == store.stats.bytes_read == doc["work_dir"]["bytes_read"]
+    assert task["bytes_read"] >= 1000 and 0 < task["pull_s"] <= task["seconds"] and task["push_s"] == 0
