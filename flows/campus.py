@@ -46,6 +46,7 @@ from flows.tasks import (
     report_task,
     scan_task,
 )
+from storage import recorded
 from storage.contracts.staging import prune_staging
 from storage.errors import InputError
 from storage.patches.schema import FACES_FILE, POINTS_FILE
@@ -192,14 +193,9 @@ def _inputs(run: _Run) -> dict:
 def store_sizes(wd: WorkDir, tiles: list[str]) -> dict[str, int]:
     """{tile key: bytes of its points and faces stores}, the classify stage's weights (its largest stores start
     first: one long unit no longer runs alone on the last worker). A store that cannot be read counts as empty."""
-    def size(key: str) -> int:
-        total = 0
-        for name in (POINTS_FILE, FACES_FILE):
-            try:
-                total += (wd.root / "tiles" / key / name).stat().st_size
-            except OSError:
-                pass
-        return total
+    def size(key: str) -> int:  # on a bucket: the recorded sizes, nothing downloaded
+        return sum(st.size for name in (POINTS_FILE, FACES_FILE)
+                   if (st := recorded.state(wd.root / "tiles" / key / name)) is not None)
 
     return {k: size(k) for k in tiles}
 
@@ -227,7 +223,7 @@ def _tiles(run: _Run, inputs: dict) -> dict:
     drop_unplanned_records(wd, "classify", set(tiles))
     plan = submit_pending(wd, ex, regions_task, cj).result()
     run.note("regions", [plan], per_unit=False)
-    todo, unchanged = pending_regions(plan["regions"], local_view(cfg, "texture"), wd)  # one read of the plan, records
+    todo, unchanged = pending_regions(plan["regions"], local_view(cfg, "cameras"), wd)  # one read of the plan, records
     region_batches = run.batches(repair_task, todo, dict(zip(plan["regions"], plan["weights"])))
     repairs = run.note("region", unchanged + ex.map(repair_task, region_batches, "repair", cfg_json=cj).results())
     if not cfg.cluster.address:  # our own workers: what classify and repair left must not count against merge

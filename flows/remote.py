@@ -1,10 +1,12 @@
 """The flow's side of object storage: inputs named by URL and a work dir on a bucket.
 
 **Work dir by URL** (``work_dir: s3://bucket/prefix``): every process works on its own local mirror of
-the recorded work dir (:mod:`storage.objstore.mirror`). A task pulls before it runs and pushes what it
-changed when it returns (:func:`synced`); the driver holds the run lease (:func:`remote_run`), sweeps
-unrecorded leftovers, and pulls after each stage and pushes its own writes before the next
-(:class:`SyncExecutor`). Everything else is the local code, unchanged, on the mirror. Each process writes
+the recorded work dir (:mod:`storage.objstore.mirror`). A task pulls what its stage reads before it runs and
+pushes what it changed as each unit is recorded (:func:`synced`); the driver holds the run lease
+(:func:`remote_run`), sweeps unrecorded leftovers, and pulls after each stage and pushes its own writes before
+the next (:class:`SyncExecutor`). The driver plans from the records: its pulls bring the manifest records,
+JSON documents and small files only (:func:`driver_reads`); sizes, mtimes and digests of the rest come from
+the records (:mod:`storage.recorded`), and a larger file is downloaded where the driver reads it. Everything else is the local code, unchanged, on the mirror. Each process writes
 its cumulative object-store figures under its cache folder when the driver's hold ends and after each task
 (:func:`note_io`, :mod:`storage.objstore.iostats`): what a benchmark reads per process.
 
@@ -33,10 +35,12 @@ from tasks.config import CampusConfig
 
 log = logging.getLogger("ms3d.flow")
 
-__all__ = ["EPOCH_KEY", "SyncExecutor", "is_remote", "local_truth_plan", "local_view", "mirror_for", "note_io", "remote_run",
-           "synced", "uses_urls", "with_epoch", "work_dir_of"]
+__all__ = ["EPOCH_KEY", "SyncExecutor", "driver_reads", "is_remote", "local_truth_plan", "local_view", "mirror_for",
+           "note_io", "remote_run", "synced", "uses_urls", "with_epoch", "work_dir_of"]
 
 SWEEP_GRACE_S = 600.0  # unrecorded objects younger than this may belong to a task of a killed run still writing
+DRIVER_PULL_MAX_BYTES = 16 << 10  # the driver downloads files up to this size when it pulls; larger ones when read
+DRIVER_PULLS = ("manifest.d/", "labels/")  # and these folders whole (records, the user's labels), and every JSON
 
 
 def is_remote(cfg_or_url) -> bool:
@@ -159,6 +163,7 @@ def remote_run(cfg: CampusConfig):
     from storage.objstore.lock import DEFAULT_TTL_S, run_lock
 
     mirror = mirror_for(cfg.work_dir)
+    mirror.lazy = True  # it downloads what it reads when it reads it (driver_reads)
     ttl_s = float(os.environ.get("MS3D_LEASE_TTL_S", DEFAULT_TTL_S))  # how long a killed run blocks the next
     with run_lock(mirror.store, ttl_s=ttl_s) as lease:
         mirror.lease = lease  # SyncExecutor checks it before every stage's tasks
@@ -182,12 +187,24 @@ def remote_run(cfg: CampusConfig):
                      mirror.stats["pulled_files"], st.n_requests, st.bytes_read / 1e6, st.bytes_written / 1e6)
 
 
+def driver_reads(mirror):
+    """What the driver downloads when it pulls (a predicate on relative paths): the manifest records, the user's
+    labels, every JSON document and every file of at most DRIVER_PULL_MAX_BYTES. It plans from the records
+    (:mod:`storage.recorded`: sizes, mtimes and digests of the files it has not downloaded) and downloads a
+    larger file only where code reads it (a tile store, a merged tile, an LOD mesh)."""
+    def wanted(rel: str) -> bool:
+        return rel.startswith(DRIVER_PULLS) or rel.endswith(".json") or \
+            mirror.files.get(rel, (0, 0))[0] <= DRIVER_PULL_MAX_BYTES
+    return wanted
+
+
 def _driver_pull(mirror, label: str) -> None:
-    """The driver's pull of ``mirror``, timed and counted under ``label`` (:mod:`storage.objstore.iostats`)."""
+    """The driver's pull of ``mirror`` (:func:`driver_reads`), timed and counted under ``label``
+    (:mod:`storage.objstore.iostats`)."""
     from storage.objstore.iostats import TaskMeter
 
     with TaskMeter(label) as meter:
-        meter.timed("pull", mirror.pull)
+        meter.timed("pull", mirror.pull, driver_reads(mirror))
 
 
 def _check_lease(mirror) -> None:
@@ -266,14 +283,23 @@ def uses_urls(cfg: CampusConfig) -> bool:
 
 def local_view(cfg: CampusConfig, what: str) -> CampusConfig:
     """``cfg`` with the inputs ``what`` needs staged locally: "texture" (images and cameras; without them
-    configured, an ``images`` folder beside the first mesh URL) or "truth" (the labels file and the
+    configured, an ``images`` folder beside the first mesh URL), "cameras" (the cameras alone, as the texture
+    step finds them: what the driver fingerprints the regions by) or "truth" (the labels file and the
     ``truth/`` folder beside its folder, where the synth campus keeps its truth mesh)."""
     from storage.inputs.location import is_url
     from storage.inputs.remote import input_exists, local_input
 
     i = cfg.inputs
     change: dict = {}
-    if what == "texture":
+    if what == "cameras":
+        cams, images = i.cameras, i.images
+        if cams is None and images is None and i.mesh and is_url(i.mesh[0]):
+            images = i.mesh[0].rstrip("/").rsplit("/", 1)[0] + "/images"
+        if cams is None and is_url(images) and input_exists(images.rstrip("/") + "/cameras.json"):
+            cams = images.rstrip("/") + "/cameras.json"
+        if is_url(cams):
+            change["cameras"] = local_input(cams)
+    elif what == "texture":
         images, cams = i.images, i.cameras
         if images is None and cams is None and i.mesh and is_url(i.mesh[0]):
             guess = i.mesh[0].rstrip("/").rsplit("/", 1)[0] + "/images"

@@ -13,6 +13,7 @@ import tempfile
 from collections.abc import Iterable, Iterator
 from pathlib import Path
 
+from storage import recorded
 from storage.errors import InputError
 
 _UMASK = os.umask(0)
@@ -61,7 +62,11 @@ def write_json_atomic(path: str | Path, obj, indent: int = 2) -> None:
 
 
 def file_sha256(path: str | Path, chunk: int = 1 << 22) -> str:
-    """SHA-256 of a file's bytes, streamed in 4 MiB chunks."""
+    """SHA-256 of a file's bytes, streamed in 4 MiB chunks; a file of a work dir on a bucket that this process
+    holds as recorded (or has not downloaded) answers from its record (:mod:`storage.recorded`)."""
+    if (known := recorded.recorded_digest(path, "sha256")) is not None:
+        return known
+    recorded.ensure_local(path)
     h = hashlib.sha256()
     with open(path, "rb") as f:
         while block := f.read(chunk):
@@ -71,7 +76,17 @@ def file_sha256(path: str | Path, chunk: int = 1 << 22) -> str:
 
 def file_fingerprint(path: str | Path) -> str:
     """A cheap content fingerprint for resume decisions: size + mtime_ns + sha256 of the first and
-    last MiB. Exact checksums (``file_sha256``) are used where identity matters (synth manifests)."""
+    last MiB. Exact checksums (``file_sha256``) are used where identity matters (synth manifests). A file
+    of a work dir on a bucket held as recorded answers from its record (the pushing process computed it
+    with :func:`local_file_fingerprint`)."""
+    if (known := recorded.recorded_digest(path, "fingerprint")) is not None:
+        return known
+    recorded.ensure_local(path)
+    return local_file_fingerprint(path)
+
+
+def local_file_fingerprint(path: str | Path) -> str:
+    """:func:`file_fingerprint` of the local file ``path``, from its bytes."""
     path = Path(path)
     st = path.stat()
     h = hashlib.sha256(f"{st.st_size}:{st.st_mtime_ns}".encode())

@@ -17,6 +17,7 @@ from __future__ import annotations
 import contextlib
 from pathlib import Path
 
+from storage import recorded
 from storage.atomic import file_fingerprint
 from storage.contracts.columns import RUN_SUFFIX
 from storage.workdir.layout import WorkDir
@@ -40,9 +41,10 @@ def is_point_run(path: Path) -> bool:
 
 
 def staged_files(wd: WorkDir, tile_key: str) -> list[Path]:
-    """The complete staging runs of a tile (temporary names excluded), sorted by name."""
+    """The complete staging runs of a tile (temporary names excluded), sorted by name (on a bucket: the recorded
+    runs, downloaded or not: :mod:`storage.recorded`)."""
     d = wd.root / "staging" / tile_key
-    return sorted(p for p in d.glob(f"*{RUN_SUFFIX}") if not p.name.startswith(".")) if d.exists() else []
+    return [p for p in recorded.glob(d, f"*{RUN_SUFFIX}") if not p.name.startswith(".")]
 
 
 def staging_fingerprint(parts: list[Path]) -> list[str]:
@@ -52,22 +54,20 @@ def staging_fingerprint(parts: list[Path]) -> list[str]:
 
 def remove_unit_runs(wd: WorkDir, key: str) -> None:
     """Remove every staging run of unit ``key`` (a redone unit starts clean)."""
-    for old in (wd.root / "staging").glob(f"*/{key}-*{RUN_SUFFIX}"):
-        old.unlink(missing_ok=True)
+    for old in recorded.glob(wd.root / "staging", f"*/{key}-*{RUN_SUFFIX}"):
+        recorded.unlink(old)
 
 
 def prune_staging(wd: WorkDir, keys: set[str]) -> int:
     """Remove staging files of units not in ``keys`` (and temporary files); returns how many."""
     root = wd.root / "staging"
     removed = 0
-    if not root.exists():
-        return 0
-    for d in root.iterdir():
-        if not d.is_dir():
+    for d in recorded.children(root):
+        if not recorded.is_dir(d):
             continue
-        for f in d.iterdir():
+        for f in recorded.children(d):
             if f.name.startswith(".") or not f.name.endswith(RUN_SUFFIX) or f.name.rsplit("-", 1)[0] not in keys:
-                f.unlink(missing_ok=True)
+                recorded.unlink(f)
                 removed += 1
         with contextlib.suppress(OSError):
             d.rmdir()  # only when empty

@@ -26,6 +26,7 @@ from pathlib import Path
 
 import numpy as np
 
+from storage import recorded
 from storage.atomic import atomic_path, file_fingerprint, file_sha256, read_json, write_json_atomic
 from storage.errors import InputError
 from storage.inputs.location import is_url, split_embedded
@@ -161,12 +162,14 @@ def read_tile_mesh(tile_dir: str | Path) -> TileMesh:
     inconsistent tile mesh, or a missing texture image."""
     tile_dir = Path(tile_dir).absolute()
     npz, meta = tile_mesh_paths(tile_dir)
+    recorded.ensure_local(npz, meta)  # a work dir on a bucket: downloaded when read
     if not meta.exists() or not npz.exists():
         raise InputError(tile_dir, "no merged mesh (merged.npz + merged.json): run the merge stage first")
     doc = read_json(meta, "no merged mesh metadata: run the merge stage first")
     if doc.get("schema_version") != TILE_MESH_SCHEMA_VERSION:
         raise InputError(meta, f"schema_version {doc.get('schema_version')} is not {TILE_MESH_SCHEMA_VERSION}")
     textures = texture_refs(tile_dir, doc["textures"])
+    recorded.ensure_local(*(split_embedded(t)[0] if split_embedded(t) else t for t in textures if not is_url(t)))
     for t in textures:
         if not is_url(t) and not _texture_exists(t):
             raise InputError(meta, f"texture image {t} not found")
@@ -182,6 +185,7 @@ def read_tile_arrays(tile_dir: str | Path, names: tuple[str, ...]) -> dict[str, 
     "region") for a picture of it), without the others or the texture checks of :func:`read_tile_mesh`.
     Raises InputError naming the file for a missing or unreadable mesh, or a missing or inconsistent array."""
     npz, _ = tile_mesh_paths(Path(tile_dir).absolute())
+    recorded.ensure_local(npz)  # a work dir on a bucket: downloaded when read
     if not npz.exists():
         raise InputError(npz.parent, "no merged mesh (merged.npz + merged.json): run the merge stage first")
     arrays = _load_arrays(npz, names)

@@ -6,16 +6,20 @@ it, and publishes what it changed as one commit of :mod:`storage.objstore.commit
 
     s3://bucket/prefix/
       records/sync/{seq}.json        one commit: logical file -> object key, size, sha256; meta: each file's
-                                     mtime_ns and the files it deleted
+                                     mtime_ns and file_fingerprint, and the files it deleted
       objects/sync/{seq}/{token}/…   the objects of that commit (written before its record)
       .lock.json                     the run lease (storage.objstore.lock)
 
 - **pull** (:meth:`Mirror.pull`): list the records, read the ones this process has not seen, fold them in
   order (a later commit of a file wins; a deletion removes it) and download each file whose local copy
-  differs, setting its mtime to the producer's, so mtime-based fingerprints agree in every process. Only
-  recorded objects are ever read: an object written by a unit that died before its record is invisible.
+  differs (of those a predicate names), setting its mtime to the producer's, so mtime-based fingerprints
+  agree in every process. Only recorded objects are ever read: an object written by a unit that died before
+  its record is invisible. A file the pull left out is still known by its record: a mirror answers
+  :mod:`storage.recorded` for its folder (exists, size, mtime, sha256, fingerprint) and downloads it when code
+  reads it (:meth:`Mirror.fetch`): the driver plans from the records this way (``flows.remote.driver_reads``).
 - **push** (:meth:`Mirror.push`): every file of the mirror whose (size, mtime) differs from what this
-  process last pulled or pushed, and every such file that is gone, as one commit (objects, then the record).
+  process last pulled or pushed, and every such file that is gone (or deleted with ``storage.recorded.unlink``
+  before it was downloaded), as one commit (objects, then the record).
   A task's manifest records (``manifest.d/``) are files like any other, so a unit's outputs and its
   "done" record become visible together, or not at all.
 
@@ -29,8 +33,8 @@ mirror sees a later epoch than the state it holds, it reads that state afresh (a
 replaced the records it folded) and deletes its local copies of files the state no longer names: a
 long-lived worker never acts on a file it did not read from the store for this run.
 
-Each thread of each process has its own mirror folder (:func:`mirror_root`: the URL's hash, the process id,
-a token of this process instance and the thread), so a push publishes only what its own task wrote; folders
+Each thread of each process has its own mirror folder (:mod:`storage.objstore.folders`: the URL's hash, the
+process id, a token of this process instance and the thread), so a push publishes only what its own task wrote; folders
 of processes that are gone are deleted when a process opens its first mirror of a URL. Downloads go through
 the node's content-addressed cache of recorded objects (:mod:`storage.objstore.cas`, ``{cache}/objects``,
 keyed by each object's recorded sha256, bounded by ``MS3D_CACHE_MAX_GB``): a thread, a restarted process or
@@ -39,17 +43,19 @@ a new driver on the same node copies an object it already holds instead of downl
 
 from __future__ import annotations
 
-import hashlib
 import json
 import os
 import threading
 import uuid
 from pathlib import Path
 
+from storage import recorded
+from storage.atomic import local_file_fingerprint
 from storage.errors import InputError, Ms3dError
 from storage.objstore.cas import content_cache
 from storage.objstore.commit import RECORDS, UnitRecord, put_unit_outputs
 from storage.objstore.epoch import accepted, is_current, latest_epoch, parse_record_unit, record_unit
+from storage.objstore.folders import mirror_folder, sweep_stale_folders
 from storage.objstore.store import Store
 
 SYNC_STAGE = "sync"
@@ -75,7 +81,10 @@ class Mirror:
         self.seen: set[str] = set()
         self.files: dict[str, tuple[int, int]] = {}  # folded remote state: rel -> (size, mtime_ns)
         self._pending: dict[str, str] = {}  # recorded files not downloaded yet: rel -> object key
+        self._pending_sorted: list[str] | None = None  # sorted keys of _pending (None: to rebuild)
+        self._forgotten: set[str] = set()  # recorded files deleted here before they were downloaded
         self.refs: dict = {}  # folded remote state: rel -> OutputRef of its current object
+        self.fps: dict[str, str | None] = {}  # folded remote state: rel -> its file_fingerprint, when recorded
         self.last_utc = 0.0  # written_utc of the latest commit folded
         self.lock = threading.RLock()
         self.lease = None  # the run's Lease while the driver holds it (flows.remote.remote_run)
@@ -83,6 +92,9 @@ class Mirror:
         self.state_epoch = 0  # the latest epoch the folded state was read under
         self.lamport = 0  # the largest commit counter seen or written
         self.cas = None  # a ContentCache of recorded objects shared by the node's mirrors (mirror_of sets it)
+        # a mirror that downloads what it reads when it reads it (the driver: flows.remote.remote_run): a file it
+        # wrote before it downloaded the recorded version is its newer version, never overwritten by a pull
+        self.lazy = False
         self.stats = {"pulled_files": 0, "pushed_files": 0, "commits": 0, "records_read": 0, "cache_hits": 0}
 
     # ------------------------------------------------------------------ pull
@@ -98,7 +110,8 @@ class Mirror:
 
     def _reset(self) -> None:
         """Forget the folded state (its local files stay until :meth:`pull` finds them unnamed)."""
-        self.files, self.refs, self._pending, self.seen = {}, {}, {}, set()
+        self.files, self.refs, self.fps, self._pending, self.seen = {}, {}, {}, {}, set()
+        self._forgotten, self._pending_sorted = set(), None
 
     def _records(self) -> list[UnitRecord]:
         latest = latest_epoch(self.store)
@@ -129,9 +142,11 @@ class Mirror:
             for rec in self._records():
                 meta = rec.meta or {}
                 self.last_utc = max(self.last_utc, rec.written_utc)
+                fps = meta.get("fingerprint") or {}
                 for rel in meta.get("deleted", []):
                     self.files.pop(rel, None)
                     self.refs.pop(rel, None)
+                    self.fps.pop(rel, None)
                     self._pending.pop(rel, None)
                     if rel in self.known:
                         (self.root / rel).unlink(missing_ok=True)
@@ -139,17 +154,65 @@ class Mirror:
                 for rel, ref in rec.files.items():
                     self.files[rel] = (ref.size, int(meta["mtime_ns"][rel]))
                     self.refs[rel] = ref
+                    self.fps[rel] = fps.get(rel)  # None: recorded before commits carried fingerprints
                     self._pending[rel] = ref.key
+                    self._forgotten.discard(rel)  # written again by another process
             for rel in [r for r in self.known if r not in self.files]:  # gone from the state read afresh
                 (self.root / rel).unlink(missing_ok=True)
                 self.known.pop(rel, None)
+            self._pending_sorted = None
+            return self.fetch([rel for rel in sorted(self._pending) if only is None or only(rel)])
+
+    def fetch(self, rels) -> int:
+        """Download the recorded files ``rels`` that are not downloaded yet (no request for the records: what
+        the last :meth:`pull` folded). Returns the number of files downloaded."""
+        with self.lock:
             n = 0
-            for rel in sorted(self._pending):
-                if only is not None and not only(rel):
-                    continue
-                n += self._fetch(rel, self._pending.pop(rel))
+            for rel in rels:
+                key = self._pending.pop(rel, None)
+                if key is not None:
+                    self._pending_sorted = None
+                    n += self._fetch(rel, key)
             self.stats["pulled_files"] += n
             return n
+
+    # ------------------------------------------------------------------ what the records say (storage.recorded)
+    def recorded_state(self, rel: str):
+        """(the recorded :class:`storage.recorded.FileState` of ``rel`` or None, whether it is not downloaded)."""
+        from storage.recorded import FileState
+
+        with self.lock:
+            got = self.files.get(rel)
+            if got is None:
+                return None, False
+            ref = self.refs.get(rel)
+            return FileState(got[0], got[1], ref.sha256 if ref is not None else None, self.fps.get(rel)), \
+                rel in self._pending
+
+    def pending_under(self, rel_dir: str) -> list[str]:
+        """The recorded files under the folder ``rel_dir`` ('' for all) not downloaded yet."""
+        import bisect
+
+        with self.lock:
+            if self._pending_sorted is None:
+                self._pending_sorted = sorted(self._pending)
+            keys, prefix = self._pending_sorted, rel_dir.strip("/") + "/" if rel_dir.strip("/") not in ("", ".") else ""
+            i = j = bisect.bisect_left(keys, prefix)
+            while j < len(keys) and keys[j].startswith(prefix):
+                j += 1
+            return keys[i:j]
+
+    def forget(self, rels) -> None:
+        """The recorded files ``rels`` were deleted here before they were downloaded: the next push publishes
+        their deletion."""
+        with self.lock:
+            for rel in rels:
+                if self._pending.pop(rel, None) is not None:
+                    self._pending_sorted = None
+                    self.files.pop(rel, None)
+                    self.refs.pop(rel, None)
+                    self.fps.pop(rel, None)
+                    self._forgotten.add(rel)
 
     def _fetch(self, rel: str, key: str) -> int:
         size, mtime_ns = self.files[rel]
@@ -159,6 +222,8 @@ class Mirror:
             if (st.st_size, st.st_mtime_ns) == (size, mtime_ns):
                 self.known[rel] = (size, mtime_ns)
                 return 0
+            if self.lazy and rel not in self.known:  # written here, not pushed yet (the folder starts empty):
+                return 0  # it supersedes the recorded version, and the next push publishes it
         except OSError:
             pass
         ref = self.refs.get(rel)
@@ -199,7 +264,8 @@ class Mirror:
         """(changed or new files {rel: (size, mtime_ns)}, deleted files) since the last pull / push."""
         now = self._scan()
         changed = {r: s for r, s in now.items() if self.known.get(r) != s and self.files.get(r) != s}
-        deleted = sorted(r for r in self.known if r not in now and r not in self._pending)
+        deleted = sorted({r for r in self.known if r not in now and r not in self._pending}
+                         | {r for r in self._forgotten if r not in now})
         return changed, deleted
 
     def push(self, label: str = "") -> UnitRecord | None:
@@ -212,18 +278,25 @@ class Mirror:
             self.check_current()
             self.lamport += 1
             seq = record_unit(self.epoch or 0, self.lamport, uuid.uuid4().hex[:8])
+            fps = {r: local_file_fingerprint(self.root / r) for r in sorted(changed)}
             meta = {"mtime_ns": {r: s[1] for r, s in changed.items()}, "deleted": deleted, "label": label,
-                    "epoch": self.epoch}
+                    "epoch": self.epoch, "fingerprint": fps}
             rec = put_unit_outputs(self.store, SYNC_STAGE, seq, {r: self.root / r for r in sorted(changed)}, meta)
             self.seen.add(f"{RECORDS}/{SYNC_STAGE}/{seq}.json")
             for r, s in changed.items():
                 self.known[r] = self.files[r] = s
                 self.refs[r] = rec.files[r]
+                self.fps[r] = fps[r]
                 self._pending.pop(r, None)  # an older recorded version not fetched yet is superseded
+                self._forgotten.discard(r)
             for r in deleted:
                 self.known.pop(r, None)
                 self.files.pop(r, None)
                 self.refs.pop(r, None)
+                self.fps.pop(r, None)
+                self._pending.pop(r, None)
+                self._forgotten.discard(r)
+            self._pending_sorted = None
             self.last_utc = max(self.last_utc, rec.written_utc)
             self.stats["pushed_files"] += len(changed)
             self.stats["commits"] += 1
@@ -243,7 +316,7 @@ class Mirror:
             self.check_current()
             seq = record_unit(self.epoch or 0, 0, f"compacted{uuid.uuid4().hex[:8]}")
             meta = {"mtime_ns": {r: self.files[r][1] for r in self.refs}, "deleted": [], "label": "compacted",
-                    "epoch": self.epoch}
+                    "epoch": self.epoch, "fingerprint": {r: self.fps[r] for r in self.refs if self.fps.get(r)}}
             rec = UnitRecord(SYNC_STAGE, seq, "compacted", dict(self.refs), self.last_utc, meta)
             key = f"{RECORDS}/{SYNC_STAGE}/{seq}.json"
             self.store.put(key, json.dumps(rec.to_json(), sort_keys=True).encode())  # the new state first
@@ -257,41 +330,14 @@ _MIRRORS: dict[tuple[str, str], Mirror] = {}
 _MIRRORS_LOCK = threading.Lock()
 
 
-def _url_hash(url: str) -> str:
-    return hashlib.sha256(url.encode()).hexdigest()[:12]
-
-
 def mirror_root(url: str, cache: str | Path) -> Path:
-    """This thread's mirror folder of the work dir ``url`` under the cache folder ``cache``:
-    ``work/{url hash}-{pid}-{process instance}-{thread}``."""
-    return Path(cache) / "work" / f"{_url_hash(url)}-{os.getpid()}-{_INSTANCE}-{threading.get_ident()}"
-
-
-def _pid_alive(pid: int) -> bool:
-    try:
-        os.kill(pid, 0)
-    except ProcessLookupError:
-        return False
-    except PermissionError:
-        return True
-    return True
+    """This thread's mirror folder of the work dir ``url`` under the cache folder ``cache``."""
+    return mirror_folder(url, cache, _INSTANCE)
 
 
 def sweep_stale_mirrors(url: str, cache: str | Path) -> int:
-    """Delete the mirror folders of ``url`` under ``cache`` that belong to no live process instance: another
-    instance of this pid (a restarted process) or a pid that is gone. Returns how many were deleted."""
-    import shutil
-
-    base, mine, gone = Path(cache) / "work", f"{os.getpid()}-{_INSTANCE}", 0
-    for d in base.glob(f"{_url_hash(url)}-*") if base.is_dir() else []:
-        parts = d.name.split("-")
-        if len(parts) < 4 or not parts[1].isdigit():
-            continue
-        pid, inst = int(parts[1]), f"{parts[1]}-{parts[2]}"
-        if inst != mine and (pid == os.getpid() or not _pid_alive(pid)):
-            shutil.rmtree(d, ignore_errors=True)
-            gone += 1
-    return gone
+    """Delete the mirror folders of ``url`` under ``cache`` of process instances that are gone; how many."""
+    return sweep_stale_folders(url, cache, _INSTANCE)
 
 
 _SWEPT: set[tuple[str, str]] = set()
@@ -323,6 +369,7 @@ def mirror_of(store: Store, cache: str | Path) -> Mirror:
             shutil.rmtree(root, ignore_errors=True)  # never a leftover of another instance
             m = _MIRRORS[(store.url, str(root))] = Mirror(store, root)
             m.cas = content_cache(Path(cache) / "objects")
+            recorded.register(m)  # what the records say about the files it has not downloaded
     return m
 
 

@@ -13,6 +13,7 @@ import numpy as np
 import pyarrow as pa
 import pyarrow.parquet as pq
 
+from storage import recorded
 from storage.errors import InputError
 from storage.grid import PatchGrid
 from storage.ids import PatchId
@@ -163,11 +164,8 @@ class PatchStore:
     def __init__(self, tile_dir: str | Path):
         self.tile_dir = Path(tile_dir)
         self.stats = StoreStats()
-        pf, pmeta = open_table(self.tile_dir / PATCHES_FILE, "patches")
-        try:
-            table = pf.read()
-        except (OSError, pa.ArrowException) as exc:
-            raise InputError(self.tile_dir / PATCHES_FILE, f"cannot read ({exc})") from None
+        recorded.ensure_local(*(self.tile_dir / n for n in (PATCHES_FILE, POINTS_FILE, FACES_FILE)))
+        table, pmeta = _patches_table(self.tile_dir)
         self._patches = table_columns(table, PATCH_DTYPES, PATCH_DTYPES)
         files = {}
         for table_name, file_name, rows_key in (("points", POINTS_FILE, "points_rows"),
@@ -292,6 +290,31 @@ class PatchStore:
         return out
 
 
+def _patches_table(tile_dir: Path) -> tuple[pa.Table, dict]:
+    pf, pmeta = open_table(tile_dir / PATCHES_FILE, "patches")
+    try:
+        return pf.read(), pmeta
+    except (OSError, pa.ArrowException) as exc:
+        raise InputError(tile_dir / PATCHES_FILE, f"cannot read ({exc})") from None
+
+
+class PatchTable:
+    """A tile's patches table and side tables without its points and faces (a census, a count): on a work dir
+    on a bucket only these small files are downloaded. ``patches()`` and ``side(name)`` as :class:`PatchStore`'s."""
+
+    def __init__(self, tile_dir: str | Path):
+        self.tile_dir = Path(tile_dir)
+        recorded.ensure_local(self.tile_dir / PATCHES_FILE)
+        self._patches = table_columns(_patches_table(self.tile_dir)[0], PATCH_DTYPES, PATCH_DTYPES)
+
+    def patches(self) -> dict[str, np.ndarray]:
+        return dict(self._patches)
+
+    def side(self, name: str) -> dict[str, np.ndarray] | None:
+        got = read_side_table(self.tile_dir, name, self._patches["patch"])
+        return None if got is None else got[0]
+
+
 def read_side_table(tile_dir: str | Path, name: str, patch_keys: np.ndarray | None = None) -> tuple[dict, dict] | None:
     """A tile's side table as (columns, metadata), or None when it was never written.
 
@@ -299,8 +322,9 @@ def read_side_table(tile_dir: str | Path, name: str, patch_keys: np.ndarray | No
     for an older partition) and raises InputError rather than being joined to the wrong patches.
     """
     path = side_table_path(tile_dir, name)
-    if not path.exists():
+    if not recorded.is_file(path):
         return None
+    recorded.ensure_local(path)
     pf, meta = open_table(path, name)
     try:
         cols = table_columns(pf.read(), SIDE_TABLES[name], SIDE_TABLES[name])

@@ -13,6 +13,7 @@ from pathlib import Path
 
 import numpy as np
 
+from storage import recorded
 from storage.atomic import file_sha256
 from storage.contracts.tile_mesh import GRADE_UNKNOWN
 from storage.patches.schema import FACES_FILE, PATCHES_FILE, POINTS_FILE, side_table_path
@@ -31,16 +32,13 @@ def store_fingerprint(tile_dir: str | Path, sides: tuple[str, ...] = ()) -> str:
     a tile with no store at all fingerprints as ``"missing"``.
     """
     tile_dir = Path(tile_dir)
-    if not (tile_dir / PATCHES_FILE).exists():
+    if not recorded.is_file(tile_dir / PATCHES_FILE):
         return "missing"
     paths = [tile_dir / n for n in STORE_TABLES] + [side_table_path(tile_dir, s) for s in sides]
     parts = []
     for p in paths:
-        try:
-            st = p.stat()
-            parts.append(f"{p.name}:{st.st_size}:{st.st_mtime_ns}")
-        except OSError:
-            parts.append(f"{p.name}:-")
+        st = recorded.state(p)  # a work dir on a bucket: what the records say, nothing downloaded
+        parts.append(f"{p.name}:{st.size}:{st.mtime_ns}" if st is not None else f"{p.name}:-")
     return combine_fingerprints(parts)
 
 
@@ -58,7 +56,7 @@ def grades_identity(tile_dir: str | Path, mode: str) -> str:
         return "all"
     for name in _tables(mode):
         p = side_table_path(tile_dir, name)
-        if p.exists():
+        if recorded.is_file(p):
             return f"{name}:{file_sha256(p)}"
     return "none"
 
@@ -69,7 +67,7 @@ def patch_grades(store, mode: str = "auto") -> tuple[np.ndarray, np.ndarray, str
     grade is -1 unknown / 0 good / 1 bad. ``mode`` "auto": the classify stage's ``grades`` side table when
     present, else ``labels``; "model" / "labels": only that table; "all": every patch is bad (fusion
     everywhere the MLS reaches). source is "grades", "labels", "all" or "none" (every patch unknown).
-    ``store`` is a :class:`storage.patches.read.PatchStore`.
+    ``store`` is a :class:`storage.patches.read.PatchStore` (or a ``PatchTable``: the patches and side tables).
     """
     tables = _tables(mode)
     keys = store.patches()["patch"]

@@ -30,7 +30,7 @@ from pathlib import Path
 
 import numpy as np
 
-from storage import __version__
+from storage import __version__, recorded
 from storage.atomic import read_json, write_json_atomic
 from storage.errors import InputError
 from storage.frame import CampusFrame
@@ -76,28 +76,25 @@ class WorkDir:
     def staging_dir(self, tile: TileId) -> Path:
         return self.root / "staging" / tile.key
 
+    # the listings below count a work dir on a bucket's recorded files that are not downloaded (storage.recorded)
     def staged_tiles(self) -> list[TileId]:
-        d = self.root / "staging"
-        return sorted(TileId.from_key(p.name) for p in d.iterdir() if p.is_dir()) if d.exists() else []
+        return sorted(TileId.from_key(p.name) for p in recorded.children(self.root / "staging") if recorded.is_dir(p))
 
     def done_tiles(self) -> list[TileId]:
         """Tiles with a complete store (live or stale)."""
-        d = self.root / "tiles"
-        if not d.exists():
-            return []
-        return sorted(TileId.from_key(p.name) for p in d.iterdir() if (p / "patches.parquet").exists())
+        return sorted(TileId.from_key(p.name) for p in recorded.children(self.root / "tiles")
+                      if recorded.is_file(p / "patches.parquet"))
 
     def live_tiles(self) -> list[TileId]:
         """Tiles with a complete store that is current (not marked stale): what later stages read."""
-        return [t for t in self.done_tiles() if not (self.tile_dir(t) / STALE_FILE).exists()]
+        return [t for t in self.done_tiles() if not recorded.is_file(self.tile_dir(t) / STALE_FILE)]
 
     def stale_tiles(self) -> list[TileId]:
-        return [t for t in self.done_tiles() if (self.tile_dir(t) / STALE_FILE).exists()]
+        return [t for t in self.done_tiles() if recorded.is_file(self.tile_dir(t) / STALE_FILE)]
 
     def tile_keys_on_disk(self) -> list[str]:
         """Every tile folder, complete or not (to drop stores the current plan no longer names)."""
-        d = self.root / "tiles"
-        return sorted(p.name for p in d.iterdir() if p.is_dir()) if d.exists() else []
+        return sorted(p.name for p in recorded.children(self.root / "tiles") if recorded.is_dir(p))
 
 
 def write_campus(wd: WorkDir, frame: CampusFrame, registration: dict, config_snapshot: dict,

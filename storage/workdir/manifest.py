@@ -17,6 +17,7 @@ import time
 from dataclasses import asdict, dataclass, field
 from pathlib import Path
 
+from storage import recorded
 from storage.atomic import atomic_path, write_json_atomic
 from storage.workdir.layout import WorkDir
 
@@ -95,7 +96,7 @@ def record_is_current(wd: WorkDir, rec: ManifestRecord | None, fingerprint: str,
         return False
     if rec.fingerprint != fingerprint or rec.params_hash != phash:
         return False
-    return all((wd.root / o).exists() for o in rec.outputs)
+    return all(recorded.exists(wd.root / o) for o in rec.outputs)  # on a bucket: recorded, maybe not downloaded
 
 
 def is_done(wd: WorkDir, stage: str, unit: str, fingerprint: str, phash: str) -> ManifestRecord | None:

@@ -16,6 +16,7 @@ from pathlib import Path
 
 import numpy as np
 
+from storage import recorded
 from storage.atomic import atomic_path
 from storage.errors import InputError
 
@@ -56,6 +57,7 @@ def save_lod(path: str | Path, lod: LodMesh) -> None:
 
 
 def load_lod(path: str | Path) -> LodMesh:
+    recorded.ensure_local(path)  # a work dir on a bucket: downloaded when read
     with np.load(path, allow_pickle=False) as z:
         return LodMesh(**{k: z[k] for k in _FIELDS})
 

@@ -37,9 +37,10 @@ from pathlib import Path
 
 import numpy as np
 
+from storage import recorded
 from storage.atomic import write_bytes_atomic, write_json_atomic
 from storage.errors import InputError
-from storage.patches.read import PatchStore
+from storage.patches.read import PatchStore, PatchTable
 from storage.patches.schema import PATCHES_FILE, POINTS_FILE
 from storage.patches.state import patch_grades, store_fingerprint
 from storage.workdir.layout import WorkDir, campus_frame, read_campus
@@ -105,9 +106,9 @@ def _build_tree(tree: QuadTree, tiles_dir: Path, template: NodeJob, old: dict[st
                 kids = tuple((c.key, nodes[c.key]) for c in tree.children[n])
                 job = replace(template, node=n, fingerprint=content_hash(base, [r["fingerprint"] for _, r in kids]),
                               children=kids)
-            rec = old.get(n.key)
-            if rec and rec["fingerprint"] == job.fingerprint and (job.out / rec["uri"]).exists() \
-                    and (job.cache / f"{n.key}.npz").exists():
+            rec = old.get(n.key)  # its files on a bucket: recorded, maybe not downloaded (storage.recorded)
+            if rec and rec["fingerprint"] == job.fingerprint and recorded.is_file(job.out / rec["uri"]) \
+                    and recorded.is_file(job.cache / f"{n.key}.npz"):
                 nodes[n.key] = rec
                 reused.append(n.key)
             else:
@@ -132,12 +133,12 @@ def _write_tileset(out: Path, doc: dict, georef: GeoRef, nodes: dict[str, dict])
 def _remove_stale(out: Path, cache: Path, nodes: dict[str, dict]) -> None:
     """Remove the content glbs and cached LOD meshes that no node of the plan names."""
     named = {rec["uri"] for rec in nodes.values()}
-    for stale in (out / "content").rglob("*.glb"):
+    for stale in recorded.glob(out / "content", "**/*.glb"):
         if stale.relative_to(out).as_posix() not in named:
-            stale.unlink()
-    for stale in cache.glob("*.npz"):
+            recorded.unlink(stale)
+    for stale in recorded.glob(cache, "*.npz"):
         if stale.stem not in nodes:
-            stale.unlink()
+            recorded.unlink(stale)
 
 
 def run_export(work_dir: str | Path, config: ExportConfig | None = None, tiles: list[str] | None = None,
@@ -160,7 +161,7 @@ def run_export(work_dir: str | Path, config: ExportConfig | None = None, tiles: 
     if frame.crs is None:
         raise InputError(wd.campus_json, "the campus has no CRS: export needs one to georeference")
     if tiles is None:
-        tiles = sorted(p.parent.name for p in (wd.root / "tiles").glob("*/merged.json"))
+        tiles = sorted(p.parent.name for p in recorded.glob(wd.root / "tiles", "*/merged.json"))
     if not tiles:
         raise InputError(wd.root / "tiles", "no merged tiles (tiles/*/merged.json): run the merge stage first")
     tree = plan_quadtree(list(tiles))
@@ -173,7 +174,7 @@ def run_export(work_dir: str | Path, config: ExportConfig | None = None, tiles: 
     nodes, built, reused = _build_tree(tree, wd.root / "tiles", NodeJob(tree.root, base, out, cache, georef, cfg),
                                        old, run)
     root = tree.root
-    if root.key in built or not (out / "overview.glb").exists():
+    if root.key in built or not recorded.is_file(out / "overview.glb"):
         run([NodeJob(OVERVIEW, nodes[root.key]["fingerprint"], out, cache, georef, cfg,
                      children=(("root", {"key": root.key}),))])
     tileset = _write_tileset(out, tileset_json(tree, nodes, georef), georef, nodes)
@@ -202,7 +203,7 @@ BEFORE = "before"  # output/before/: the input mesh as a tileset (export.before)
 
 def _drop_before(wd: WorkDir) -> None:
     for d in (wd.output_dir / BEFORE, wd.root / "export" / BEFORE, wd.lod_cache_dir / BEFORE):
-        shutil.rmtree(d, ignore_errors=True)
+        recorded.remove_tree(d)
 
 
 def _export_before(wd: WorkDir, tiles: list[str], georef: GeoRef, cfg: ExportConfig, base: str,
@@ -268,11 +269,12 @@ def write_points_overlay(tiles_dir: Path, out_dir: Path, tiles: list[str], geore
                          budget: int = POINTS_BUDGET, seed: int = 0, grades_mode: str = "auto") -> dict:
     """Write (or keep, when unchanged) ``out_dir/tileset.json`` and ``out_dir/{key}.glb`` from the stores of
     ``tiles`` under ``tiles_dir`` (see :mod:`tasks.export.points`). Returns {"tiles", "points", "written", "tileset"}."""
-    with_points = [k for k in tiles if (tiles_dir / k / PATCHES_FILE).exists() and (tiles_dir / k / POINTS_FILE).exists()]
-    counts = {k: int(PatchStore(tiles_dir / k).patches()["n_points"].sum()) for k in with_points}
+    with_points = [k for k in tiles if recorded.is_file(tiles_dir / k / PATCHES_FILE)
+                   and recorded.is_file(tiles_dir / k / POINTS_FILE)]
+    counts = {k: int(PatchTable(tiles_dir / k).patches()["n_points"].sum()) for k in with_points}
     counts = {k: n for k, n in counts.items() if n}
     if not counts:
-        shutil.rmtree(out_dir, ignore_errors=True)
+        recorded.remove_tree(out_dir)
         return {"tiles": 0, "points": 0, "written": False, "tileset": None}
     fp = _digest([str(POINTS_VERSION), str(budget), str(seed), grades_mode, json.dumps(georef.to_json(), sort_keys=True)]
                               + [f"{k}:{store_fingerprint(tiles_dir / k, sides=('grades', 'labels'))}" for k in sorted(counts)])
@@ -290,9 +292,9 @@ def write_points_overlay(tiles_dir: Path, out_dir: Path, tiles: list[str], geore
         boxes[k] = box_from_bounds(enu.min(axis=0), enu.max(axis=0))
         write_bytes_atomic(out_dir / f"{k}.glb", build_points_glb(enu_to_gltf(enu), status))
         kept += len(xyz)
-    for stale in out_dir.glob("*.glb"):
+    for stale in recorded.glob(out_dir, "*.glb"):
         if stale.stem not in boxes:
-            stale.unlink()
+            recorded.unlink(stale)
     write_json_atomic(out_dir / "tileset.json", points_tileset_json(boxes, georef.tileset_transform()))
     write_json_atomic(state, {"fingerprint": fp, "points": kept, "tiles": sorted(boxes)})
     return {"tiles": len(boxes), "points": kept, "written": True, "tileset": str(out_dir / "tileset.json")}

@@ -8,6 +8,7 @@ from pathlib import Path
 
 import numpy as np
 
+from storage import recorded
 from storage.atomic import file_sha256
 from storage.ids import TileId
 from storage.inputs.location import is_url
@@ -35,16 +36,17 @@ def run_labels_tile(tile: TileId, cfg: CampusConfig, wd: WorkDir) -> dict | None
     remove a stale labels table. Returns the unit summary, or None when there is nothing to do."""
     tile_dir = wd.tile_dir(tile)
     if not cfg.inputs.labels:
-        side_table_path(tile_dir, "labels").unlink(missing_ok=True)
+        recorded.unlink(side_table_path(tile_dir, "labels"))
         return None
-    if not (tile_dir / PATCHES_FILE).exists() or (tile_dir / STALE_FILE).exists():
+    store = recorded.state(tile_dir / PATCHES_FILE)  # on a bucket: what the records say, nothing downloaded
+    if store is None or recorded.is_file(tile_dir / STALE_FILE):
         return None
     labels = Path(cfg.inputs.labels) if not is_url(cfg.inputs.labels) else cfg.inputs.labels  # identity
     try:
         labels_fp = file_sha256(local_input(str(labels)) if is_url(labels) else labels)
     except OSError as e:
         return {"unit": tile.key, "status": "failed", "error": f"{labels}: cannot read the labels file ({e.strerror})"}
-    fp = combine_fingerprints([labels_fp, str(labels), f"{(tile_dir / PATCHES_FILE).stat().st_mtime_ns}"])
+    fp = combine_fingerprints([labels_fp, str(labels), f"{store.mtime_ns}"])
 
     def work() -> Done:
         store = PatchStore(tile_dir)

@@ -46,6 +46,7 @@ from pathlib import Path
 
 import numpy as np
 
+from storage import recorded
 from storage.atomic import file_fingerprint
 from storage.contracts.region_mesh import RegionMesh, region_files_for_tile, region_meshes_for_tile
 from storage.contracts.tile_mesh import TileMesh, texture_refs, tile_mesh_paths, write_tile_mesh
@@ -96,8 +97,8 @@ def _give_back_freed_memory() -> None:
 def remove_merged(tile_dir: Path) -> None:
     """Remove a tile's merged mesh (the .json, which marks it complete, first)."""
     npz, meta = tile_mesh_paths(tile_dir)
-    meta.unlink(missing_ok=True)
-    npz.unlink(missing_ok=True)
+    recorded.unlink(meta)
+    recorded.unlink(npz)
     with contextlib.suppress(OSError):
         tile_dir.rmdir()  # only when nothing else is left in it
 
@@ -129,7 +130,7 @@ def merge_fingerprint(tile_dir: Path, regions: Sequence[tuple[int, str]], frame_
     fingerprint) pairs (:func:`storage.contracts.region_mesh.region_files_for_tile`: the files, no array read)."""
     store = [file_fingerprint(tile_dir / n) for n in (FACES_FILE, PATCHES_FILE, POINTS_FILE)]
     grades = side_table_path(tile_dir, "grades")  # the faces' scores, whatever table their grades come from
-    store.append(file_fingerprint(grades) if grades.exists() else "no grades")
+    store.append(file_fingerprint(grades) if recorded.is_file(grades) else "no grades")
     regs = [f"{number}:{fp}" for number, fp in sorted(regions)]
     return combine_fingerprints([*store, grades_identity(tile_dir, grades_mode), repr(sorted(frame_json.items())),
                                  *regs])
@@ -197,10 +198,10 @@ def run_merge_tile(tile: TileId, cfg, wd: WorkDir, regions: Sequence[RegionMesh]
     failed) keeps its last good one.
     """
     tile_dir = wd.tile_dir(tile)
-    if not (tile_dir / PATCHES_FILE).exists():
+    if not recorded.is_file(tile_dir / PATCHES_FILE):  # on a bucket: recorded, maybe not downloaded
         remove_merged(tile_dir)
         return None
-    if (tile_dir / STALE_FILE).exists():
+    if recorded.is_file(tile_dir / STALE_FILE):
         return None
     try:
         if regions is None:

@@ -13,6 +13,7 @@ from pathlib import Path
 
 import numpy as np
 
+from storage import recorded
 from storage.atomic import file_fingerprint, file_sha256, write_json_atomic
 from storage.contracts.tile_mesh import SOURCE_REBUILT, read_tile_arrays, read_tile_mesh, tile_mesh_paths
 from storage.ids import TileId
@@ -42,12 +43,20 @@ def truth_dir_of(cfg) -> Path | None:
 
 
 def merged_tiles(wd: WorkDir) -> list[str]:
-    """Keys ("ix_iy") of the tiles with a merged mesh, sorted."""
-    return sorted(p.parent.name for p in (wd.root / "tiles").glob("*/merged.json"))
+    """Keys ("ix_iy") of the tiles with a merged mesh, sorted (on a bucket: recorded, maybe not downloaded)."""
+    return sorted(p.parent.name for p in recorded.glob(wd.root / "tiles", "*/merged.json"))
 
 
 def any_rebuilt_region(wd: WorkDir, tiles: list[str]) -> bool:
-    """Whether any merged tile holds a rebuilt face (the same test the report's regions section makes)."""
+    """Whether any merged tile holds a rebuilt face (the test the report's regions section makes on the meshes),
+    from the merge records' ``rebuilt_faces`` when each tile's record has it (nothing downloaded; a rebuilt face
+    the weld dropped still counts), else from the meshes."""
+    from storage.workdir.manifest import read_stage_records
+
+    recs = read_stage_records(wd, "merge")
+    counts = [(recs[k].summary or {}).get("rebuilt_faces") if k in recs else None for k in tiles]
+    if all(c is not None for c in counts):
+        return any(int(c) > 0 for c in counts)
     return any((read_tile_mesh(wd.root / "tiles" / k).source == SOURCE_REBUILT).any() for k in tiles)
 
 
@@ -55,7 +64,10 @@ def _merged_fingerprint(wd: WorkDir, tiles: list[str]) -> str:
     h = hashlib.sha256()
     for k in tiles:
         npz, meta = tile_mesh_paths(wd.root / "tiles" / k)
-        h.update(k.encode() + meta.read_bytes() + str(npz.stat().st_size).encode() + str(npz.stat().st_mtime_ns).encode())
+        st = recorded.state(npz)  # on a bucket: what the records say, nothing downloaded
+        if st is None:
+            raise FileNotFoundError(npz)
+        h.update(k.encode() + meta.read_bytes() + str(st.size).encode() + str(st.mtime_ns).encode())
     return h.hexdigest()[:32]
 
 

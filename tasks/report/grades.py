@@ -21,7 +21,7 @@ from pathlib import Path
 
 import numpy as np
 
-from storage.patches.read import PatchStore, read_side_table
+from storage.patches.read import PatchTable, read_side_table
 from storage.patches.state import patch_grades
 from tasks.report.figures import score_histogram_png
 from tasks.report.html import Section, esc, table
@@ -104,7 +104,7 @@ def census_of_stores(tile_dirs: list[Path], min_faces: int = 1, min_points: int 
     """The census over the stores in ``tile_dirs`` (grades as ``repair.grades: auto`` reads them)."""
     nf, npt, gr, sc, sources, graders = [], [], [], [], [], []
     for tile_dir in tile_dirs:
-        store = PatchStore(tile_dir)
+        store = PatchTable(tile_dir)  # the patches and side tables only (on a bucket: all it downloads)
         p = store.patches()
         _, grade, source = patch_grades(store, "auto")
         got = read_side_table(tile_dir, "grades", p["patch"]) if source == "grades" else None

@@ -33,7 +33,7 @@ from collections.abc import Callable
 from functools import partial
 from pathlib import Path
 
-from storage import __version__
+from storage import __version__, recorded
 from storage.atomic import file_sha256, write_bytes_atomic, write_json_atomic
 from storage.errors import InputError
 from storage.workdir.layout import WorkDir, campus_frame, read_campus
@@ -90,7 +90,7 @@ def _regions_doc(cfg, wd: WorkDir, records: list | None) -> tuple[dict, str, lis
     key = _regions_key(records if records is not None else all_records(wd), tiles, cfg.grid().to_json())
     path = wd.report_dir / "regions" / "section.json"
     doc = json.loads(path.read_text()) if path.exists() else {}
-    if doc.get("key") != key or not all((path.parent / f"{n}.png").exists() for n in doc.get("figures", [])):
+    if doc.get("key") != key or not all(recorded.is_file(path.parent / f"{n}.png") for n in doc.get("figures", [])):
         doc = {}
     return doc, key, tiles
 
@@ -203,7 +203,7 @@ def run_report_unit(cfg, wd: WorkDir) -> dict:
     fp, ph = report_fingerprint(wd), params_hash(report_params(cfg))
     page = wd.report_html
     rec = is_done(wd, "report", "campus", fp, ph)
-    if rec is not None and page.exists():
+    if rec is not None and recorded.is_file(page):  # on a bucket: recorded, maybe not downloaded
         return {**skipped_summary(rec), "report": str(page)}
     if is_planning():
         raise MustRun("report", "campus")

@@ -211,7 +211,7 @@ def test_tiny_campus_on_s3_equals_local_and_reruns_as_noop(tiny_campus, s3, tmp_
     Registration is off to keep it short (it gives the same transform under other names or URLs:
     tests/flows/test_reprocessing.py::test_renamed_inputs_in_another_run_order_give_the_same_stores_and_grades)."""
     from flows.campus import InlineExecutor, run_campus
-    from flows.remote import mirror_for
+    from flows.remote import DRIVER_PULL_MAX_BYTES, mirror_for
     from tasks.config import CampusConfig
 
     over = {"runner": "inline", "report.enabled": False, "registration.mode": "off"}
@@ -235,6 +235,15 @@ def test_tiny_campus_on_s3_equals_local_and_reruns_as_noop(tiny_campus, s3, tmp_
     again = run_campus(remote, executor=InlineExecutor())  # another process, an empty mirror: nothing to redo
     assert all(c["run"] == 0 for c in again["stages"].values()), again["stages"]
     mirror = mirror_for(remote.work_dir)
+    # the driver planned from the records: no store, staging run, merged tile or region mesh came down (but the
+    # small files every pull of the driver brings: records, JSON, files of at most DRIVER_PULL_MAX_BYTES)
+    held = {p.relative_to(mirror.root).as_posix(): p.stat().st_size for p in mirror.root.rglob("*") if p.is_file()}
+    heavy = [r for r, n in held.items() if n > DRIVER_PULL_MAX_BYTES and
+             (r.startswith("staging/") or r.endswith(("points.parquet", "faces.parquet", ".npz", ".glb")))]
+    assert not heavy, heavy
+    recorded = sum(size for size, _ in mirror.files.values())
+    assert mirror.store.stats.bytes_read <= 0.01 * recorded, (mirror.store.stats.bytes_read, recorded)
+    mirror.pull()  # now all of it, to compare
     got, want = tables_by_content(mirror.root), tables_by_content(tmp_path / "local")
     assert sorted(got) == sorted(want)  # the same tiles, stores and merged meshes
     differ = sorted(k for k in got if "merged" not in k and got[k] != want[k])
@@ -289,7 +298,7 @@ def test_a_run_that_lost_its_lease_starts_no_more_tasks(tmp_path):
 
     lease = SimpleNamespace(lost=None)
     lease.check = lambda: (_ for _ in ()).throw(lease.lost) if lease.lost else None
-    mirror = SimpleNamespace(lease=lease, push=lambda *a: calls.append("push"), pull=lambda: calls.append("pull"))
+    mirror = SimpleNamespace(lease=lease, push=lambda *a: calls.append("push"), pull=lambda only=None: calls.append("pull"))
     ex = SyncExecutor(Inner(), mirror)
     assert ex.map(SimpleNamespace(name="scan"), [[1]], "scan").results() == [1]
     assert calls == ["push", "scan", "pull"]
