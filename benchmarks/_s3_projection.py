@@ -116,8 +116,9 @@ def print_projection(s: Scale, worker_docs: list[dict], driver: dict, rerun_driv
     print(f"  k_area {s.k_area:.1f} (units), k_density {s.k_density:.2f} (bytes and compute per unit), "
           f"k_bytes {s.k_bytes:.0f} (work dir); {s.latency_s * 1e3:.0f} ms per request, "
           f"{s.bandwidth_bps / 1e6:.0f} MB/s per process, one request at a time")
-    print(f"  {'task':<26} {'reads':<30} {'tasks':>8} {'GB/task':>9} {'req/task':>9} {'cpu s/task':>10} "
+    print(f"  {'task':<26} {'reads':<30} {'tasks':>8} {'GB/task':>9} {'req/task':>9} {'compute s':>10} "
           f"{'rounds':>6} {'stage h':>8}")
+    print("  (compute: a task's wall seconds less its pull and push seconds, as measured, scaled as above)")
     for r in rows:
         print(f"  {r.label:<26} {r.how:<30} {r.tasks:>8.0f} {(r.read + r.written) / GB:>9.3f} {r.requests:>9.0f} "
               f"{r.compute_s:>10.1f} {r.rounds:>6} {r.time_s / 3600:>8.2f}")

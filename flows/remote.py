@@ -147,6 +147,8 @@ def synced(spec):
                                                                           f"{label} {stage} {unit}")):
                         out = fn(*args, **kwargs)  # each unit is published as it is recorded
                     meter.timed("push", mirror.push, label)
+                if not mirror.lazy:  # a worker keeps what its content cache holds, not a mirror (the driver's
+                    mirror.release()  # inline tasks keep theirs: it plans from them)
             finally:
                 note_io("worker")
             return out
@@ -205,6 +207,7 @@ def _driver_pull(mirror, label: str) -> None:
 
     with TaskMeter(label) as meter:
         meter.timed("pull", mirror.pull, driver_reads(mirror))
+    mirror.release(keep=driver_reads(mirror))  # what it downloaded to read once (a tile's tables) stays in the cache
 
 
 def _check_lease(mirror) -> None:
@@ -215,10 +218,11 @@ def _check_lease(mirror) -> None:
 
 class SyncExecutor:
     """An executor (``flows.executors``) of a run whose work dir is a URL: the driver pushes its writes
-    before tasks start and pulls their results when they are collected. Tasks in ``LOCAL_TASKS`` (export
-    nodes, whose jobs name driver paths) run in the driver process."""
+    before tasks start and pulls their results when they are collected. Tasks in ``RELATIVE_TASKS`` (export
+    nodes, whose jobs name work-dir paths) get their jobs with paths relative to the work dir and the work
+    dir's URL (``cfg_json``), and run on the workers like every other task."""
 
-    LOCAL_TASKS = ("export-nodes",)
+    RELATIVE_TASKS = ("export-nodes",)
 
     def __init__(self, inner, mirror):
         self.inner, self.mirror = inner, mirror
@@ -229,8 +233,11 @@ class SyncExecutor:
 
     def map(self, tsk, batches: list, label: str, **consts):
         _check_lease(self.mirror)
-        if getattr(tsk, "name", "") in self.LOCAL_TASKS:
-            return _Pulled(_Value([r for b in batches for r in tsk.fn(b, **consts)]), self.mirror)
+        if getattr(tsk, "name", "") in self.RELATIVE_TASKS:
+            from tasks.export.stage import relocate_jobs
+
+            batches = [relocate_jobs(b, self.mirror.root, Path()) for b in batches]
+            consts = {**consts, "cfg_json": {"work_dir": self.mirror.store.url, "inputs": {}}}
         self.mirror.push("driver")
         epoch = getattr(self.mirror, "epoch", None)
         consts = {k: with_epoch(v, epoch) for k, v in consts.items()}
@@ -244,14 +251,6 @@ class SyncExecutor:
 
     def recycle_workers(self, over_mb: float) -> dict:
         return {"restarted": 0, "largest_mb": 0.0}  # a restarted worker would pull its mirror again
-
-
-class _Value:
-    def __init__(self, value):
-        self.value = value
-
-    def results(self):
-        return self.value
 
 
 class _Pulled:

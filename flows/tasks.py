@@ -15,7 +15,7 @@ import numpy as np
 from prefect import task
 from prefect.cache_policies import NONE as NO_CACHE
 
-from flows.remote import local_truth_plan, local_view, synced, work_dir_of
+from flows.remote import is_remote, local_truth_plan, local_view, mirror_for, synced, work_dir_of
 from storage.errors import InputError
 from storage.frame import CampusFrame
 from storage.ids import TileId
@@ -164,10 +164,17 @@ def merge_task(tile_keys: list[str], cfg_json: dict) -> list[dict]:
 
 
 @stage_task(EXPORT)
-def export_nodes_task(jobs: list) -> list[dict]:
-    """Build a batch of 3D Tiles nodes ((index, job) pairs); one {"index", "status", "record" | "error"} each."""
-    from tasks.export import build_nodes
+def export_nodes_task(jobs: list, cfg_json: dict | None = None) -> list[dict]:
+    """Build a batch of 3D Tiles nodes ((index, job) pairs); one {"index", "status", "record" | "error"} each.
+    cfg_json: with a work dir by URL, the jobs' paths are relative to the work dir (``SyncExecutor`` sends them
+    so) and the nodes are built on this process's mirror."""
+    from pathlib import Path
 
+    from tasks.export import build_nodes
+    from tasks.export.stage import relocate_jobs
+
+    if cfg_json is not None and is_remote(cfg_json.get("work_dir")):
+        jobs = relocate_jobs(jobs, Path(), mirror_for(cfg_json["work_dir"]).root)
     return build_nodes(jobs)
 
 

@@ -303,6 +303,28 @@ class Mirror:
             return rec
 
 
+    def release(self, keep=None) -> int:
+        """Delete the local copies of the recorded files that are unchanged here (but those the predicate
+        ``keep`` names); they stay known by their records (:mod:`storage.recorded`) and come back on a later
+        pull or read, from the node's content cache when it holds them. A worker then keeps on scratch one copy
+        of what it read (the cache's), not a mirror of the work dir. Returns how many files were released."""
+        with self.lock:
+            n = 0
+            for rel, s in list(self.known.items()):
+                if keep is not None and keep(rel):
+                    continue
+                try:
+                    st = (self.root / rel).stat()
+                except OSError:
+                    continue
+                if rel in self.refs and self.files.get(rel) == s == (st.st_size, st.st_mtime_ns):
+                    (self.root / rel).unlink()
+                    self.known.pop(rel)
+                    self._pending[rel] = self.refs[rel].key
+                    n += 1
+            self._pending_sorted = None
+            return n
+
     def compact(self) -> int:
         """Fold every commit this mirror has pulled into one record of its epoch naming each live file's
         current object (Lamport counter 0: before every commit of the run), then delete the folded records

@@ -36,6 +36,7 @@ from pathlib import Path
 import numpy as np
 
 from ms3d_model.dataset import PairSet
+from storage import recorded
 from storage.errors import InputError
 from storage.ids import TileId
 from storage.patches.read import PatchStore
@@ -178,10 +179,10 @@ def run_classify_tile(tile: TileId, cfg, wd: WorkDir) -> dict | None:
     ccfg = cfg.classify
     tile_dir = wd.tile_dir(tile)
     if not ccfg.enabled:
-        side_table_path(tile_dir, "grades").unlink(missing_ok=True)
+        recorded.unlink(side_table_path(tile_dir, "grades"))
         return None
-    if not (tile_dir / PATCHES_FILE).exists() or (tile_dir / STALE_FILE).exists():
-        return None
+    if not recorded.is_file(tile_dir / PATCHES_FILE) or recorded.is_file(tile_dir / STALE_FILE):
+        return None  # (on a bucket: what the records say, nothing downloaded: the driver plans this way)
     try:
         model = load_model(ccfg.model)
     except InputError as e:

@@ -25,8 +25,10 @@ def node_task_batches(jobs: list, ctx: BatchContext) -> list[list]:
 
     return node_batches(jobs, ctx.n_workers)
 
-STAGE = StageSpec("export-nodes", "node", node_task_batches, duration="5s", priority=10)
-"""The quadtree's levels are the chain the run waits on: a queued node must not wait behind the side tasks."""
+STAGE = StageSpec("export-nodes", "node", node_task_batches, reads=(), duration="5s", priority=10)
+"""The quadtree's levels are the chain the run waits on: a queued node must not wait behind the side tasks. On a
+bucket a node task pulls only the records: it downloads its merged tile or its children's LOD meshes where it
+reads them (:mod:`storage.recorded`)."""
 
 # the names below load on first use (tasks.stages.lazy_exports): importing the package for its STAGE costs
 # nothing, and a worker loads only the modules its tasks run

@@ -335,8 +335,8 @@ def _node_cost(job) -> float:
     if not isinstance(job, NodeJob):
         return 1.0
     if job.tile_dir is not None:
-        npz = job.tile_dir / "merged.npz"
-        return float(npz.stat().st_size) if npz.exists() else 1.0
+        st = recorded.state(job.tile_dir / "merged.npz")  # on a bucket: the recorded size
+        return float(st.size) if st is not None else 1.0
     return float(sum(rec.get("faces") or 0 for _, rec in job.children)) or 1.0
 
 
@@ -346,6 +346,22 @@ def node_batches(jobs: list[NodeJob], n_workers: int) -> list[list[tuple[int, No
     (:func:`_node_cost`), each in job order; the costliest first."""
     indexed = list(enumerate(jobs))
     return balanced_batches(indexed, [_node_cost(j) for j in jobs], 8 * n_workers)
+
+
+def relocate_jobs(jobs: list[tuple[int, NodeJob]], old: Path, new: Path) -> list[tuple[int, NodeJob]]:
+    """(index, job) pairs whose work-dir paths (``out``, ``cache``, ``tile_dir``) under ``old`` are moved under
+    ``new``: jobs planned on one process's mirror of a work dir on a bucket, built on another's (``Path()`` for
+    ``new`` or ``old``: paths relative to the work dir).
+
+    >>> job = NodeJob(None, "fp", Path("/a/output"), Path("/a/export/lod"), None, None, Path("/a/tiles/1_2"))
+    >>> moved = relocate_jobs([(0, job)], Path("/a"), Path())[0][1]
+    >>> str(moved.out), str(moved.tile_dir), str(relocate_jobs([(0, moved)], Path(), Path("/b"))[0][1].cache)
+    ('output', 'tiles/1_2', '/b/export/lod')
+    """
+    def move(p: Path | None) -> Path | None:
+        return None if p is None else new / Path(p).relative_to(old)
+
+    return [(i, replace(j, out=move(j.out), cache=move(j.cache), tile_dir=move(j.tile_dir))) for i, j in jobs]
 
 
 def _built(job: NodeJob) -> dict:

@@ -298,7 +298,8 @@ def test_a_run_that_lost_its_lease_starts_no_more_tasks(tmp_path):
 
     lease = SimpleNamespace(lost=None)
     lease.check = lambda: (_ for _ in ()).throw(lease.lost) if lease.lost else None
-    mirror = SimpleNamespace(lease=lease, push=lambda *a: calls.append("push"), pull=lambda only=None: calls.append("pull"))
+    mirror = SimpleNamespace(lease=lease, push=lambda *a: calls.append("push"), pull=lambda only=None: calls.append("pull"),
+                             release=lambda keep=None: 0)
     ex = SyncExecutor(Inner(), mirror)
     assert ex.map(SimpleNamespace(name="scan"), [[1]], "scan").results() == [1]
     assert calls == ["push", "scan", "pull"]

@@ -106,3 +106,19 @@ def test_a_plain_path_is_the_local_file(tmp_path):
     st = recorded.state(p)
     assert (st.size, st.mtime_ns, st.sha256) == (3, p.stat().st_mtime_ns, None)
     assert recorded.state(tmp_path) is None and recorded.is_dir(tmp_path) and recorded.children(tmp_path) == [p]
+
+
+def test_released_copies_stay_known_and_come_back_from_the_cache(bucket, tmp_path):
+    store, _ = bucket
+    m = _reader(store, tmp_path)
+    assert m.pull() == len(FILES)
+    changed = m.root / "tiles/2_1/stale.json"
+    changed.write_text('{"error": "x"}')  # changed here, not pushed yet: kept
+    assert m.release() == len(FILES) - 1
+    assert sorted(p.relative_to(m.root).as_posix() for p in m.root.rglob("*") if p.is_file()) == ["tiles/2_1/stale.json"]
+    assert recorded.state(m.root / "tiles/1_1/points.parquet").size == 3 << 20
+    read0 = store.stats.bytes_read
+    assert m.pull() == len(FILES) - 1 and m.stats["cache_hits"] == len(FILES) - 1
+    assert store.stats.bytes_read - read0 < 1000  # the records' listing only: the bytes came from the cache
+    rec = m.push("worker")
+    assert sorted(rec.files) == ["tiles/2_1/stale.json"] and rec.meta["deleted"] == []
