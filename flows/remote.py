@@ -234,7 +234,7 @@ class SyncExecutor:
     def map(self, tsk, batches: list, label: str, **consts):
         _check_lease(self.mirror)
         if getattr(tsk, "name", "") in self.RELATIVE_TASKS:
-            from tasks.export.stage import relocate_jobs
+            from tasks.export import relocate_jobs
 
             batches = [relocate_jobs(b, self.mirror.root, Path()) for b in batches]
             consts = {**consts, "cfg_json": {"work_dir": self.mirror.store.url, "inputs": {}}}

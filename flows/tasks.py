@@ -170,8 +170,7 @@ def export_nodes_task(jobs: list, cfg_json: dict | None = None) -> list[dict]:
     so) and the nodes are built on this process's mirror."""
     from pathlib import Path
 
-    from tasks.export import build_nodes
-    from tasks.export.stage import relocate_jobs
+    from tasks.export import build_nodes, relocate_jobs
 
     if cfg_json is not None and is_remote(cfg_json.get("work_dir")):
         jobs = relocate_jobs(jobs, Path(), mirror_for(cfg_json["work_dir"]).root)

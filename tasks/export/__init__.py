@@ -12,7 +12,7 @@ any child. Nodes, glbs and cached meshes the plan no longer names are removed.
 
 Modules: ``tree`` (quadtree, tileset.json), ``content`` (a node's glTF content), ``nodes`` (one node's
 build), ``gltf`` / ``vertex_split`` / ``lod`` / ``georef`` (glb writer, per-feature vertices, block-wise
-decimation, ENU frame), ``check`` (validation:
+decimation, ENU frame), ``overlay`` (the points overlay's tiles), ``check`` (validation:
 ``python -m tasks.export.check WORKDIR``), ``stage`` (the run and its records).
 """
 
@@ -35,8 +35,8 @@ reads them (:mod:`storage.recorded`)."""
 __getattr__ = lazy_exports(__name__, {
     "tasks.export.georef": "EnuProjector make_georef",
     "tasks.export.nodes": "NodeJob build_node",
-    "tasks.export.stage": "build_nodes node_batches node_records node_task_batches run_export run_export_stage",
+    "tasks.export.stage": "build_nodes node_batches node_records node_task_batches relocate_jobs run_export run_export_stage",
 })
 
 __all__ = ["STAGE", "EnuProjector", "NodeJob", "build_node", "build_nodes", "make_georef", "node_batches", "node_records",
-           "run_export", "run_export_stage"]
+           "relocate_jobs", "run_export", "run_export_stage"]

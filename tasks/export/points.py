@@ -11,7 +11,7 @@ The points are the tile stores' (``tiles/*/points.parquet``: registered, campus-
 ``budget`` in all: each tile keeps a seeded random subset in proportion to its points (the same subset on
 every run). The overlay is rewritten only when a store, its grades, the georeference or the budget
 changed (``fingerprints.json`` beside it); with no store it is removed. This module makes the overlay's
-content from arrays; :func:`tasks.export.stage.write_points_overlay` reads the stores and writes it.
+content from arrays; :func:`tasks.export.overlay.write_points_overlay` reads the stores and writes it.
 """
 
 from __future__ import annotations

@@ -11,7 +11,7 @@ Output (``work_dir/output``)::
     georef.json                   source CRS, origin, vertical datum, ENU origin, the PROJ operation and
                                   what was assumed
     points/tileset.json, *.glb    the registered MLS points, thinned, as POINTS in the same frame (an
-                                  overlay for the viewer, ``points.py``; only when the tiles have stores)
+                                  overlay for the viewer, ``points.py``, ``overlay.py``; only when the tiles have stores)
     tileset.fingerprints.json     per node: input fingerprint, box, geometric error (for reruns)
     (work_dir/export/lod/*.npz    per node: the decimated mesh it passes to its parent)
 
@@ -25,11 +25,9 @@ changed: one changed tile rewrites that tile's content and its ancestors, nothin
 
 from __future__ import annotations
 
-import hashlib
 import json
 import shutil
 import time
-import zlib
 from collections.abc import Callable
 from dataclasses import replace
 from functools import partial
@@ -40,25 +38,15 @@ import numpy as np
 from storage import recorded
 from storage.atomic import write_bytes_atomic, write_json_atomic
 from storage.errors import InputError
-from storage.patches.read import PatchStore, PatchTable
-from storage.patches.schema import PATCHES_FILE, POINTS_FILE
-from storage.patches.state import patch_grades, store_fingerprint
+from storage.patches.state import store_fingerprint
 from storage.workdir.layout import WorkDir, campus_frame, read_campus
 from tasks.batches import balanced_batches
 from tasks.config import ExportConfig
-from tasks.export.content import box_from_bounds
-from tasks.export.georef import EnuProjector, GeoRef, enu_to_gltf, make_georef
+from tasks.export.georef import GeoRef, make_georef
 from tasks.export.nodes import NodeJob, build_node, content_hash, leaf_fingerprint
-from tasks.export.points import (
-    POINTS_BUDGET,
-    POINTS_VERSION,
-    build_points_glb,
-    point_status,
-    points_tileset_json,
-    thin_indices,
-)
+from tasks.export.overlay import PointsJob, build_points, write_points_overlay
 from tasks.export.tree import EXPORT_VERSION, QuadNode, QuadTree, plan_quadtree, tileset_json
-from tasks.units import record_step
+from tasks.units import failure_message, record_step
 
 OVERVIEW = QuadNode(-1, 0, 0)
 
@@ -180,7 +168,8 @@ def run_export(work_dir: str | Path, config: ExportConfig | None = None, tiles: 
     tileset = _write_tileset(out, tileset_json(tree, nodes, georef), georef, nodes)
     _remove_stale(out, cache, nodes)
     grades_mode = (campus.get("config") or {}).get("repair", {}).get("grades", "auto")  # what repair acted on
-    points = write_points_overlay(wd.root / "tiles", out / "points", list(tiles), georef, grades_mode=grades_mode)
+    points = write_points_overlay(wd.root / "tiles", out / "points", list(tiles), georef, grades_mode=grades_mode,
+                                  run=map_jobs)  # beside the nodes: a cluster's workers read the stores
     before = (_export_before(wd, list(tiles), georef, cfg, base, run, grades_mode) if cfg.before
               else _drop_before(wd))
     leaves_built = [k for k in built if k.startswith("L0_")]
@@ -245,61 +234,6 @@ def _export_before(wd: WorkDir, tiles: list[str], georef: GeoRef, cfg: ExportCon
     return {"tiles": len(kept), "tileset": str(tileset)}
 
 
-# ------------------------------------------------------------------------------------- the points overlay
-
-def _digest(parts: list[str]) -> str:
-    return hashlib.sha256("|".join(parts).encode()).hexdigest()[:32]
-
-
-def _tile_points(tile_dir: Path, keep: int, seed: int, grades_mode: str) -> tuple[np.ndarray, np.ndarray]:
-    """(xyz (k, 3) float32 campus-local, status (k,) int8) of a seeded subset of a tile's points, coloured by
-    the grades repair acted on (``repair.grades``: :func:`storage.patches.state.patch_grades`). Columns are
-    read one at a time, so memory is one column of the tile plus the subset."""
-    store = PatchStore(tile_dir)
-    p = store.patches()
-    _, grade, _ = patch_grades(store, grades_mode)
-    idx = thin_indices(store.n_points, keep, seed)
-    xyz = np.empty((len(idx), 3), np.float32)
-    for j, c in enumerate("xyz"):
-        xyz[:, j] = store.read_all_stacked("points", [c], np.float32)[idx, 0]
-    return xyz, point_status(p["point_stop"], grade, p["n_faces"], idx)
-
-
-def write_points_overlay(tiles_dir: Path, out_dir: Path, tiles: list[str], georef: GeoRef,
-                         budget: int = POINTS_BUDGET, seed: int = 0, grades_mode: str = "auto") -> dict:
-    """Write (or keep, when unchanged) ``out_dir/tileset.json`` and ``out_dir/{key}.glb`` from the stores of
-    ``tiles`` under ``tiles_dir`` (see :mod:`tasks.export.points`). Returns {"tiles", "points", "written", "tileset"}."""
-    with_points = [k for k in tiles if recorded.is_file(tiles_dir / k / PATCHES_FILE)
-                   and recorded.is_file(tiles_dir / k / POINTS_FILE)]
-    counts = {k: int(PatchTable(tiles_dir / k).patches()["n_points"].sum()) for k in with_points}
-    counts = {k: n for k, n in counts.items() if n}
-    if not counts:
-        recorded.remove_tree(out_dir)
-        return {"tiles": 0, "points": 0, "written": False, "tileset": None}
-    fp = _digest([str(POINTS_VERSION), str(budget), str(seed), grades_mode, json.dumps(georef.to_json(), sort_keys=True)]
-                              + [f"{k}:{store_fingerprint(tiles_dir / k, sides=('grades', 'labels'))}" for k in sorted(counts)])
-    state = out_dir / "fingerprints.json"
-    if state.exists() and json.loads(state.read_text()).get("fingerprint") == fp and (out_dir / "tileset.json").exists():
-        old = json.loads(state.read_text())
-        return {"tiles": len(counts), "points": old["points"], "written": False, "tileset": str(out_dir / "tileset.json")}
-    total = sum(counts.values())
-    projector = EnuProjector(georef)
-    boxes, kept = {}, 0
-    for k in sorted(counts):
-        keep = max(1, round(budget * counts[k] / total)) if total > budget else counts[k]
-        xyz, status = _tile_points(tiles_dir / k, keep, seed + zlib.crc32(k.encode()), grades_mode)
-        enu = projector.local_to_enu(xyz)
-        boxes[k] = box_from_bounds(enu.min(axis=0), enu.max(axis=0))
-        write_bytes_atomic(out_dir / f"{k}.glb", build_points_glb(enu_to_gltf(enu), status))
-        kept += len(xyz)
-    for stale in recorded.glob(out_dir, "*.glb"):
-        if stale.stem not in boxes:
-            recorded.unlink(stale)
-    write_json_atomic(out_dir / "tileset.json", points_tileset_json(boxes, georef.tileset_transform()))
-    write_json_atomic(state, {"fingerprint": fp, "points": kept, "tiles": sorted(boxes)})
-    return {"tiles": len(boxes), "points": kept, "written": True, "tileset": str(out_dir / "tileset.json")}
-
-
 # ------------------------------------------------------------------------------------- in the flow
 
 
@@ -361,7 +295,8 @@ def relocate_jobs(jobs: list[tuple[int, NodeJob]], old: Path, new: Path) -> list
     def move(p: Path | None) -> Path | None:
         return None if p is None else new / Path(p).relative_to(old)
 
-    return [(i, replace(j, out=move(j.out), cache=move(j.cache), tile_dir=move(j.tile_dir))) for i, j in jobs]
+    fields = ("out", "cache", "tile_dir")  # a PointsJob has no cache
+    return [(i, replace(j, **{f: move(getattr(j, f)) for f in fields if hasattr(j, f)})) for i, j in jobs]
 
 
 def _built(job: NodeJob) -> dict:
@@ -377,6 +312,12 @@ def build_nodes(jobs: list[tuple[int, NodeJob]]) -> list[dict]:
     {"index", "status": "failed", "error": "<node key>: <one line>"}."""
     out = []
     for i, job in jobs:
+        if isinstance(job, PointsJob):  # a tile of the points overlay, mapped with the nodes
+            try:
+                out.append({"index": i, "status": "done", "record": build_points(job)})
+            except (InputError, OSError) as e:
+                out.append({"index": i, "status": "failed", "error": f"points {job.tile}: {failure_message(e)}"})
+            continue
         res = record_step(WorkDir(job.out.parent), "export", job.node.key, partial(_built, job), job.fingerprint)
         if res["status"] == "failed":  # record_step prefixes the stage; the flow's message names the node
             out.append({"index": i, "status": "failed",
