@@ -118,8 +118,10 @@ def _split_epoch(args: tuple, kwargs: dict) -> tuple[tuple, dict, int | None]:
 def synced(spec):
     """Decorate a stage's task function (``spec``: its ``tasks.stages.StageSpec``): with a work dir by URL,
     pull what the declaration says the task reads (``spec.reads_for`` its batch, or all but ``spec.skips``)
-    before, and push after (a task that raises pushes nothing: its units are not recorded and run again).
-    The task acts under the run epoch the driver gave it: it stops (RunSuperseded) without reading or
+    before, and push after (a task that raises pushes nothing: its units are not recorded and run again);
+    a worker then deletes its mirror's unchanged copies (``Mirror.release``: they stay in its content cache
+    and come back when a later task reads them), so its scratch holds one copy of what it read. The task
+    acts under the run epoch the driver gave it: it stops (RunSuperseded) without reading or
     committing when a later run has begun. Inside planning it only runs ``fn``."""
     def decorate(fn):
         @functools.wraps(fn)
