@@ -23,7 +23,8 @@ def ingest_task_batches(units: list[dict], ctx: BatchContext) -> list[list[dict]
     meshes, points = ingest_batches([IngestUnit(**u) for u in units], ctx.n_workers)
     return meshes + points
 
-STAGE = StageSpec("ingest", "ingest unit", ingest_task_batches, reads=("manifest.d/ingest/", "staging/"))
+STAGE = StageSpec("ingest", "ingest unit", ingest_task_batches, reads=("manifest.d/ingest/",))
+"""A redone unit removes its earlier runs by their records (:mod:`storage.recorded`): on a bucket it downloads none."""
 
 # the names below load on first use (tasks.stages.lazy_exports): importing the package for its STAGE costs
 # nothing, and a worker loads only the modules its tasks run

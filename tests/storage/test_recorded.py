@@ -54,6 +54,7 @@ def test_states_and_digests_come_from_the_records(bucket, tmp_path):
     assert recorded.children(m.root / "tiles") == [m.root / "tiles/1_1", m.root / "tiles/2_1"]
     assert recorded.glob(m.root / "tiles", "*/patches.parquet") == [m.root / "tiles/1_1/patches.parquet"]
     assert recorded.glob(m.root, "**/*.npz") == [m.root / "regions/r1/mesh.npz"]
+    assert recorded.glob(m.root / "staging", "*/u0-*.arrow") == [m.root / "staging/1_1/u0-000.arrow"]  # a unit's runs
     wd = WorkDir(m.root)
     assert wd.done_tiles() == wd.live_tiles() == [TileId(1, 1)] and wd.staged_tiles() == [TileId(1, 1)]
     assert wd.tile_keys_on_disk() == ["1_1", "2_1"]
