@@ -110,12 +110,24 @@ def enu_axes(lat_deg: float, lon_deg: float) -> np.ndarray:
                      [np.cos(la) * np.cos(lo), np.cos(la) * np.sin(lo), np.sin(la)]])
 
 
-def enu_to_crs(enu: np.ndarray, lat_deg: float, lon_deg: float, crs: str, chunk: int = 1 << 20) -> np.ndarray:
+def enu_to_crs(enu: np.ndarray, lat_deg: float, lon_deg: float, crs: str, geoid_spec: str | None = None,
+               chunk: int = 1 << 20) -> np.ndarray:
     """Place local ENU coordinates into a projected CRS. enu: (n, 3) float64 metres east/north/up of the
-    WGS 84 tangent point (lat, lon, 0); crs: the target ("EPSG:32650", a compound one, ...). Returns (n, 3)
-    float64 (x, y in the CRS; z the ellipsoidal height, or the CRS's vertical datum's height when it has
-    one and PROJ has its grid). Raises ValueError when PROJ cannot transform into ``crs``."""
+    WGS 84 tangent point (lat, lon, 0); crs: the target. ENU -> ECEF is exact; ECEF -> ``crs`` is
+    :func:`ecef_to_crs` (heights made orthometric with a geoid where the CRS's vertical datum needs one PROJ
+    lacks). Returns (n, 3) float64. Raises ValueError when PROJ cannot transform into ``crs``."""
+    origin, axes = geodetic_to_ecef(lat_deg, lon_deg), enu_axes(lat_deg, lon_deg)
+    return ecef_to_crs(origin + np.asarray(enu, np.float64).reshape(-1, 3) @ axes, crs, geoid_spec, chunk)
+
+
+def ecef_to_crs(ecef: np.ndarray, crs: str, geoid_spec: str | None = None, chunk: int = 1 << 20) -> np.ndarray:
+    """ECEF metres (n, 3) -> ``crs`` (n, 3) float64 (x, y and the CRS's height). Where PROJ has no geoid
+    grid for the CRS's vertical datum (a ballpark vertical step), heights are made orthometric with the
+    geoid of ``geoid_spec`` (:func:`storage.geoid.geoid_of`: None = the shipped EGM96), H = h - N: the inverse
+    of the export's georeferencing. Raises ValueError when PROJ cannot transform into ``crs``."""
     from pyproj import CRS, Transformer
+
+    from storage.geoid import geoid_of
 
     dst = CRS.from_user_input(crs)
     if not dst.is_compound:
@@ -123,16 +135,22 @@ def enu_to_crs(enu: np.ndarray, lat_deg: float, lon_deg: float, crs: str, chunk:
             raise ValueError(f"{crs} is not a projected CRS in metres")
         dst = dst.to_3d()
     tr = Transformer.from_crs("EPSG:4978", dst, always_xy=True)
-    origin, axes = geodetic_to_ecef(lat_deg, lon_deg), enu_axes(lat_deg, lon_deg)
-    enu = np.asarray(enu, np.float64).reshape(-1, 3)
-    out = np.empty_like(enu)
-    for i in range(0, len(enu), chunk):
-        ecef = origin + enu[i:i + chunk] @ axes
-        x, y, z = tr.transform(ecef[:, 0], ecef[:, 1], ecef[:, 2])
+    ballpark = "ballpark vertical" in tr.description.lower() or "without ellipsoid height" in tr.description.lower()
+    geo = Transformer.from_crs("EPSG:4978", "EPSG:4979", always_xy=True) if ballpark else None
+    geoid = geoid_of(geoid_spec) if ballpark else None
+    ecef = np.asarray(ecef, np.float64).reshape(-1, 3)
+    out = np.empty_like(ecef)
+    for i in range(0, len(ecef), chunk):
+        e = ecef[i:i + chunk]
+        x, y, z = tr.transform(e[:, 0], e[:, 1], e[:, 2])
+        z = np.asarray(z, np.float64)
+        if geo is not None:
+            lon, lat, _ = geo.transform(e[:, 0], e[:, 1], e[:, 2])
+            z = z - geoid.undulation(np.asarray(lat), np.asarray(lon))
         out[i:i + chunk] = np.column_stack([x, y, z])
     if not np.isfinite(out).all():
-        raise ValueError(f"PROJ could not place the ENU frame at ({lat_deg}, {lon_deg}) into {crs}")
+        raise ValueError(f"PROJ could not place ECEF coordinates into {crs}")
     return out
 
 
-__all__ = ["Srs", "enu_axes", "enu_to_crs", "geodetic_to_ecef", "parse_srs"]
+__all__ = ["Srs", "ecef_to_crs", "enu_axes", "enu_to_crs", "geodetic_to_ecef", "parse_srs"]

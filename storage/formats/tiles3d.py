@@ -26,6 +26,7 @@ import numpy as np
 
 from storage.errors import InputError
 from storage.formats.mesh_data import MeshData
+from storage.formats.srs import ecef_to_crs
 
 B3DM_HEADER = 28
 MAX_DEPTH = 64  # external tilesets nested deeper than this are a loop
@@ -179,37 +180,4 @@ def read_tileset(path: str | Path) -> MeshData:
     return MeshData.concat(parts, source=str(path))
 
 
-def ecef_to_crs(ecef: np.ndarray, crs: str, geoid_spec: str | None = None, chunk: int = 1 << 20) -> np.ndarray:
-    """ECEF metres (n, 3) -> ``crs`` (n, 3) float64 (x, y and the CRS's height). Where PROJ has no geoid
-    grid for the CRS's vertical datum (a ballpark vertical step), heights are made orthometric with the
-    geoid of ``geoid_spec`` (:func:`storage.geoid.geoid_of`: None = the shipped EGM96), H = h - N: the inverse
-    of the export's georeferencing. Raises ValueError when PROJ cannot transform into ``crs``."""
-    from pyproj import CRS, Transformer
-
-    from storage.geoid import geoid_of
-
-    dst = CRS.from_user_input(crs)
-    if not dst.is_compound:
-        if not dst.is_projected:
-            raise ValueError(f"{crs} is not a projected CRS in metres")
-        dst = dst.to_3d()
-    tr = Transformer.from_crs("EPSG:4978", dst, always_xy=True)
-    ballpark = "ballpark vertical" in tr.description.lower() or "without ellipsoid height" in tr.description.lower()
-    geo = Transformer.from_crs("EPSG:4978", "EPSG:4979", always_xy=True) if ballpark else None
-    geoid = geoid_of(geoid_spec) if ballpark else None
-    ecef = np.asarray(ecef, np.float64).reshape(-1, 3)
-    out = np.empty_like(ecef)
-    for i in range(0, len(ecef), chunk):
-        e = ecef[i:i + chunk]
-        x, y, z = tr.transform(e[:, 0], e[:, 1], e[:, 2])
-        z = np.asarray(z, np.float64)
-        if geo is not None:
-            lon, lat, _ = geo.transform(e[:, 0], e[:, 1], e[:, 2])
-            z = z - geoid.undulation(np.asarray(lat), np.asarray(lon))
-        out[i:i + chunk] = np.column_stack([x, y, z])
-    if not np.isfinite(out).all():
-        raise ValueError(f"PROJ could not place ECEF coordinates into {crs}")
-    return out
-
-
-__all__ = ["ecef_to_crs", "is_tileset", "read_content", "read_tileset"]
+__all__ = ["ecef_to_crs", "is_tileset", "read_content", "read_tileset"]  # ecef_to_crs: storage.formats.srs

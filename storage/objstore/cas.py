@@ -12,13 +12,14 @@ mtime, touched on every hit) are deleted until it holds ``low_water`` of the bou
 
 from __future__ import annotations
 
-import hashlib
 import os
 import shutil
 import threading
 import uuid
 from collections.abc import Callable
 from pathlib import Path
+
+from storage.objstore.commit import _sha256_file
 
 DEFAULT_MAX_GB = 20.0
 LOW_WATER = 0.8
@@ -78,7 +79,7 @@ class ContentCache:
         tmp = cached.parent / f".{sha256}.{uuid.uuid4().hex[:8]}.part"
         try:
             fetch(tmp)
-            digest, n = _sha256(tmp)
+            digest, n = _sha256_file(tmp)
             if digest != sha256 or n != size:
                 raise ValueError(f"fetched object does not match its record (sha256/size {n} != {size})")
             os.replace(tmp, cached)
@@ -131,13 +132,6 @@ def _valid(path: Path, size: int) -> bool:
         return False
 
 
-def _sha256(path: Path) -> tuple[str, int]:
-    h, n = hashlib.sha256(), 0
-    with open(path, "rb") as f:
-        while block := f.read(1 << 22):
-            h.update(block)
-            n += len(block)
-    return h.hexdigest(), n
 
 
 def _copy_atomic(src: Path, dest: Path) -> None:

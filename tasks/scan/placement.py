@@ -60,7 +60,7 @@ class MeshPlacement:
     def to_json(self) -> dict:
         out = {"offset": list(self.offset), "crs": self.crs, "seam_key": self.seam_key, "metadata": self.metadata}
         if self.enu is not None:  # only then: placements of map-CRS productions keep their fingerprints
-            out["enu"] = list(self.enu)
+            out["enu"], out["geoid"] = list(self.enu), self.geoid
         if self.ecef:
             out["ecef"], out["geoid"] = True, self.geoid
         return out
@@ -79,7 +79,7 @@ def place_mesh(mesh, placement: MeshPlacement, path: str | Path = ""):
         if placement.ecef:
             mesh.vertices = ecef_to_crs(mesh.vertices, placement.crs, placement.geoid)
         else:
-            mesh.vertices = enu_to_crs(mesh.vertices, *placement.enu, placement.crs)
+            mesh.vertices = enu_to_crs(mesh.vertices, *placement.enu, placement.crs, placement.geoid)
     except ValueError as e:
         raise InputError(path or placement.metadata, str(e)) from None
     return mesh
@@ -109,7 +109,8 @@ def placement_of(prod: Production | None, cfg: CampusConfig) -> MeshPlacement:
         if not cfg.inputs.crs:
             raise InputError(meta.path, f"the production is in a local frame ({meta.srs}): set inputs.crs to the "
                                         "campus's projected CRS to place it there")
-        return MeshPlacement(meta.origin, cfg.inputs.crs.strip().upper(), prod.key, meta.path, meta.enu)
+        return MeshPlacement(meta.origin, cfg.inputs.crs.strip().upper(), prod.key, meta.path, meta.enu,
+                             geoid=cfg.export.geoid_grid)
     if cfg.inputs.crs and cfg.inputs.crs.strip().upper() != meta.srs:
         raise InputError(meta.path, f"SRS {meta.srs} disagrees with the configured inputs.crs {cfg.inputs.crs}: "
                                     "reproject the production or fix inputs.crs")
