@@ -8,7 +8,8 @@ import numpy as np
 from storage.contracts.tile_mesh import TileMesh
 from storage.formats.images import embedded_texture
 from tasks.config import ExportConfig
-from tasks.export.georef import EnuProjector, enu_to_gltf
+from tasks.export.bake import BakeSource, encode_jpeg
+from tasks.export.georef import EnuProjector, enu_to_gltf, gltf_to_enu
 from tasks.export.gltf import GltfImage, GltfMesh, split_by_feature
 from tasks.export.lod import LodMesh, sample_colors, weld
 
@@ -84,10 +85,18 @@ def leaf_content(tm: TileMesh, projector: EnuProjector, cfg: ExportConfig) -> tu
     return gltf, lod
 
 
-def lod_gltf(lod: LodMesh) -> GltfMesh:
-    """A LodMesh as vertex-coloured glTF content (y-up)."""
+def lod_gltf(lod: LodMesh, jpeg_quality: int = 85) -> GltfMesh:
+    """A LodMesh as glTF content (y-up): textured by its atlas (JPEG) when it has one, else vertex-coloured."""
     feature, g_rows, s_rows, r_rows = feature_rows(lod.grade, lod.source, lod.region)
+    textured = lod.atlas is not None and lod.uv is not None
     return GltfMesh(positions=enu_to_gltf(lod.positions), faces=lod.faces, feature=feature, grade=g_rows,
-                    source=s_rows, region=r_rows, face_texture=np.full(lod.n_faces, -1, np.int16),
-                    vertex_colors=lod.colors)  # fmt: skip
+                    source=s_rows, region=r_rows, face_texture=np.full(lod.n_faces, 0 if textured else -1, np.int16),
+                    uv=lod.uv if textured else None, vertex_colors=lod.colors,
+                    images=[GltfImage(encode_jpeg(lod.atlas, jpeg_quality), "image/jpeg")] if textured else [])  # fmt: skip
+
+
+def bake_source(mesh: GltfMesh) -> BakeSource:
+    """A leaf's full-resolution glTF content as the surface its passed-up atlas is painted from (ENU)."""
+    colors = mesh.vertex_colors if mesh.vertex_colors is not None else np.full((len(mesh.positions), 3), 180, np.uint8)
+    return BakeSource(gltf_to_enu(mesh.positions).astype(np.float32), mesh.faces, mesh.uv, mesh.face_texture, colors, tuple(mesh.images))
 

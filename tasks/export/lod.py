@@ -24,7 +24,9 @@ from storage.errors import InputError
 @dataclass(frozen=True, eq=False)
 class LodMesh:
     """positions: (n, 3) float32 metres ENU (z up). faces: (m, 3) int32. colors: (n, 3) uint8 sRGB.
-    grade / source: (m,) int8, region: (m,) int32 (see storage.contracts.tile_mesh)."""
+    grade / source: (m,) int8, region: (m,) int32 (see storage.contracts.tile_mesh).
+    A textured mesh (:mod:`tasks.export.bake`) also has uv: (n, 2) float32 (glTF convention) into
+    atlas: (H, W, 3) uint8; the colours stay, as the fallback and for decimation."""
 
     positions: np.ndarray
     faces: np.ndarray
@@ -32,6 +34,8 @@ class LodMesh:
     grade: np.ndarray
     source: np.ndarray
     region: np.ndarray
+    uv: np.ndarray | None = None
+    atlas: np.ndarray | None = None
 
     @property
     def n_faces(self) -> int:
@@ -49,17 +53,19 @@ class LodMesh:
 
 
 _FIELDS = ("positions", "faces", "colors", "grade", "source", "region")
+_TEXTURE_FIELDS = ("uv", "atlas")
 
 
 def save_lod(path: str | Path, lod: LodMesh) -> None:
+    arrays = {k: getattr(lod, k) for k in _FIELDS + _TEXTURE_FIELDS if getattr(lod, k) is not None}
     with atomic_path(path) as tmp, open(tmp, "wb") as f:
-        np.savez(f, **{k: getattr(lod, k) for k in _FIELDS})
+        np.savez(f, **arrays)
 
 
 def load_lod(path: str | Path) -> LodMesh:
     recorded.ensure_local(path)  # a work dir on a bucket: downloaded when read
     with np.load(path, allow_pickle=False) as z:
-        return LodMesh(**{k: z[k] for k in _FIELDS})
+        return LodMesh(**{k: z[k] for k in _FIELDS + _TEXTURE_FIELDS if k in z.files})
 
 
 def concat_lods(parts: list[LodMesh]) -> LodMesh:
@@ -77,7 +83,7 @@ def concat_lods(parts: list[LodMesh]) -> LodMesh:
 
 def weld(lod: LodMesh) -> LodMesh:
     """Merge vertices with bit-identical positions (one of them gives the colour), drop faces that
-    collapse and unused vertices. Vertices come out sorted by position.
+    collapse and unused vertices. Vertices come out sorted by position; a texture (uv, atlas) is dropped.
 
     >>> p = np.array([[0, 0, 0], [1, 0, 0], [0, 1, 0], [1, 0, 0]], np.float32)
     >>> w = weld(LodMesh(p, np.array([[0, 1, 2], [3, 2, 0]], np.int32), np.zeros((4, 3), np.uint8),
@@ -119,7 +125,7 @@ def _compact(lod: LodMesh) -> LodMesh:
     remap = np.full(len(lod.positions), -1, np.int64)
     remap[used] = np.arange(len(used))
     return LodMesh(lod.positions[used], remap[lod.faces].astype(np.int32), lod.colors[used],
-                   lod.grade, lod.source, lod.region)
+                   lod.grade, lod.source, lod.region, None if lod.uv is None else lod.uv[used], lod.atlas)
 
 
 @dataclass(frozen=True)

@@ -19,7 +19,8 @@ import numpy as np
 from storage.atomic import write_parts_atomic
 from storage.contracts.tile_mesh import read_tile_mesh, tile_mesh_content
 from tasks.config import ExportConfig
-from tasks.export.content import box_from_bounds, leaf_content, lod_gltf
+from tasks.export.bake import BakeSource, bake_lod, pack_children
+from tasks.export.content import bake_source, box_from_bounds, leaf_content, lod_gltf
 from tasks.export.georef import EnuProjector, GeoRef
 from tasks.export.gltf import GltfMesh, glb_parts
 from tasks.export.lod import concat_lods, decimate, load_lod, save_lod, weld
@@ -74,16 +75,20 @@ class NodeJob:
 
 
 def _build_leaf(job: NodeJob) -> dict:
-    """Leaf: full-resolution content glb, and the decimated mesh it passes up (cached)."""
+    """Leaf: full-resolution content glb, and the decimated mesh it passes up (cached), with its atlas
+    painted from the leaf's textures when ``lod_texture_px`` > 0."""
     tm = read_tile_mesh(job.tile_dir)
     gltf, lod = leaf_content(tm, EnuProjector(job.georef), job.cfg)
     uri = f"content/tiles/{tm.tile}.glb"
     nbytes = _write_glb(job.out, uri, gltf, job.cfg.compression, job.cfg.texture, leaf=True)
     texture_bytes = sum(len(im.data) for im in gltf.images)
     tile, n_faces = tm.tile, tm.n_faces
-    del gltf, tm  # the decimation below needs only the LodMesh
+    source = bake_source(gltf) if job.cfg.lod_texture_px else None
+    del gltf, tm  # the decimation below needs only the LodMesh (and the bake its source)
     dec = decimate(lod, math.ceil(lod.n_faces / job.cfg.lod_reduction), job.cfg.hausdorff_samples, _backend(job.cfg))
-    save_lod(job.cache / f"{job.node.key}.npz", dec.mesh)
+    passed = bake_lod(dec.mesh, source, job.cfg.lod_texture_px) if source is not None else dec.mesh
+    del source
+    save_lod(job.cache / f"{job.node.key}.npz", passed)
     lo, hi = lod.bounds()
     return {"fingerprint": job.fingerprint, "uri": uri, "tile": tile, "lo": lo.tolist(), "hi": hi.tolist(),
             "box": box_from_bounds(lo, hi), "geometricError": 0.0, "up_hausdorff_m": dec.hausdorff_m,
@@ -91,21 +96,30 @@ def _build_leaf(job: NodeJob) -> dict:
 
 
 def _build_parent(job: NodeJob) -> dict:
-    """Parent: its children's passed-up meshes welded (content), and its own decimation passed up.
+    """Parent: its children's passed-up meshes (content: their atlases packed 2 x 2 when textured, else
+    welded), and its own decimation passed up (its atlas painted from the content).
     geometricError = max over children of (child decimation's measured deviation + child's error)."""
     n, kids = job.node, dict(job.children)
-    content = weld(concat_lods([load_lod(job.cache / f"{k}.npz") for k in kids]))
+    parts = [load_lod(job.cache / f"{k}.npz") for k in kids]
+    textured = bool(job.cfg.lod_texture_px) and all(p.atlas is not None for p in parts)
+    content = pack_children(parts) if textured else weld(concat_lods(parts))
+    del parts
     uri = f"content/lod{n.h}/{n.x}_{n.y}.glb"
-    nbytes = _write_glb(job.out, uri, lod_gltf(content), job.cfg.compression, job.cfg.texture)
-    dec = decimate(content, math.ceil(content.n_faces / job.cfg.lod_reduction), job.cfg.hausdorff_samples, _backend(job.cfg))
-    save_lod(job.cache / f"{n.key}.npz", dec.mesh)
+    gltf = lod_gltf(content, job.cfg.jpeg_quality)
+    texture_bytes = sum(len(im.data) for im in gltf.images)
+    nbytes = _write_glb(job.out, uri, gltf, job.cfg.compression, job.cfg.texture)
+    del gltf
+    geometry = weld(content) if textured else content  # the decimation needs the seams closed
+    dec = decimate(geometry, math.ceil(geometry.n_faces / job.cfg.lod_reduction), job.cfg.hausdorff_samples, _backend(job.cfg))
+    passed = bake_lod(dec.mesh, BakeSource.of_lod(content), job.cfg.lod_texture_px) if textured else dec.mesh
+    save_lod(job.cache / f"{n.key}.npz", passed)
     lo, hi = content.bounds()
     lo = np.minimum(lo, np.min([r["lo"] for r in kids.values()], axis=0))
     hi = np.maximum(hi, np.max([r["hi"] for r in kids.values()], axis=0))
     error = max(r["up_hausdorff_m"] + r["geometricError"] for r in kids.values())
     return {"fingerprint": job.fingerprint, "uri": uri, "lo": lo.tolist(), "hi": hi.tolist(),
             "box": box_from_bounds(lo, hi), "geometricError": float(error), "up_hausdorff_m": dec.hausdorff_m,
-            "faces": content.n_faces, "bytes": nbytes, "texture_bytes": 0}  # fmt: skip
+            "faces": content.n_faces, "bytes": nbytes, "texture_bytes": texture_bytes}  # fmt: skip
 
 
 def release_freed_memory() -> None:
@@ -137,9 +151,13 @@ def build_node(job: NodeJob) -> dict:
 
 
 def _build_overview(job: NodeJob) -> dict:
-    root_key = dict(job.children)["root"]["key"]
-    ov = decimate(load_lod(job.cache / f"{root_key}.npz"), job.cfg.overview_max_faces, job.cfg.hausdorff_samples,
-                  _backend(job.cfg)).mesh
-    nbytes = _write_glb(job.out, "overview.glb", lod_gltf(ov), job.cfg.compression, job.cfg.texture)
+    root = load_lod(job.cache / f"{dict(job.children)['root']['key']}.npz")
+    textured = root.atlas is not None
+    geometry = weld(root) if textured else root
+    ov = decimate(geometry, job.cfg.overview_max_faces, job.cfg.hausdorff_samples, _backend(job.cfg)).mesh
+    if textured:  # the root's own atlas when nothing was decimated, else one painted from it (twice its side)
+        ov = root if ov is geometry else bake_lod(ov, BakeSource.of_lod(root), 2 * job.cfg.lod_texture_px)
+    nbytes = _write_glb(job.out, "overview.glb", lod_gltf(ov, job.cfg.jpeg_quality), job.cfg.compression,
+                        job.cfg.texture)
     return {"fingerprint": job.fingerprint, "uri": "overview.glb", "bytes": nbytes}
 

@@ -9,7 +9,7 @@ import numpy as np
 
 from tasks.export.georef import GeoRef
 
-EXPORT_VERSION = 3  # 3: leaves carry per-face quality (face_quality table, _FEATURE_ID_1); 2: LOD meshes decimated in blocks of at most lod.MAX_BLOCK_FACES faces
+EXPORT_VERSION = 4  # 4: parents textured (atlases baked from the children, tasks/export/bake.py); 3: leaves carry per-face quality (face_quality table, _FEATURE_ID_1); 2: LOD meshes decimated in blocks of at most lod.MAX_BLOCK_FACES faces
 
 
 @dataclass(frozen=True, order=True)

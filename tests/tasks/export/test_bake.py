@@ -1,0 +1,134 @@
+"""Textured levels of detail: rasterising charts, painting texels from the closest source point, packing
+children's atlases, and the export's textured parents."""
+
+from __future__ import annotations
+
+import json
+import shutil
+
+import numpy as np
+
+from tasks.export.bake import BakeSource, bake_lod, dilate, pack_children, paint, rasterize, sample_bilinear
+from tasks.export.lod import LodMesh
+
+
+def _plane(n: int, size_m: float = 4.0) -> tuple[np.ndarray, np.ndarray]:
+    """A flat n x n grid of squares (2 triangles each) over [0, size_m]^2 at z 0: (positions, faces)."""
+    g = np.linspace(0, size_m, n + 1, dtype=np.float32)
+    x, y = np.meshgrid(g, g)
+    pos = np.stack([x.ravel(), y.ravel(), np.zeros(x.size, np.float32)], axis=1)
+    i = np.arange(n)[:, None] * (n + 1) + np.arange(n)[None, :]
+    a, b, c, d = i.ravel(), i.ravel() + 1, i.ravel() + n + 1, i.ravel() + n + 2
+    return pos, np.concatenate([np.stack([a, b, c], 1), np.stack([b, d, c], 1)]).astype(np.int32)
+
+
+def _lod(pos, faces, grade=None) -> LodMesh:
+    m = len(faces)
+    return LodMesh(pos, faces, np.full((len(pos), 3), 7, np.uint8), np.zeros(m, np.int8) if grade is None else grade,
+                   np.zeros(m, np.int8), np.arange(m, dtype=np.int32))
+
+
+def _gradient_source() -> BakeSource:
+    """The 4 m plane textured by a gradient: red grows with east, green with north (64 px)."""
+    pos, faces = _plane(1)
+    img = np.zeros((64, 64, 3), np.uint8)
+    img[..., 0] = np.arange(64)[None, :] * 4
+    img[..., 1] = (63 - np.arange(64))[:, None] * 4  # glTF v runs down: the image's top row is north
+    uv = np.stack([pos[:, 0] / 4, 1 - pos[:, 1] / 4], axis=1).astype(np.float32)
+    return BakeSource(pos, faces, uv, np.zeros(len(faces), np.int16), np.zeros((len(pos), 3), np.uint8), (img,))
+
+
+def test_rasterize_covers_a_square_atlas_once_per_texel():
+    uv = np.array([[0, 0], [1, 0], [0, 1], [1, 1]], np.float32)
+    face, texel, bary = rasterize(uv, np.array([[0, 1, 2], [1, 3, 2]]), 8)
+    assert sorted(set(texel.tolist())) == list(range(64))
+    assert len(texel) == 64 + 8  # the 8 texel centres on the shared diagonal fall in both triangles
+    np.testing.assert_allclose(bary.sum(axis=1), 1.0, atol=1e-6)
+    assert (bary >= 0).all()
+
+
+def test_paint_reads_the_texture_at_the_closest_point_and_vertex_colours_elsewhere():
+    src = _gradient_source()
+    pts = np.array([[1.0, 3.0, 0.5], [3.0, 1.0, -0.2]], np.float32)  # above / below the plane
+    got = paint(pts, src).astype(int)
+    expected = sample_bilinear(src.images[0], np.array([[0.25, 0.25], [0.75, 0.75]], np.float32)).astype(int)
+    assert np.abs(got - expected).max() <= 1
+    assert got[0, 0] < got[1, 0] and got[0, 1] > got[1, 1]  # west / north: less red, more green
+    plain = BakeSource(src.positions, src.faces, None, np.full(2, -1, np.int16),
+                       np.array([[0, 0, 0], [200, 0, 0], [0, 0, 0], [200, 0, 0]], np.uint8))
+    assert paint(np.array([[2.0, 2.0, 0.0]], np.float32), plain)[0].tolist() == [100, 0, 0]
+
+
+def test_baked_atlas_reproduces_the_source_across_the_decimated_surface():
+    src = _gradient_source()
+    pos, faces = _plane(6)
+    baked = bake_lod(_lod(pos, faces), src, 128)
+    assert baked.atlas.shape == (128, 128, 3) and baked.uv.shape == (len(baked.positions), 2)
+    assert baked.n_faces == len(faces) and (baked.region == np.arange(len(faces))).all()  # provenance kept
+    rng = np.random.default_rng(1)
+    f = rng.integers(0, baked.n_faces, 500)
+    w = rng.dirichlet([4, 4, 4], 500)  # inside the faces, away from chart edges
+    uv = np.einsum("kj,kjc->kc", w, baked.uv[baked.faces[f]])
+    xyz = np.einsum("kj,kjc->kc", w, baked.positions[baked.faces[f]].astype(np.float64))
+    got = sample_bilinear(baked.atlas, uv.astype(np.float32)).astype(int)
+    truth = paint(xyz.astype(np.float32), src).astype(int)
+    assert np.median(np.abs(got - truth)) <= 2
+    assert np.percentile(np.abs(got - truth), 99) <= 12  # a texel of 4 m / 128 px: ~8 levels of the gradient
+
+
+def test_pack_children_keeps_each_childs_colours_at_its_uvs():
+    rng = np.random.default_rng(2)
+    parts = []
+    for k in range(3):
+        pos, faces = _plane(2)
+        pos = pos + np.float32([5 * k, 0, 0])
+        parts.append(LodMesh(pos, faces, np.zeros((len(pos), 3), np.uint8), np.zeros(8, np.int8), np.zeros(8, np.int8),
+                             np.full(8, k, np.int32), uv=rng.random((len(pos), 2)).astype(np.float32),
+                             atlas=rng.integers(0, 255, (16, 16, 3), dtype=np.uint8)))
+    packed = pack_children(parts)
+    assert packed.atlas.shape == (32, 32, 3) and packed.n_faces == 24
+    assert packed.region.tolist() == [0] * 8 + [1] * 8 + [2] * 8
+    for k, p in enumerate(parts):
+        sl = slice(9 * k, 9 * (k + 1))
+        np.testing.assert_array_equal(_nearest(packed.atlas, packed.uv[sl]), _nearest(p.atlas, p.uv))
+
+
+def _nearest(image, uv):
+    h, w = image.shape[:2]
+    return image[np.clip((uv[:, 1] * h).astype(int), 0, h - 1), np.clip((uv[:, 0] * w).astype(int), 0, w - 1)]
+
+
+def test_dilate_fills_empty_texels_from_their_neighbours():
+    img = np.zeros((4, 4, 3), np.uint8)
+    img[1, 1] = 200
+    filled = np.zeros((4, 4), bool)
+    filled[1, 1] = True
+    out = dilate(img, filled, rings=8)
+    assert (out == 200).all()
+
+
+def test_export_parents_are_textured_and_keep_provenance(tiny_merged, tmp_path):
+    from tasks.config import ExportConfig
+    from tasks.export import run_export
+    from tasks.export.gltf import read_glb
+
+    work = tmp_path / "work"
+    shutil.copytree(tiny_merged, work)
+    run_export(work, ExportConfig(lod_texture_px=128))
+    parents = sorted((work / "output" / "content").glob("lod*/*.glb"))
+    assert parents
+    for glb in parents + [work / "output" / "overview.glb"]:
+        doc, _ = read_glb(glb.read_bytes())
+        assert len(doc["images"]) == 1, glb
+        prims = doc["meshes"][0]["primitives"]
+        assert all("TEXCOORD_0" in p["attributes"] for p in prims)
+        if glb.name != "overview.glb":
+            assert all("EXT_mesh_features" in p["extensions"] for p in prims)
+    fps = json.loads((work / "output" / "tileset.fingerprints.json").read_text())["nodes"]
+    assert all(r["texture_bytes"] > 0 for k, r in fps.items() if k.startswith("L") and not k.startswith("L0_"))
+
+    plain = tmp_path / "plain"
+    shutil.copytree(tiny_merged, plain)
+    run_export(plain, ExportConfig(lod_texture_px=0))
+    for glb in sorted((plain / "output" / "content").glob("lod*/*.glb")):
+        assert "images" not in read_glb(glb.read_bytes())[0]
