@@ -187,7 +187,9 @@ def _check_las_complete(path: Path, h: laspy.LasHeader) -> None:
         raise InputError(path, f"truncated after {available:,} of {h.point_count:,} points")
 
 
-def _chunk_from_las(record, h: laspy.LasHeader) -> PointChunk:
+def chunk_from_las_record(record, h: laspy.LasHeader) -> PointChunk:
+    """A laspy point record as a PointChunk: xyz (n, 3) float64 world metres (integers x scale + offset),
+    RGB (n, 3) uint16, intensity, GPS time, classification and extra bytes as the point format has them."""
     arr = record.array
     n = len(arr)
     xyz = np.empty((n, 3), dtype=np.float64, order="F")  # column-major: every later step works per axis
@@ -211,6 +213,14 @@ def _chunk_from_las(record, h: laspy.LasHeader) -> PointChunk:
     )
 
 
+def _variable_size_chunks(h: laspy.LasHeader) -> bool:
+    """Whether a LAZ file's chunks vary in size (COPC's do: one per octree node)."""
+    import lazrs
+
+    laszip = h.vlrs.get("LasZipVlr") if h.are_points_compressed else None
+    return bool(laszip) and lazrs.LazVlr(laszip[0].record_data).uses_variable_size_chunks()
+
+
 def iter_las(path: Path, chunk_points: int, start: int = 0, stop: int | None = None) -> Iterator[PointChunk]:
     """Points ``[start, stop)`` of a LAS/LAZ file in chunks of at most ``chunk_points``."""
     with _open_las(path, selective=True) as reader:
@@ -220,7 +230,10 @@ def iter_las(path: Path, chunk_points: int, start: int = 0, stop: int | None = N
         stop = n if stop is None else min(stop, n)
         if start >= stop:
             return
-        if start:
+        if start and _variable_size_chunks(h):  # lazrs (0.8) seeks wrongly there: decode the points before
+            for a in range(0, start, chunk_points):
+                reader.read_points(min(chunk_points, start - a))
+        elif start:
             reader.seek(start)
         pos = start
         while pos < stop:
@@ -231,7 +244,7 @@ def iter_las(path: Path, chunk_points: int, start: int = 0, stop: int | None = N
                 raise InputError(path, f"truncated or corrupt after {pos:,} of {n:,} points ({err})") from err
             if len(record) < m:
                 raise InputError(path, f"truncated after {pos + len(record):,} of {n:,} points")
-            chunk = _chunk_from_las(record, h)
+            chunk = chunk_from_las_record(record, h)
             check_finite_points(path, chunk.xyz)
             yield chunk
             pos += m
@@ -382,5 +395,5 @@ def write_points(path: str | Path, chunk: PointChunk, crs: str | None = None, **
     return Path(path)
 
 
-__all__ = ["LAS_INT32_MAX", "LasChunkWriter", "choose_offset", "iter_las", "las_header_bounds", "las_info",
-           "write_points"]
+__all__ = ["LAS_INT32_MAX", "LasChunkWriter", "choose_offset", "chunk_from_las_record", "iter_las", "las_header_bounds",
+           "las_info", "write_points"]
