@@ -157,12 +157,14 @@ def _inputs(run: _Run) -> dict:
     """Scan, register (once, while the meshes are routed: mesh ingest needs the frame only), ingest the
     points; then note the bad inputs and prune whatever the plan no longer names."""
     from tasks.ingest import blocked_tiles, plan_units
+    from tasks.scan import points_box
 
     cfg, wd, ex = run.cfg, run.wd, run.ex
     records, frame, found, ids, scans = scan_inputs(cfg, wd, ex)
     rec_json = [r.to_json() for r in records]
     reg_future = submit_pending(wd, ex, register_task, rec_json, frame.to_json(), run.cfg_json)
-    units = plan_units(records, cfg.tiling.chunk_points)
+    box = points_box(records, cfg.inputs.points_bounds, cfg.grid())  # inputs.points_bounds; None: every point
+    units = plan_units(records, cfg.tiling.chunk_points, box)
     ingest_consts = {"cfg_json": run.cfg_json, "frame_json": frame.to_json()}
     mesh_units = [u for u in units if u.kind == "mesh"]
     todo, mesh_done = pending(wd, ingest_task, [u.to_json() for u in mesh_units], "ingest meshes",
@@ -180,14 +182,14 @@ def _inputs(run: _Run) -> dict:
                                "ingest points", run.batcher(ingest_task), **ingest_consts,
                                matrix=matrix.tolist())
     ingests = [r for rs in mesh_done.values() for r in rs] + mesh_ingest.results() + point_ingest
-    blocked, failed, incomplete = blocked_tiles(records, ingests, units, frame, matrix, cfg.grid())
+    blocked, failed, incomplete = blocked_tiles(records, ingests, units, frame, matrix, cfg.grid(), box)
     run.failed.update(failed)
     run.stages |= {"scan": scans, "ingest": ingests}
     prune_staging(wd, {u.key for u in units})
     drop_unplanned_records(wd, "ingest", {u.key for u in units})
     drop_unplanned_records(wd, "scan", {f"{s:08x}" for s in ids.values()})
     return {"records": records, "frame": frame, "found": found, "matrix": matrix, "blocked": blocked,
-            "incomplete": incomplete, "registration": registration}
+            "incomplete": incomplete, "registration": registration, "points_box": box}
 
 
 def store_sizes(wd: WorkDir, tiles: list[str]) -> dict[str, int]:
@@ -207,7 +209,7 @@ def _tiles(run: _Run, inputs: dict) -> dict:
     from tasks.repair import pending_regions
 
     cfg, wd, ex, cj = run.cfg, run.wd, run.ex, run.cfg_json
-    hints = input_tiles(inputs["records"], inputs["frame"], inputs["matrix"], cfg.grid())
+    hints = input_tiles(inputs["records"], inputs["frame"], inputs["matrix"], cfg.grid(), inputs["points_box"])
     tiles = sorted({k for h in hints.values() for k in h} | {t.key for t in wd.staged_tiles()}
                    | set(wd.tile_keys_on_disk()))
     parts = run.note("tile", map_pending(wd, ex, partition_task, tiles, "partition", run.batcher(partition_task), cfg_json=cj,

@@ -128,6 +128,7 @@ def _read(f, path: Path, at: int, n: int, size: int, what: str, stats: CopcReadS
 
 
 def _open(path: Path, f, stats: CopcReadStats) -> _Copc:
+    """The LAS header, COPC info and LAZ VLR of an open COPC file (InputError naming what is wrong)."""
     if not is_copc(path):
         raise InputError(path, "not a COPC file (a LAS 1.4 file whose first VLR is the COPC info, user_id 'copc' "
                                "record 1)")
@@ -155,7 +156,7 @@ def _open(path: Path, f, stats: CopcReadStats) -> _Copc:
     return _Copc(path, header, info, laz[0].record_data, size)
 
 
-def read_hierarchy(c: _Copc, f, stats: CopcReadStats, box: np.ndarray | None = None) -> np.ndarray:
+def _read_hierarchy(c: _Copc, f, stats: CopcReadStats, box: np.ndarray | None = None) -> np.ndarray:
     """The data nodes ((n,) ENTRY, point_count > 0) sorted by file offset. With ``box`` ((2, k) world
     metres) child pages whose node lies outside it are not read (their nodes could not overlap it)."""
     todo, seen, data = [(c.info.root_hier_offset, c.info.root_hier_size)], set(), []
@@ -247,14 +248,30 @@ def _batches(counts: np.ndarray, chunk_points: int) -> Iterator[slice]:
         yield slice(a, len(counts))
 
 
+def copc_level_counts(path: str | Path, bounds=None) -> np.ndarray:
+    """Points per octree level in the nodes over ``bounds`` (as :func:`iter_copc`; None: every node), read
+    from the header and the hierarchy alone: (levels,) int64, index = level. Coarse levels are even thinnings
+    of the cloud, so their running total says how deep a sample of n points must read."""
+    path, stats = Path(path), CopcReadStats()
+    box = None if bounds is None else as_box(bounds)
+    check_cloud_file(path)
+    with open(path, "rb") as f:
+        c = _open(path, f, stats)
+        nodes = _read_hierarchy(c, f, stats, box)
+    if box is not None:
+        nodes = nodes[boxes_overlap(node_boxes(c.info, nodes), box, float(np.max(c.header.scales)))]
+    return np.bincount(nodes["level"], weights=nodes["point_count"], minlength=1).astype(np.int64)
+
+
 def iter_copc(path: str | Path, chunk_points: int, bounds=None, start: int = 0, stop: int | None = None,
-              stats: CopcReadStats | None = None) -> Iterator[PointChunk]:
+              stats: CopcReadStats | None = None, max_level: int | None = None) -> Iterator[PointChunk]:
     """The points of a COPC file inside ``bounds`` and the point range ``[start, stop)``, in chunks of at most
     ``chunk_points``, decompressing only the octree nodes that overlap the box and the range.
 
     bounds: [[xmin, ymin(, zmin)], [xmax, ymax(, zmax)]] world metres in the file's CRS, inclusive; None for
     every point. start / stop: point indices in file order (as :func:`storage.formats.las.iter_las` counts
-    them). ``stats`` (optional) accumulates what the read cost. Points come in file order; memory is bounded
+    them). max_level: only nodes of this octree level or coarser (a thinned cloud; None: every level).
+    ``stats`` (optional) accumulates what the read cost. Points come in file order; memory is bounded
     by ``chunk_points`` or the largest node. Raises InputError naming the file for a file that is not COPC,
     has no hierarchy, is truncated or corrupt, and for a box that lies outside the data's bounds.
     """
@@ -268,7 +285,7 @@ def iter_copc(path: str | Path, chunk_points: int, bounds=None, start: int = 0, 
         if box is not None and not boxes_overlap(data[None], box)[0]:
             raise InputError(path, f"the query box ({_fmt_box(box)}) lies outside the data ({_fmt_box(data)})")
         ranged = start > 0 or stop is not None
-        nodes = read_hierarchy(c, f, stats, None if ranged else box)
+        nodes = _read_hierarchy(c, f, stats, None if ranged else box)
         counts = nodes["point_count"].astype(np.int64)
         first = np.cumsum(counts) - counts  # each node's first point index in file order
         if (ranged or box is None) and int(counts.sum()) != h.point_count:
@@ -278,6 +295,8 @@ def iter_copc(path: str | Path, chunk_points: int, bounds=None, start: int = 0, 
         keep = (first < stop) & (first + counts > start)
         if box is not None:
             keep &= boxes_overlap(node_boxes(c.info, nodes), box, float(np.max(h.scales)))
+        if max_level is not None:
+            keep &= nodes["level"] <= max_level
         nodes, first, counts = nodes[keep], first[keep], counts[keep]
         for part in _batches(counts, chunk_points):
             chunk = chunk_from_las_record(_decode(c, f, nodes[part], stats), h)
@@ -295,5 +314,5 @@ def iter_copc(path: str | Path, chunk_points: int, bounds=None, start: int = 0, 
                 yield chunk.take(slice(lo, lo + chunk_points)) if len(chunk) > chunk_points else chunk
 
 
-__all__ = ["COPC_INFO_BYTES", "ENTRY", "CopcInfo", "CopcReadStats", "as_box", "boxes_overlap", "is_copc", "iter_copc",
-           "node_boxes", "read_hierarchy"]
+__all__ = ["COPC_INFO_BYTES", "ENTRY", "CopcInfo", "CopcReadStats", "as_box", "boxes_overlap", "copc_level_counts",
+           "is_copc", "iter_copc", "node_boxes"]

@@ -25,7 +25,8 @@ class _Model(BaseModel):
 
 class InputsConfig(_Model):
     mesh: list[str] = Field(default_factory=list, description="mesh files or folders (OBJ+MTL / PLY / GLB); a folder is read as ContextCapture-style tiles")
-    points: list[str] = Field(default_factory=list, description="MLS point clouds (LAS / LAZ / PLY / PCD / XYZ)")
+    points: list[str] = Field(default_factory=list, description="MLS point clouds (LAS / LAZ / COPC / PLY / PCD / XYZ / E57)")
+    points_bounds: tuple[float, float, float, float] | Literal["mesh"] | None = Field(None, description="[xmin, ymin, xmax, ymax] world metres (the point files' CRS after units_scale, before registration, which moves them by centimetres to a metre): only the MLS points inside are ingested, and a COPC input decompresses only its octree nodes over the box, so a city-wide COPC feeds one campus at the cost of its campus part; 'mesh': the meshes' x/y extent grown by one tile and snapped out to the tile grid; None: every point")
     crs: str | None = Field(None, description="projected CRS of the campus, e.g. 'EPSG:32650'; read from the LAS VLRs when absent")
     mesh_offset: tuple[float, float, float] = Field((0.0, 0.0, 0.0), description="added to mesh coordinates (ContextCapture SRSOrigin) to get world metres")
     units_scale: float = Field(1.0, description="multiplies input coordinates into metres (e.g. 0.3048 for US feet)")
@@ -33,6 +34,13 @@ class InputsConfig(_Model):
     origin: tuple[float, float, float] | None = Field(None, description="campus origin (world metres) of the float32 offsets; default: the inputs' minimum x/y corner snapped to 1 km, z = 0")
     images: str | None = Field(None, description="folder of the vehicle camera images that texture rebuilt regions; default: an 'images' folder beside the first mesh input when it holds a cameras.json")
     cameras: str | None = Field(None, description="camera poses of the images (OpenCV model with radial-tangential distortion), by name: a COLMAP text model (its sparse folder, cameras.txt or images.txt), a ContextCapture/iTwin BlocksExchange .xml, or a cameras.json {'frame': 'MLS' | 'mesh', 'frame_origin': [x, y, z], 'cameras': [{'image', 'K', 'R', 't', 'width', 'height', 'dist'?: [k1, k2, p1, p2, k3]}]}, X_cam = R (X_world - frame_origin) + t. COLMAP and BlocksExchange poses are read as world coordinates in the campus CRS, in the mesh's frame (the photogrammetry that made it); MLS-frame cameras need a cameras.json with 'frame': 'MLS'. Image paths are relative to inputs.images (default: the camera file's folder; for COLMAP also ../images and ../../images); default: images/cameras.json")
+
+    @field_validator("points_bounds")
+    @classmethod
+    def _box(cls, v):
+        if isinstance(v, tuple) and not (v[0] < v[2] and v[1] < v[3]):
+            raise ValueError(f"points_bounds is [xmin, ymin, xmax, ymax] with xmin < xmax and ymin < ymax, got {list(v)}")
+        return v
 
 
 class RegistrationConfig(_Model):

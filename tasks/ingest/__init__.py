@@ -1,11 +1,13 @@
 """The ingest stage: convert the inputs to the campus frame and route points and faces to their tiles.
 
-- Reads: the input files (a mesh whole, a cloud by ranges of ``tiling.chunk_points`` points), the campus
-  frame and, for point units, the registration matrix.
+- Reads: the input files (a mesh whole, a cloud by ranges of ``tiling.chunk_points`` points, only those in
+  ``inputs.points_bounds``: a COPC cloud by its octree nodes over that box), the campus frame and, for point
+  units, the registration matrix.
 - Writes: sorted staging runs ``staging/{tile}/{unit key}-{part:03d}.arrow`` (contract:
   :mod:`storage.contracts.staging`) and one manifest record per unit.
 - Invalidated by: the unit's key (source id, content fingerprint, range), its point range, the campus
-  frame, the registration (point units only), the ingest parameters and ``STAGE_VERSIONS["ingest"]``.
+  frame, the registration and the points box (point units only), the ingest parameters and
+  ``STAGE_VERSIONS["ingest"]``.
 
 The plan (:mod:`tasks.ingest.plan`) names the units, batches them, and says which tiles a bad input
 blocks; :func:`storage.contracts.staging.prune_staging` then removes what the plan no longer names, so a tile is

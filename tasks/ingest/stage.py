@@ -1,7 +1,8 @@
 """The ingest stage's I/O: route one unit's points or faces to staging files per ground tile.
 
 An ingest unit is one mesh file, or one range of ``tiling.chunk_points`` points of a cloud file
-(:mod:`tasks.ingest.plan`); its staging runs follow the contract of :mod:`storage.contracts.staging`. A unit that
+(:mod:`tasks.ingest.plan`), of which only the points in ``inputs.points_bounds`` are routed (a COPC file
+decompresses only its octree nodes over that box); its staging runs follow the contract of :mod:`storage.contracts.staging`. A unit that
 fails removes what it had written, and a unit that is redone first removes its previous output.
 """
 
@@ -50,10 +51,12 @@ def _route_points(unit: IngestUnit, cfg: CampusConfig, frame: CampusFrame, matri
     and rows per tile key to ``tiles``."""
     grid = cfg.grid()
     src = local_input(unit.path)  # an input by URL is read from a staged copy
+    box = None if unit.bounds is None else [unit.bounds[:2], unit.bounds[2:]]  # a COPC reads its nodes over it
     if Path(unit.path).suffix.lower() in LAS_SUFFIXES:
-        chunks = iter_points_range(src, unit.start, unit.stop, cfg.tiling.chunk_points, cfg.inputs.units_scale)
+        chunks = iter_points_range(src, unit.start, unit.stop, cfg.tiling.chunk_points, cfg.inputs.units_scale,
+                                   bounds=box)
     else:
-        chunks = iter_points(src, cfg.tiling.chunk_points, cfg.inputs.units_scale)
+        chunks = iter_points(src, cfg.tiling.chunk_points, cfg.inputs.units_scale, bounds=box)
     n = 0
     for k, chunk in enumerate(chunks):
         local64 = to_campus(chunk.xyz, frame, matrix, unit.path)
@@ -63,7 +66,7 @@ def _route_points(unit: IngestUnit, cfg: CampusConfig, frame: CampusFrame, matri
         cols["patch"] = grid.pack(cells)
         _write_runs(wd, unit.key, k, cols, cells, grid, None, outputs, tiles)
         n += len(chunk)
-    if n == 0:
+    if n == 0 and box is None:  # with a box, a range may well lie outside it
         raise InputError(unit.path, f"no points in range [{unit.start}, {unit.stop})")
 
 
@@ -113,10 +116,13 @@ def _write_runs(wd: WorkDir, key: str, part: int, cols: dict, cells: np.ndarray,
 
 
 def ingest_fingerprint(unit: IngestUnit, frame: CampusFrame, matrix: np.ndarray | None) -> str:
-    """A unit's input identity: its key, content, range, the campus frame and (points) the registration."""
+    """A unit's input identity: its key, content, range, the campus frame and (points) the registration and
+    the points box."""
     parts = [unit.key, unit.fingerprint, f"{unit.start}:{unit.stop}", str(frame.to_json())]
     if unit.kind == "points":
         parts.append(np.asarray(matrix, np.float64).tobytes().hex())
+        if unit.bounds is not None:
+            parts.append(np.asarray(unit.bounds, np.float64).tobytes().hex())
     return combine_fingerprints(parts)
 
 

@@ -31,6 +31,7 @@ from ms3d_model.hashing import order_free_subset
 from storage.atomic import write_json_atomic
 from storage.contracts.surface_samples import read_surface_samples, samples_path
 from storage.errors import InputError
+from storage.formats.copc import copc_level_counts, is_copc, iter_copc
 from storage.formats.points import iter_points, iter_points_range
 from storage.frame import CampusFrame
 from storage.inputs.identity import InputFile
@@ -38,6 +39,7 @@ from storage.inputs.remote import local_input
 from storage.workdir.layout import WorkDir
 from storage.workdir.manifest import combine_fingerprints
 from tasks.config import CampusConfig
+from tasks.scan import outside_box, points_box
 from tasks.units import Done, run_unit
 
 log = logging.getLogger("ms3d.register")
@@ -45,21 +47,39 @@ log = logging.getLogger("ms3d.register")
 REGISTRATION_FILE = "registration.json"
 
 
-def sample_points_for_registration(rec: InputFile, n_target: int, cfg: CampusConfig, n_ranges: int = 16) -> np.ndarray:
+def _copc_sample(path: Path, n_target: int, box, cfg: CampusConfig) -> list[np.ndarray]:
+    """World points of a COPC file in ``box`` ((2, 2) world metres) from its coarsest octree levels that hold
+    about ``n_target`` points over the box: a thinned cloud, the finer nodes left compressed."""
+    s = cfg.inputs.units_scale
+    query = np.asarray(box, np.float64) / s
+    level = int(np.searchsorted(np.cumsum(copc_level_counts(path, query)), n_target))
+    out = [ch.xyz[np.all((ch.xyz[:, :2] * s >= box[0]) & (ch.xyz[:, :2] * s <= box[1]), axis=1)] * s
+           for ch in iter_copc(path, cfg.tiling.chunk_points, query, max_level=level)]
+    n = sum(len(x) for x in out)
+    return [x[:: max(n // max(n_target, 1), 1)] for x in out]
+
+
+def sample_points_for_registration(rec: InputFile, n_target: int, cfg: CampusConfig, n_ranges: int = 16,
+                                   box=None) -> np.ndarray:
     """About n_target world points spread over a cloud file: ``n_ranges`` short ranges (LAS/LAZ) or a
-    strided pass (other formats). A file that breaks part-way ends its sample early (logged)."""
+    strided pass (other formats); with a points ``box`` ([xmin, ymin, xmax, ymax], ``inputs.points_bounds``)
+    only points inside it, a COPC file's from its coarse octree levels over the box. A file that breaks
+    part-way ends its sample early (logged)."""
     path = Path(local_input(rec.path))  # an input by URL is read from a staged copy
+    bounds = None if box is None else [list(box[:2]), list(box[2:])]
     out = []
     try:
-        if path.suffix.lower() in (".las", ".laz") and rec.count > n_target:
+        if bounds is not None and is_copc(path):
+            out = _copc_sample(path, n_target, bounds, cfg)
+        elif path.suffix.lower() in (".las", ".laz") and rec.count > n_target:
             per = max(n_target // n_ranges, 1)
             starts = np.linspace(0, max(rec.count - per, 0), n_ranges).astype(np.int64)
             for a in starts:
-                for ch in iter_points_range(path, int(a), int(a) + per, per, cfg.inputs.units_scale):
+                for ch in iter_points_range(path, int(a), int(a) + per, per, cfg.inputs.units_scale, bounds):
                     out.append(ch.xyz)
         else:
             stride = max(rec.count // max(n_target, 1), 1)
-            for ch in iter_points(path, cfg.tiling.chunk_points, cfg.inputs.units_scale):
+            for ch in iter_points(path, cfg.tiling.chunk_points, cfg.inputs.units_scale, bounds):
                 out.append(ch.xyz[::stride])
     except InputError as e:
         log.info("registration sample of %s ended early: %s", path, e)  # the file fails its own units
@@ -83,10 +103,11 @@ def mesh_target(records: list[InputFile], wd: WorkDir, frame: CampusFrame) -> tu
 
 
 def mls_sample(records: list[InputFile], cfg: CampusConfig, frame: CampusFrame) -> np.ndarray:
-    """A bounded sample of every readable point cloud, (n, 3) float64 campus-local."""
-    pts = [r for r in records if r.kind == "points" and not r.error]
+    """A bounded sample of every readable point cloud (in ``inputs.points_bounds``), (n, 3) float64 campus-local."""
+    box = points_box(records, cfg.inputs.points_bounds, cfg.grid())
+    pts = [r for r in records if r.kind == "points" and not r.error and not outside_box(r, box)]
     n_each = max(cfg.registration.max_points * 4 // max(len(pts), 1), 10_000)
-    parts = [sample_points_for_registration(r, n_each, cfg) for r in pts]
+    parts = [sample_points_for_registration(r, n_each, cfg, box=box) for r in pts]
     src = np.concatenate(parts) - frame.origin_array if parts else np.zeros((0, 3))
     if len(src) < 100:
         raise InputError(None, "no readable MLS points to register: " + "; ".join(r.error for r in records if r.error))
@@ -146,8 +167,9 @@ def run_register(records: list[InputFile], frame: CampusFrame, cfg: CampusConfig
             raise InputError(wd.root / REGISTRATION_FILE, "registration.mode is pinned but no transform is recorded: "
                                                           "run once with mode auto, or give registration.matrix")
         return rec | {"method": f"pinned ({rec.get('method', 'recorded')})"}
+    box = points_box(records, cfg.inputs.points_bounds, cfg.grid())  # the MLS sampled: a new box re-registers
     fp = combine_fingerprints(sorted(f"{r.kind}:{r.source}:{r.fingerprint}:{r.error != ''}" for r in records)
-                              + [json.dumps(frame.to_json(), sort_keys=True)])
+                              + [json.dumps(frame.to_json(), sort_keys=True)] + ([json.dumps(box)] if box else []))
 
     def work() -> Done:
         reg = _estimate(records, frame, cfg, wd)

@@ -10,6 +10,7 @@ from storage.errors import InputError
 from storage.frame import CampusFrame
 from storage.inputs.identity import InputFile
 from tasks.config import CampusConfig
+from tasks.scan.extent import clip_point_records, points_box
 
 ORIGIN_SNAP_M = 1000.0  # the origin moves only when the campus crosses a kilometre line
 
@@ -81,9 +82,11 @@ def check_overlap(records: list[InputFile], margin_m: float = 50.0) -> None:
 
 
 def campus_frame(records: list[InputFile], cfg: CampusConfig) -> CampusFrame:
-    """Frame of the campus from the scanned records: checks CRS, overlap and the float32 reach."""
+    """Frame of the campus from the scanned records, point extents clipped to ``inputs.points_bounds``: checks
+    CRS, overlap and the float32 reach."""
     check_crs_is_projected(cfg.inputs.crs)
     crs = resolve_crs(cfg.inputs.crs, [r for r in records if r.kind == "points" or r.crs])
     check_crs_is_projected(crs)
-    check_overlap(records)
-    return CampusFrame(origin=choose_origin(records, cfg.inputs.origin), crs=crs)
+    used = clip_point_records(records, points_box(records, cfg.inputs.points_bounds, cfg.grid()))
+    check_overlap(used)
+    return CampusFrame(origin=choose_origin(used, cfg.inputs.origin), crs=crs)

@@ -11,7 +11,7 @@ import numpy as np
 import pytest
 
 from storage.errors import InputError
-from storage.formats.copc import CopcReadStats, is_copc, iter_copc
+from storage.formats.copc import CopcReadStats, copc_level_counts, is_copc, iter_copc
 from storage.formats.points import (
     PointChunk,
     iter_points,
@@ -111,6 +111,18 @@ def test_bounds_query_decodes_only_overlapping_nodes(copc, capsys):
         ref = r.query(bounds=laspy.copc.Bounds(BOX[0], BOX[1]))
         ref_xyz = np.stack([ref.x, ref.y, ref.z], axis=1)
         np.testing.assert_array_equal(np.unique(ref_xyz, axis=0), np.unique(got.xyz, axis=0))
+
+
+def test_level_counts_and_a_thinned_read(copc):
+    path, layout = copc
+    counts = copc_level_counts(path)
+    assert counts.tolist() == np.bincount(layout.nodes["level"], weights=layout.nodes["point_count"]).tolist()
+    assert counts.sum() == N and len(counts) == 4
+    coarse = PointChunk.concat(iter_copc(path, 100_000, max_level=1))
+    plain = read_points(path)
+    assert_identical(coarse, plain.take(slice(0, counts[:2].sum())))  # nodes are written level by level
+    over_box = copc_level_counts(path, BOX)
+    assert (over_box <= counts).all() and over_box[0] == counts[0] and over_box.sum() < N / 2
 
 
 def test_box_with_z_and_units_scale(copc):
