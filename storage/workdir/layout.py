@@ -67,6 +67,7 @@ class WorkDir:
     output_dir = _Under("output")  # what a user opens: the 3D Tiles, their georeference and the run report
     tileset_json = _Under("output/tileset.json")
     georef_json = _Under("output/georef.json")
+    tileset_3tz = _Under("output/tileset.3tz")  # the output packed as one 3D Tiles archive (export.archive: 3tz)
     report_html = _Under("output/report.html")
     lod_cache_dir = _Under("export/lod")  # the export's decimated mesh per tileset node
 

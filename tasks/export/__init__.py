@@ -2,18 +2,21 @@
 
 Reads ``campus.json`` (CRS, origin, grid) and every ``tiles/{ix}_{iy}/merged.npz`` + ``merged.json`` (the
 merge stage's ``TileMesh``, with its textures). Writes ``output/tileset.json``, ``output/content/…`` (leaf
-and LOD glbs), ``output/overview.glb``, ``output/georef.json``, ``output/tileset.fingerprints.json`` and
-the per-node decimated meshes in ``export/lod/``; records ("export", "tileset") and, when the flow maps the
+and LOD glbs; with ``export.tiling: implicit`` at ``content/{level}/{x}/{y}.glb``, and ``output/subtrees/``),
+``output/overview.glb``, ``output/georef.json``, ``output/tileset.fingerprints.json``, with ``export.archive:
+3tz`` ``output/tileset.3tz`` (its state in ``export/archive.json``), and the per-node decimated meshes in
+``export/lod/``; records ("export", "tileset") and, when the flow maps the
 nodes, ("export", node key) in the manifest.
 
 Invalidated per node: a leaf by its merged tile's content (mesh, metadata, textures), every node by the
-export parameters, the georeference (CRS, origin, footprint centre) or ``EXPORT_VERSION``, a parent by
+export parameters (not the layout: tiling and archive move and pack the same glbs), the georeference (CRS, origin, footprint centre) or ``EXPORT_VERSION``, a parent by
 any child. Nodes, glbs and cached meshes the plan no longer names are removed.
 
-Modules: ``tree`` (quadtree, tileset.json), ``content`` (a node's glTF content), ``nodes`` (one node's
-build), ``gltf`` / ``vertex_split`` / ``lod`` / ``georef`` (glb writer, per-feature vertices, block-wise
-decimation, ENU frame), ``overlay`` (the points overlay's tiles), ``check`` (validation:
-``python -m tasks.export.check WORKDIR``), ``stage`` (the run and its records).
+Modules: ``tree`` (quadtree, tileset.json), ``implicit`` (the same quadtree as implicit tiling: subtrees,
+export.tiling), ``content`` (a node's glTF content), ``nodes`` (one node's build), ``gltf`` / ``vertex_split``
+/ ``lod`` / ``georef`` (glb writer, per-feature vertices, block-wise decimation, ENU frame), ``overlay`` (the
+points overlay's tiles), ``check`` (validation: ``python -m tasks.export.check WORKDIR``), ``batching`` (the
+flow's node batches), ``stage`` (the run, the layout and the .3tz archive (export.archive), its records).
 """
 
 from tasks.stages import BatchContext, StageSpec, lazy_exports

@@ -3,6 +3,9 @@
 No 3D Tiles validator is installable here, so ``check_tileset`` checks in Python what one would: required
 keys, ``geometricError`` never increasing from parent to child, every bounding volume enclosing its
 content (the glb's vertices, y-up rotated to z-up) and its children's volumes, every content URI present.
+An implicit tileset is expanded first (:func:`tasks.export.implicit.expand_implicit`: subtrees readable,
+availability consistent), its tiles checked with their tile metadata's boxes and errors, and each content's
+mean vertex must lie in the box implicit tiling derives for its tile (coordinates mapped right).
 The Khronos validator does not know EXT_mesh_features / EXT_structural_metadata, so ``check_mesh_features``
 checks those. ``validate_glbs`` runs ``viewer/validate.mjs`` (npm ``gltf-validator``) with node.
 """
@@ -16,8 +19,10 @@ from pathlib import Path
 
 import numpy as np
 
+from storage.errors import InputError
 from tasks.export.georef import gltf_to_enu
 from tasks.export.gltf import glb_positions, glb_primitives, read_glb
+from tasks.export.implicit import expand_implicit
 
 VIEWER_DIR = Path(__file__).resolve().parents[2] / "viewer"
 REQUIRED_TILE_KEYS = ("boundingVolume", "geometricError")
@@ -49,6 +54,11 @@ def check_tileset(output_dir: str | Path, read_content: bool = True) -> list[str
     if not path.is_file():
         return [f"{path}: missing"]
     doc = json.loads(path.read_text())
+    if isinstance(doc.get("root"), dict) and "implicitTiling" in doc["root"]:
+        try:  # the implicit tiles, with their tile metadata's boxes and errors, checked as explicit ones
+            doc = expand_implicit(doc, lambda rel: (out / rel).read_bytes())
+        except (InputError, OSError) as e:
+            return [f"implicit tiling: {e}"]
     if doc.get("asset", {}).get("version") not in ("1.0", "1.1"):
         problems.append("asset.version missing or not 1.0/1.1")
     if not isinstance(doc.get("geometricError"), (int, float)):
@@ -93,6 +103,9 @@ def check_tileset(output_dir: str | Path, read_content: bool = True) -> list[str
                 outside = ~points_in_box(box, pos)
                 if outside.any():
                     problems.append(f"{where}: {int(outside.sum())} vertices of {uri} outside its bounding box")
+                if "implicit" in tile and len(pos) and not points_in_box(tile["implicit"]["box"], pos.mean(axis=0)[None])[0]:
+                    problems.append(f"{where}: {uri} lies outside the box implicit tiling derives for "
+                                    f"{tuple(tile['implicit']['coord'])}")
         for i, child in enumerate(tile.get("children", [])):
             visit(child, f"{where}.children[{i}]", tile)
 

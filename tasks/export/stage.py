@@ -13,6 +13,10 @@ Output (``work_dir/output``)::
     points/tileset.json, *.glb    the registered MLS points, thinned, as POINTS in the same frame (an
                                   overlay for the viewer, ``points.py``, ``overlay.py``; only when the tiles have stores)
     tileset.fingerprints.json     per node: input fingerprint, box, geometric error (for reruns)
+    content/{level}/{x}/{y}.glb   export.tiling implicit: the same glbs, moved (``implicit.py``), and
+    subtrees/{level}/{x}/{y}.subtree  their availability; tileset.json then has one implicit root
+    tileset.3tz                   export.archive 3tz: the above as one 3D Tiles archive (state in
+                                  work_dir/export/archive.json)
     (work_dir/export/lod/*.npz    per node: the decimated mesh it passes to its parent)
 
 Every face carries grade / source / region as EXT_mesh_features + EXT_structural_metadata.
@@ -26,6 +30,7 @@ changed: one changed tile rewrites that tile's content and its ancestors, nothin
 from __future__ import annotations
 
 import json
+import os
 import shutil
 import time
 from collections.abc import Callable
@@ -36,32 +41,39 @@ from pathlib import Path
 import numpy as np
 
 from storage import recorded
-from storage.atomic import write_bytes_atomic, write_json_atomic
+from storage.atomic import file_sha256, write_bytes_atomic, write_json_atomic
 from storage.errors import InputError
+from storage.formats.threetz import write_3tz
 from storage.patches.state import store_fingerprint
 from storage.workdir.layout import WorkDir, campus_frame, read_campus
-from tasks.batches import balanced_batches
 from tasks.config import ExportConfig
-from tasks.export.georef import GeoRef, make_georef
+from tasks.export.batching import node_batches, node_records, relocate_jobs  # noqa: F401 - the package exports them from here
+from tasks.export.georef import EnuProjector, GeoRef, make_georef
+from tasks.export.implicit import implicit_files, implicit_uris
 from tasks.export.nodes import NodeJob, build_node, content_hash, leaf_fingerprint
 from tasks.export.overlay import PointsJob, build_points, write_points_overlay
 from tasks.export.tree import EXPORT_VERSION, QuadNode, QuadTree, plan_quadtree, tileset_json
 from tasks.units import failure_message, record_step
 
 OVERVIEW = QuadNode(-1, 0, 0)
+NOT_CONTENT = {"before", "tiling", "subtree_levels", "archive"}  # export fields no node's content depends on
 
 # ------------------------------------------------------------------------------------- the export run
+
+
+def _tile_grid(campus: dict, origin: np.ndarray) -> tuple[np.ndarray, float]:
+    """(the south-west corner of ground tile 0_0 (2,) campus-local metres, the tile side in metres)."""
+    if "grid" in campus:  # a pipeline work dir: tile keys are world-anchored (storage.grid), not origin-relative
+        grid = campus["grid"]
+        return np.asarray(grid["anchor_m"][:2], np.float64) - origin[:2], float(grid["tile_size_m"])
+    return np.zeros(2), float(campus.get("config", {}).get("tiling", {}).get("tile_size_m", 100.0))
 
 
 def _enu_centre(campus: dict, origin: np.ndarray, tiles: list[str]) -> tuple[float, float, float]:
     """Centre of the tiles' footprint (campus-local metres, z 0): the origin of the ENU frame."""
     ij = np.array([[int(v) for v in k.split("_")] for k in tiles], np.float64)
-    mid = (ij.min(axis=0) + ij.max(axis=0) + 1) / 2
-    if "grid" in campus:  # a pipeline work dir: tile keys are world-anchored (storage.grid), not origin-relative
-        grid = campus["grid"]
-        centre = mid * float(grid["tile_size_m"]) + np.asarray(grid["anchor_m"][:2], np.float64) - origin[:2]
-    else:
-        centre = mid * float(campus.get("config", {}).get("tiling", {}).get("tile_size_m", 100.0))
+    corner, size = _tile_grid(campus, origin)
+    centre = (ij.min(axis=0) + ij.max(axis=0) + 1) / 2 * size + corner
     return float(centre[0]), float(centre[1]), 0.0
 
 
@@ -129,6 +141,84 @@ def _remove_stale(out: Path, cache: Path, nodes: dict[str, dict]) -> None:
             recorded.unlink(stale)
 
 
+# ------------------------------------------------------------------------------------- tiling and archive
+
+ARCHIVED = ("tileset.json", "georef.json", "overview.glb", "content", "subtrees", "points", "before")
+NOT_ARCHIVED = ("tileset.fingerprints.json", "fingerprints.json")  # rerun state, not read by a viewer
+
+
+def _place_content(out: Path, nodes: dict[str, dict], uris: dict[str, str] | None) -> dict[str, dict]:
+    """The records with each node's glb moved (never copied) to ``uris[key]`` (implicit tiling), or back to
+    where its build wrote it (``uris`` None); ``built_uri`` keeps the build's path while moved, so a rerun
+    reuses the node either way. Through temporary names: a tree whose height changed swaps implicit paths."""
+    moves, placed = [], {}
+    for key, rec in nodes.items():
+        built = rec.get("built_uri", rec["uri"])
+        want = uris[key] if uris is not None else built
+        if rec["uri"] != want:
+            moves.append((out / rec["uri"], out / "content" / f".moving-{key}.glb", out / want))
+        placed[key] = {k: v for k, v in rec.items() if k != "built_uri"} | {"uri": want}
+        if want != built:
+            placed[key]["built_uri"] = built
+    for src, tmp, _ in moves:
+        recorded.ensure_local(src)
+        os.replace(src, tmp)
+    for _, tmp, dst in moves:
+        dst.parent.mkdir(parents=True, exist_ok=True)
+        os.replace(tmp, dst)
+    return placed
+
+
+def _tileset_doc(out: Path, tree: QuadTree, nodes: dict[str, dict], georef: GeoRef, cfg: ExportConfig,
+                 grid: tuple[np.ndarray, float]) -> tuple[dict, dict[str, dict]]:
+    """(the tileset document, the node records) for ``cfg.tiling``: explicit, or implicit (the glbs moved to
+    the implicit paths, ``subtrees/`` written, :mod:`tasks.export.implicit`); subtrees no longer planned go.
+    grid: :func:`_tile_grid`, whose squares the implicit root box subdivides."""
+    implicit = cfg.tiling == "implicit"
+    nodes = _place_content(out, nodes, implicit_uris(tree) if implicit else None)
+    doc, subtrees = tileset_json(tree, nodes, georef), {}
+    if implicit:
+        doc, subtrees = implicit_files(tree, nodes, georef, *grid, EnuProjector(georef).local_to_enu,
+                                       cfg.subtree_levels)
+    for rel, data in subtrees.items():
+        if not ((out / rel).is_file() and (out / rel).read_bytes() == data):
+            write_bytes_atomic(out / rel, data)
+    for stale in recorded.glob(out / "subtrees", "**/*.subtree"):
+        if stale.relative_to(out).as_posix() not in subtrees:
+            recorded.unlink(stale)
+    for folder in sorted((*out.glob("content/**/"), *out.glob("subtrees/**/")), reverse=True):
+        if folder.is_dir() and not any(folder.iterdir()):
+            folder.rmdir()
+    return doc, nodes
+
+
+def _write_archive(wd: WorkDir, kind: str) -> dict | None:
+    """``output/tileset.3tz`` (``kind`` "3tz"): the files of :data:`ARCHIVED`, tileset.json first, rewritten
+    only when one changed (paths, sizes, a small file's sha256 or a large one's mtime, kept in
+    ``export/archive.json``). "none": no archive (None)."""
+    out, dest, state = wd.output_dir, wd.tileset_3tz, wd.root / "export" / "archive.json"
+    if kind == "none":
+        recorded.unlink(dest)
+        recorded.unlink(state)
+        return None
+    files = []
+    for name in ARCHIVED:
+        found = [out / name] if recorded.is_file(out / name) else recorded.glob(out / name, "**/*")
+        files += [f for f in found if recorded.is_file(f) and f.name not in NOT_ARCHIVED and f.name[0] != "."]
+    rels = [f.relative_to(out).as_posix() for f in files]
+    sizes = [recorded.state(f).size for f in files]
+    key = content_hash([(r, n, file_sha256(f) if n <= 1 << 20 else recorded.state(f).mtime_ns)
+                        for r, n, f in zip(rels, sizes, files)])
+    old = json.loads(state.read_text()) if state.is_file() else {}
+    have = recorded.state(dest)
+    if old.get("key") == key and have is not None and have.size == old.get("bytes"):
+        return {"path": str(dest), "entries": len(files), "bytes": have.size, "written": False}
+    recorded.ensure_local(*files)
+    summary = write_3tz(dest, list(zip(rels, files)))
+    write_json_atomic(state, {"key": key, "bytes": summary["bytes"]})
+    return {"path": str(dest), **summary, "written": True}
+
+
 def run_export(work_dir: str | Path, config: ExportConfig | None = None, tiles: list[str] | None = None,
                workers: int = 1, map_jobs: Callable[[list[NodeJob]], list[dict]] | None = None) -> dict:
     """Write ``work_dir/output`` (see the module docstring) from ``tiles/*/merged.npz``.
@@ -155,7 +245,7 @@ def run_export(work_dir: str | Path, config: ExportConfig | None = None, tiles: 
     tree = plan_quadtree(list(tiles))
     georef = make_georef(frame.crs, frame.origin, _enu_centre(campus, frame.origin_array, tiles),
                          frame.vertical_datum, cfg.geoid_grid)
-    base = content_hash(EXPORT_VERSION, cfg.model_dump(mode="json", exclude={"before"}), georef.to_json())
+    base = content_hash(EXPORT_VERSION, cfg.model_dump(mode="json", exclude=NOT_CONTENT), georef.to_json())
     state_path = out / "tileset.fingerprints.json"
     old = json.loads(state_path.read_text()).get("nodes", {}) if state_path.exists() else {}
     run = map_jobs if map_jobs is not None else partial(_run_jobs, workers=workers)
@@ -165,13 +255,14 @@ def run_export(work_dir: str | Path, config: ExportConfig | None = None, tiles: 
     if root.key in built or not recorded.is_file(out / "overview.glb"):
         run([NodeJob(OVERVIEW, nodes[root.key]["fingerprint"], out, cache, georef, cfg,
                      children=(("root", {"key": root.key}),))])
-    tileset = _write_tileset(out, tileset_json(tree, nodes, georef), georef, nodes)
+    doc, nodes = _tileset_doc(out, tree, nodes, georef, cfg, _tile_grid(campus, frame.origin_array))
+    tileset = _write_tileset(out, doc, georef, nodes)
     _remove_stale(out, cache, nodes)
     grades_mode = (campus.get("config") or {}).get("repair", {}).get("grades", "auto")  # what repair acted on
     points = write_points_overlay(wd.root / "tiles", out / "points", list(tiles), georef, grades_mode=grades_mode,
                                   run=map_jobs)  # beside the nodes: a cluster's workers read the stores
-    before = (_export_before(wd, list(tiles), georef, cfg, base, run, grades_mode) if cfg.before
-              else _drop_before(wd))
+    before = (_export_before(wd, list(tiles), georef, cfg, base, run, grades_mode,
+                             _tile_grid(campus, frame.origin_array)) if cfg.before else _drop_before(wd))
     leaves_built = [k for k in built if k.startswith("L0_")]
     return {
         "tiles": len(tiles), "nodes": len(nodes), "built": built, "reused": reused,
@@ -181,7 +272,7 @@ def run_export(work_dir: str | Path, config: ExportConfig | None = None, tiles: 
         "texture_bytes": int(sum(rec.get("texture_bytes", 0) for rec in nodes.values())),
         "root_geometric_error_m": nodes[root.key]["geometricError"], "seconds": time.perf_counter() - t0,
         "tileset": str(tileset), "overview": str(out / "overview.glb"), "georef": str(out / "georef.json"),
-        "points": points, "before": before,
+        "points": points, "before": before, "tiling": cfg.tiling, "archive": _write_archive(wd, cfg.archive),
     }  # fmt: skip
 
 
@@ -196,7 +287,8 @@ def _drop_before(wd: WorkDir) -> None:
 
 
 def _export_before(wd: WorkDir, tiles: list[str], georef: GeoRef, cfg: ExportConfig, base: str,
-                   run: Callable[[list[NodeJob]], list[dict]], grades_mode: str) -> dict:
+                   run: Callable[[list[NodeJob]], list[dict]], grades_mode: str, grid: tuple[np.ndarray, float]
+                   ) -> dict:
     """``output/before/``: the input mesh of every tile (its store's faces, :func:`tasks.merge.input_tile_mesh`)
     as a tileset in the same frame, levels and format as the merged model's, for the viewer's before / after
     split. Each tile's input mesh is rebuilt only when its store changed. Returns {"tiles", "tileset"}."""
@@ -229,7 +321,8 @@ def _export_before(wd: WorkDir, tiles: list[str], georef: GeoRef, cfg: ExportCon
     old = json.loads(state_path.read_text()).get("nodes", {}) if state_path.exists() else {}
     nodes, _, _ = _build_tree(tree, src, NodeJob(tree.root, content_hash(base, BEFORE), out, cache, georef, cfg),
                               old, run)
-    tileset = _write_tileset(out, tileset_json(tree, nodes, georef), georef, nodes)
+    doc, nodes = _tileset_doc(out, tree, nodes, georef, cfg, grid)
+    tileset = _write_tileset(out, doc, georef, nodes)
     _remove_stale(out, cache, nodes)
     return {"tiles": len(kept), "tileset": str(tileset)}
 
@@ -262,43 +355,6 @@ def run_export_stage(cfg, wd: WorkDir, map_jobs: Callable[[list[NodeJob]], list[
     return {"unit": "tileset", "skipped": not built, **res}
 
 
-def _node_cost(job) -> float:
-    """A node's expected cost, to balance batches: a leaf's merged mesh bytes, a parent's children's faces
-    (1 when unknown). Merged tiles differ a lot (92 to 2.4 M faces in the demo), so equal counts would not
-    balance."""
-    if not isinstance(job, NodeJob):
-        return 1.0
-    if job.tile_dir is not None:
-        st = recorded.state(job.tile_dir / "merged.npz")  # on a bucket: the recorded size
-        return float(st.size) if st is not None else 1.0
-    return float(sum(rec.get("faces") or 0 for _, rec in job.children)) or 1.0
-
-
-def node_batches(jobs: list[NodeJob], n_workers: int) -> list[list[tuple[int, NodeJob]]]:
-    """The (index, job) batches the flow maps for one level of the quadtree: one node each up to 8 per
-    worker (a leaf costs seconds, a task run ~0.3 s), else at most 8 per worker of about equal cost
-    (:func:`_node_cost`), each in job order; the costliest first."""
-    indexed = list(enumerate(jobs))
-    return balanced_batches(indexed, [_node_cost(j) for j in jobs], 8 * n_workers)
-
-
-def relocate_jobs(jobs: list[tuple[int, NodeJob]], old: Path, new: Path) -> list[tuple[int, NodeJob]]:
-    """(index, job) pairs whose work-dir paths (``out``, ``cache``, ``tile_dir``) under ``old`` are moved under
-    ``new``: jobs planned on one process's mirror of a work dir on a bucket, built on another's (``Path()`` for
-    ``new`` or ``old``: paths relative to the work dir).
-
-    >>> job = NodeJob(None, "fp", Path("/a/output"), Path("/a/export/lod"), None, None, Path("/a/tiles/1_2"))
-    >>> moved = relocate_jobs([(0, job)], Path("/a"), Path())[0][1]
-    >>> str(moved.out), str(moved.tile_dir), str(relocate_jobs([(0, moved)], Path(), Path("/b"))[0][1].cache)
-    ('output', 'tiles/1_2', '/b/export/lod')
-    """
-    def move(p: Path | None) -> Path | None:
-        return None if p is None else new / Path(p).relative_to(old)
-
-    fields = ("out", "cache", "tile_dir")  # a PointsJob has no cache
-    return [(i, replace(j, **{f: move(getattr(j, f)) for f in fields if hasattr(j, f)})) for i, j in jobs]
-
-
 def _built(job: NodeJob) -> dict:
     rec = build_node(job)
     return {"uri": rec.get("uri"), "faces": rec.get("faces"), "record": rec}
@@ -325,18 +381,3 @@ def build_nodes(jobs: list[tuple[int, NodeJob]]) -> list[dict]:
         else:
             out.append({"index": i, "status": "done", "record": res["record"]})
     return out
-
-
-def node_records(results: list[dict], n_jobs: int) -> list[dict]:
-    """The node records in job order from the flattened results of mapped :func:`build_nodes` (entries
-    without an index, e.g. a task that failed whole, are ignored). Raises InputError (one line) when a
-    node failed or is missing.
-
-    >>> node_records([{"index": 1, "status": "done", "record": "b"}, {"index": 0, "status": "done", "record": "a"}], 2)
-    ['a', 'b']
-    """
-    got = {r["index"]: r for r in results if "index" in r}
-    bad = [r.get("error", "export task failed") for r in got.values() if r["status"] != "done"]
-    if bad or len(got) != n_jobs:
-        raise InputError(None, "; ".join(bad) or "an export task failed (see the run history)")
-    return [got[i]["record"] for i in range(n_jobs)]
