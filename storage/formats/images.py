@@ -28,6 +28,24 @@ def read_rgb_reduced(path: str, max_side: int) -> np.ndarray:
     return np.asarray(im.convert("RGB"))
 
 
+def decode_rgb(data: bytes) -> np.ndarray:
+    """(h, w, 3) uint8 RGB pixels of encoded image bytes (JPEG, PNG, ...)."""
+    with Image.open(io.BytesIO(data)) as im:
+        return np.asarray(im.convert("RGB"))
+
+
+def encode_rgb(pixels: np.ndarray, fmt: str = "JPEG", quality: int = 85) -> bytes:
+    """Encoded bytes (``fmt``: JPEG or PNG) of (h, w, 3) uint8 RGB pixels."""
+    buf = io.BytesIO()
+    Image.fromarray(pixels).save(buf, format=fmt, **({"quality": int(quality)} if fmt == "JPEG" else {}))
+    return buf.getvalue()
+
+
+def resize_rgb(pixels: np.ndarray, width: int, height: int) -> np.ndarray:
+    """(height, width, 3) uint8: ``pixels`` resampled bilinearly."""
+    return np.asarray(Image.fromarray(pixels).resize((int(width), int(height)), Image.BILINEAR))
+
+
 def embedded_texture(path: str, uv: np.ndarray, max_px: int, quality: int, multiple_of: int = 1
                      ) -> tuple[bytes, str, np.ndarray, np.ndarray]:
     """Crop an atlas (a local path or a URL) to the pixels ``uv`` (k, 2) (glTF convention) use, downscale to

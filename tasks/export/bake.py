@@ -16,11 +16,11 @@ geometry's detail does.
 
 from __future__ import annotations
 
-import io
 from dataclasses import dataclass
 
 import numpy as np
 
+from storage.formats.images import decode_rgb, encode_rgb, resize_rgb
 from tasks.export.lod import LodMesh, _scene, concat_lods
 
 DILATE_RINGS = 8  # rings of empty texels around the charts filled from their neighbours
@@ -52,21 +52,12 @@ class BakeSource:
 
 def decode_image(image) -> np.ndarray:
     """(H, W, 3) uint8 pixels of an encoded image (``.data`` bytes) or an array as it is."""
-    if isinstance(image, np.ndarray):
-        return image
-    from PIL import Image
-
-    with Image.open(io.BytesIO(image.data)) as im:
-        return np.asarray(im.convert("RGB"))
+    return image if isinstance(image, np.ndarray) else decode_rgb(image.data)
 
 
 def encode_jpeg(pixels: np.ndarray, quality: int) -> bytes:
     """JPEG bytes of (H, W, 3) uint8 pixels."""
-    from PIL import Image
-
-    buf = io.BytesIO()
-    Image.fromarray(pixels).save(buf, format="JPEG", quality=int(quality))
-    return buf.getvalue()
+    return encode_rgb(pixels, "JPEG", quality)
 
 
 def parameterize(positions: np.ndarray, faces: np.ndarray, px: int) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
@@ -234,6 +225,4 @@ def pack_children(parts: list[LodMesh]) -> LodMesh:
 
 
 def _resize(image: np.ndarray, px: int) -> np.ndarray:
-    from PIL import Image
-
-    return np.asarray(Image.fromarray(image).resize((px, px), Image.BILINEAR))
+    return resize_rgb(image, px, px)
