@@ -5,7 +5,7 @@
     ms3d serve CONFIG --cron "0 2 * * *"            scheduled reprocessing (a served Prefect deployment)
     ms3d status WORKDIR                             tiles done / failed / pending, with errors
     ms3d demo                                       synth demo campus + run + print where things are
-    ms3d view WORKDIR                               the campus's 3D Tiles in a browser (localhost)
+    ms3d view WORKDIR | ARCHIVE.3tz                 the campus's 3D Tiles in a browser (localhost)
     ms3d ui WORKDIR                                 show the run history in the Prefect UI
     ms3d train --profile default --seeds 7 11       train MS3DQE-Net (--suite: and the baselines)
     ms3d evaluate --suite DIR --seed 42             the paper's Tables 3 and 4 on a held-out campus
@@ -124,8 +124,11 @@ def _cmd_view(a) -> int:
     from storage.errors import InputError
     from storage.workdir.layout import WorkDir
 
+    if a.work_dir.endswith(".3tz"):  # a 3D Tiles archive (export.archive: 3tz), served as it is
+        serve_viewer(a.work_dir, port=a.port, label=a.label)
+        return 0
     wd = WorkDir(a.work_dir)
-    if not wd.tileset_json.exists():
+    if not wd.tileset_json.exists() and not wd.tileset_3tz.exists():
         raise InputError(wd.root, "no output/tileset.json: run `ms3d run CONFIG` first")
     serve_viewer(wd.root, port=a.port, label=a.label)
     return 0
@@ -181,7 +184,7 @@ def build_parser() -> argparse.ArgumentParser:
     d.set_defaults(func=_cmd_demo)
 
     v = sub.add_parser("view", help="serve the campus's 3D Tiles with a viewer page on localhost")
-    v.add_argument("work_dir")
+    v.add_argument("work_dir", help="a work dir, or a 3D Tiles archive (.3tz) to serve as it is")
     v.add_argument("--port", type=int, default=8765)
     v.add_argument("--label", action="store_true", help="labelling mode: mark patches good/bad (g / b), least-sure "
                                                         "first; appended to WORKDIR/labels/user-<date>.csv")

@@ -6,6 +6,10 @@
     /output/...       -> WORKDIR/output (tileset.json, content/, overview.glb, georef.json, and points/: the
                          thinned MLS points overlay, shown by the page's "MLS points" checkbox)
 
+A 3D Tiles archive is served the same way, its entries read through its index
+(:class:`storage.formats.threetz.ThreeTzReader`) under ``/output/``, so the page reads it unchanged: given a
+``.3tz`` file (``ms3d view output/tileset.3tz``), or a work dir whose output is only ``tileset.3tz``.
+
 The server binds 127.0.0.1 only and serves files read-only; nothing is fetched from the internet.
 With ``label=True`` (``ms3d view WORKDIR --label``) it also mounts the labelling API of
 :mod:`flows.label_server` under ``/api/`` (the only writes: ``WORKDIR/labels/user-<date>.csv``) and the page
@@ -25,6 +29,7 @@ from http.server import SimpleHTTPRequestHandler, ThreadingHTTPServer
 from pathlib import Path
 
 from storage.errors import InputError
+from storage.formats.threetz import ThreeTzReader
 from storage.workdir.layout import WorkDir
 
 VIEWER_DIR = Path(__file__).resolve().parents[1] / "viewer"
@@ -44,7 +49,7 @@ class _Handler(SimpleHTTPRequestHandler):
     extensions_map = {  # noqa: RUF012 (the base class's own attribute, overridden)
         **SimpleHTTPRequestHandler.extensions_map,
         ".js": "text/javascript", ".mjs": "text/javascript", ".wasm": "application/wasm",
-        ".glb": "model/gltf-binary", ".json": "application/json",
+        ".glb": "model/gltf-binary", ".json": "application/json", ".subtree": "application/octet-stream",
     }  # fmt: skip
 
     def __init__(self, *args, roots: dict[str, Path], api=None, **kwargs):
@@ -100,8 +105,30 @@ class _Handler(SimpleHTTPRequestHandler):
             self.send_error(405, "read-only")
 
     def do_HEAD(self):
-        if self._loopback():
+        if self._loopback() and not self._from_archive(head=True):
             super().do_HEAD()
+
+    def _from_archive(self, head: bool) -> bool:
+        """Serve an ``/output/...`` request from the archive when the output is one; False otherwise."""
+        archive = self.roots["output"]
+        path = posixpath.normpath(urllib.parse.unquote(urllib.parse.urlsplit(self.path).path))
+        parts = [p for p in path.split("/") if p and p not in (".", "..")]
+        if not isinstance(archive, ThreeTzReader) or not parts or parts[0] != "output":
+            return False
+        name = "/".join(parts[1:])
+        found = archive.open_entry(name) if name else None
+        if found is None:
+            self.send_error(404, "not in the archive")
+            return True
+        size, chunks = found
+        self.send_response(200)
+        self.send_header("Content-Type", self.guess_type(name))
+        self.send_header("Content-Length", str(size))
+        self.end_headers()
+        if not head:
+            for chunk in chunks:
+                self.wfile.write(chunk)
+        return True
 
     def translate_path(self, path: str) -> str:
         path = posixpath.normpath(urllib.parse.unquote(urllib.parse.urlsplit(path).path))
@@ -122,7 +149,8 @@ class _Handler(SimpleHTTPRequestHandler):
             self.send_header("Location", PAGE + ("&label=1" if self.api is not None else ""))
             self.end_headers()
             return
-        super().do_GET()
+        if not self._from_archive(head=False):
+            super().do_GET()
 
     def end_headers(self):
         self.send_header("Cache-Control", "no-store")
@@ -152,10 +180,22 @@ class ViewerServer:
             self.thread.join(timeout=5)
 
 
-def _roots(work_dir: str | Path) -> dict[str, Path]:
-    output = WorkDir(Path(work_dir).absolute()).output_dir
-    if not (output / "tileset.json").is_file():
-        raise InputError(output, "no tileset.json: run the pipeline (export stage) first")
+def _roots(source: str | Path) -> dict[str, Path | ThreeTzReader]:
+    """What the server serves: the viewer, its packages, and the output (a folder, or a 3D Tiles archive when
+    ``source`` is a ``.3tz`` file or a work dir whose output holds only ``tileset.3tz``)."""
+    src = Path(source).absolute()
+    wd = WorkDir(src)
+    if src.suffix == ".3tz" or (not wd.tileset_json.is_file() and wd.tileset_3tz.is_file()):
+        archive = src if src.suffix == ".3tz" else wd.tileset_3tz
+        if not archive.is_file():
+            raise InputError(archive, "no such 3D Tiles archive")
+        output = ThreeTzReader(archive)
+        if "tileset.json" not in output:
+            raise InputError(archive, "the archive holds no tileset.json")
+    else:
+        output = wd.output_dir
+        if not (output / "tileset.json").is_file():
+            raise InputError(output, "no tileset.json: run the pipeline (export stage) first")
     modules = VIEWER_DIR / "node_modules"
     if not (modules / "three").is_dir() or not (modules / "3d-tiles-renderer").is_dir():
         raise InputError(modules, "viewer packages missing: run `npm ci --prefix viewer` (make install does)")
@@ -165,6 +205,8 @@ def _roots(work_dir: str | Path) -> dict[str, Path]:
 def _httpd(work_dir: str | Path, port: int, label: bool) -> ThreadingHTTPServer:
     api = None
     if label:
+        if Path(work_dir).suffix == ".3tz":
+            raise InputError(work_dir, "labelling needs the work dir, not an archive")
         from flows.label_server import LabelApi
 
         api = LabelApi(Path(work_dir).absolute())
@@ -172,8 +214,9 @@ def _httpd(work_dir: str | Path, port: int, label: bool) -> ThreadingHTTPServer:
 
 
 def start_viewer(work_dir: str | Path, port: int = 0, label: bool = False) -> ViewerServer:
-    """Serve in a background thread (port 0 = any free port); returns the running server. label: mount the
-    labelling API (:mod:`flows.label_server`) and open the page in labelling mode."""
+    """Serve in a background thread (port 0 = any free port); returns the running server. work_dir: a work dir
+    or a ``.3tz`` archive (module docstring). label: mount the labelling API (:mod:`flows.label_server`) and
+    open the page in labelling mode."""
     httpd = _httpd(work_dir, port, label)
     thread = threading.Thread(target=httpd.serve_forever, name="ms3d-viewer", daemon=True)
     thread.start()

@@ -8,7 +8,7 @@ import { DRACOLoader } from 'three/addons/loaders/DRACOLoader.js';
 import { MeshoptDecoder } from 'three/addons/libs/meshopt_decoder.module.js';
 import { KTX2Loader } from 'three/addons/loaders/KTX2Loader.js';
 import { TilesRenderer } from '3d-tiles-renderer';
-import { GLTFExtensionsPlugin, ReorientationPlugin } from '3d-tiles-renderer/plugins';
+import { GLTFExtensionsPlugin, ImplicitTilingPlugin, ReorientationPlugin } from '3d-tiles-renderer/plugins';
 import { NO_DEVIATION, deviationColour } from './deviation.js';
 import { setupLabelling } from './label.js';
 import { describeMeasure, measureBetween } from './measure.js';
@@ -42,6 +42,7 @@ const tiles = new TilesRenderer(tilesetUrl);
 // KTX2 / Basis textures are transcoded for this GPU (detectSupport after the renderer exists)
 const ktx2 = new KTX2Loader().setTranscoderPath('/node_modules/three/examples/jsm/libs/basis/').detectSupport(renderer);
 tiles.registerPlugin(new GLTFExtensionsPlugin({ metadata: true, dracoLoader: draco, meshoptDecoder: MeshoptDecoder, ktxLoader: ktx2 }));
+tiles.registerPlugin(new ImplicitTilingPlugin());  // export.tiling: implicit (subtrees; not a default plugin)
 tiles.registerPlugin(new ReorientationPlugin({ recenter: true }));
 tiles.errorTarget = Number(params.get('errorTarget') || 8);  // pixels of screen-space error
 tiles.setCamera(camera);
@@ -183,6 +184,7 @@ fetch(beforeUrl, { method: 'HEAD' }).then((r) => {
   state.before.available = true;
   before = new TilesRenderer(beforeUrl);
   before.registerPlugin(new GLTFExtensionsPlugin({ metadata: true, dracoLoader: draco, meshoptDecoder: MeshoptDecoder, ktxLoader: ktx2 }));
+  before.registerPlugin(new ImplicitTilingPlugin());
   before.errorTarget = tiles.errorTarget;
   before.setCamera(camera);
   before.setResolutionFromRenderer(camera, renderer);
