@@ -198,6 +198,23 @@ def test_switching_tiling_rebuilds_nothing_and_gives_the_explicit_tileset_back(t
     again = run_export(work, ExportConfig(tiling="implicit", subtree_levels=2))
     assert again["built"] == [] and check_tileset(out) == []
     assert {p.name: p.read_bytes() for p in (out / "subtrees").rglob("*.subtree")} == subtrees
+    # tiles 2_0 and 2_1 gone: the tree one level lower (and a new ENU centre: every node rebuilt), every node's
+    # implicit path a level up, over the old ones; nothing stale left
+    for t in ("2_0", "2_1"):
+        shutil.rmtree(work / "tiles" / t)
+    lower = run_export(work, ExportConfig(tiling="implicit", subtree_levels=2))
+    state = _state(out)
+    assert sorted(lower["built"]) == sorted(state) == ["L0_0_0", "L0_0_1", "L0_1_0", "L0_1_1", "L1_0_0"]
+    assert state["L0_0_0"]["uri"] == "content/1/0/0.glb" and state["L1_0_0"]["uri"] == "content/0/0/0.glb"
+    assert check_tileset(out) == []
+    assert sorted(p.relative_to(out).as_posix() for p in out.rglob("*.glb") if "content" in p.parts) == sorted(
+        r["uri"] for r in state.values())
+    assert sorted(p.relative_to(out).as_posix() for p in out.rglob("*.subtree")) == [
+        "subtrees/0/0/0.subtree"]  # two levels: one subtree
+
+
+def _state(out) -> dict[str, dict]:
+    return json.loads((out / "tileset.fingerprints.json").read_text())["nodes"]
 
 
 def test_implicit_glbs_pass_the_gltf_validator(implicit_export):
@@ -218,3 +235,19 @@ def test_a_tile_orphaned_in_its_subtree_is_refused():
                                        "subtrees": {"uri": "s/{level}/{x}/{y}.subtree"}}}}
     with pytest.raises(InputError, match=r"s/0/0/0\.subtree: 1 available tiles have no available parent"):
         expand_implicit(doc, files.__getitem__)
+
+
+def test_moving_content_onto_each_others_paths_loses_nothing(tmp_path):
+    from tasks.export.stage import _place_content
+
+    for rel, data in (("content/1/0/0.glb", b"A"), ("content/2/0/0.glb", b"B")):
+        (tmp_path / rel).parent.mkdir(parents=True, exist_ok=True)
+        (tmp_path / rel).write_bytes(data)
+    nodes = {"a": {"uri": "content/1/0/0.glb", "built_uri": "content/lod1/0_0.glb"},
+             "b": {"uri": "content/2/0/0.glb", "built_uri": "content/tiles/0_0.glb"}}
+    placed = _place_content(tmp_path, nodes, {"a": "content/2/0/0.glb", "b": "content/3/0/0.glb"})
+    assert (tmp_path / "content/2/0/0.glb").read_bytes() == b"A" and (tmp_path / "content/3/0/0.glb").read_bytes() == b"B"
+    assert placed["a"] == {"uri": "content/2/0/0.glb", "built_uri": "content/lod1/0_0.glb"}
+    back = _place_content(tmp_path, placed, None)  # explicit: back where the builds wrote them
+    assert back == {"a": {"uri": "content/lod1/0_0.glb"}, "b": {"uri": "content/tiles/0_0.glb"}}
+    assert (tmp_path / "content/lod1/0_0.glb").read_bytes() == b"A" and not (tmp_path / "content/2/0/0.glb").exists()
