@@ -143,3 +143,13 @@ def test_the_viewer_server_serves_an_archive_like_a_folder(tiny_export, tmp_path
         assert urllib.request.urlopen(f"{base}/output/tileset.json").read() == (out / "tileset.json").read_bytes()
     finally:
         server.stop()
+
+
+def test_an_archive_of_more_than_65535_entries_is_read_through_its_zip64_end_record(tmp_path):
+    src = tmp_path / "a.glb"
+    src.write_bytes(b"glb!")
+    files = [("tileset.json", src)] + [(f"content/{i}.glb", src) for i in range(66_000)]
+    write_3tz(tmp_path / "big.3tz", files)
+    assert b"PK\x06\x06" in (tmp_path / "big.3tz").read_bytes()[-200:]  # the ZIP64 end of central directory
+    reader = ThreeTzReader(tmp_path / "big.3tz")
+    assert len(reader.hi) == 66_001 and reader.read("content/65999.glb") == b"glb!" and "content/66000.glb" not in reader
