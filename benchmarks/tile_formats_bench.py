@@ -9,6 +9,10 @@ time, and the viewer's time to show the whole campus (headless chromium, softwar
 every tile is loaded and settled, ``errorTarget=0``) with the per-face grades it decoded.
 
     .venv/bin/python benchmarks/tile_formats_bench.py --merged WORKDIR [--max-texture-px 1024] [--variants ...]
+        [--tiling implicit] [--archive]
+
+``--tiling implicit`` exports every variant as implicit tiling (levels from the implicit paths, the subtrees
+as a row of their own); ``--archive`` also packs each into ``output/tileset.3tz`` and prints its size.
 
 Always exits 0: it reports. KTX2 encoding is slow on CPU (ktx2-encoder's Basis encoder in WebAssembly), so
 the default caps atlases at 1024 px for every variant (the same cap for JPEG, for a fair comparison).
@@ -65,21 +69,35 @@ def _image_gpu_bytes(doc: dict, data: bytes) -> tuple[int, int]:
     return enc, gpu
 
 
-def level_of(path: Path, out: Path) -> str:
+def level_of(path: Path, out: Path, levels: int = 0) -> str:
+    """leaves, lod{h} or overview; ``levels``: an implicit tileset's availableLevels (its paths name levels
+    from the root: content/{level}/{x}/{y}.glb)."""
     rel = path.relative_to(out).as_posix()
     if rel == "overview.glb":
         return "overview"
-    return "leaves" if rel.startswith("content/tiles/") else rel.split("/")[1]  # content/lod{h}/...
+    part = rel.split("/")[1]
+    if part.isdigit():
+        h = levels - 1 - int(part)
+        return "leaves" if h == 0 else f"lod{h}"
+    return "leaves" if rel.startswith("content/tiles/") else part  # content/lod{h}/...
 
 
 def measure(out: Path) -> dict:
+    doc = json.loads((out / "tileset.json").read_text())
+    n_levels = doc["root"].get("implicitTiling", {}).get("availableLevels", 0)
     levels: dict[str, dict] = {}
+    for p in sorted(out.rglob("*.subtree")):  # implicit tiling's availability
+        lv = levels.setdefault("subtrees", {"files": 0, "bytes": 0, "gzip_bytes": 0, "texture_bytes": 0,
+                                            "gpu_texture_bytes": 0})
+        lv["files"] += 1
+        lv["bytes"] += p.stat().st_size
+        lv["gzip_bytes"] += len(gzip.compress(p.read_bytes(), 6))
     for p in sorted(out.rglob("*.glb")):
         if "points" in p.relative_to(out).parts:
             continue
         data = p.read_bytes()
         enc, gpu = _image_gpu_bytes(_glb_json(data), data)
-        lv = levels.setdefault(level_of(p, out), {"files": 0, "bytes": 0, "gzip_bytes": 0, "texture_bytes": 0,
+        lv = levels.setdefault(level_of(p, out, n_levels), {"files": 0, "bytes": 0, "gzip_bytes": 0, "texture_bytes": 0,
                                                   "gpu_texture_bytes": 0})
         lv["files"] += 1
         lv["bytes"] += len(data)
@@ -118,9 +136,16 @@ def main(argv=None) -> None:
     ap.add_argument("--max-texture-px", type=int, default=1024)
     ap.add_argument("--variants", nargs="+", default=list(VARIANTS), choices=list(VARIANTS))
     ap.add_argument("--work", type=Path, help="where the copies go (default: a temporary folder)")
+    ap.add_argument("--tiling", choices=["explicit", "implicit"], default="explicit")
+    ap.add_argument("--archive", action="store_true", help="also pack output/tileset.3tz and print its size")
     a = ap.parse_args(argv)
+    from functools import partial
+
     from tasks.config import ExportConfig
     from tasks.export import run_export
+
+    # every variant in the layout asked for
+    ExportConfig = partial(ExportConfig, tiling=a.tiling, archive="3tz" if a.archive else "none")
 
     tmp = tempfile.TemporaryDirectory(prefix="ms3d-formats-")
     root = a.work or Path(tmp.name)
@@ -143,10 +168,13 @@ def main(argv=None) -> None:
         for lv, m in sorted(r["levels"].items()):
             print(f"{name:<14} {lv:<9} {m['files']:>5} {m['bytes'] / 1e6:>10.2f} {m['gzip_bytes'] / 1e6:>8.2f} "
                   f"{m['texture_bytes'] / 1e6:>11.2f} {m['gpu_texture_bytes'] / 1e6:>10.2f}")
-    print(f"\n{'variant':<14} {'export s':>8} {'viewer s':>8} {'MB total':>8}  faces the viewer decoded")
+    print(f"\n{'variant':<14} {'export s':>8} {'viewer s':>8} {'MB total':>8} {'MB .3tz':>8}  faces the viewer "
+          f"decoded ({a.tiling} tiling)")
     for name, r in rows.items():
         total = sum(m["bytes"] for m in r["levels"].values()) / 1e6
-        print(f"{name:<14} {r['export_s']:>8.1f} {r['viewer_s']:>8.1f} {total:>8.2f}  {r['faces']}")
+        arc = root / name / "output" / "tileset.3tz"
+        packed = f"{arc.stat().st_size / 1e6:>8.2f}" if arc.exists() else f"{'-':>8}"
+        print(f"{name:<14} {r['export_s']:>8.1f} {r['viewer_s']:>8.1f} {total:>8.2f} {packed}  {r['faces']}")
     if not a.work:
         tmp.cleanup()
 
