@@ -1,17 +1,18 @@
 """Texture baking for textured levels of detail: a decimated mesh gets its own atlas, painted from the
 surface it simplifies.
 
-A node passes up ``decimate(content)``; :func:`bake_lod` re-parameterises that mesh (xatlas: charts cut
-and packed into one square atlas) and paints every texel from the closest point of the source surface
+A node passes up ``decimate(content)``; :func:`bake_lod` re-parameterises that mesh (box-projection charts
+packed into one square atlas, :mod:`tasks.export.charts`) and paints every texel from the closest point of the source surface
 (the leaf's full-resolution textured mesh, or the parent's textured content): the texel's 3D position
 (barycentric on the decimated face, ENU metres) -> the closest source face and its barycentric
 coordinates (open3d ray-casting scene) -> that face's texture (bilinear) or, for a vertex-coloured face,
 its interpolated vertex colours. Texels no chart covers take the colour of their covered neighbours
 (a few rings, so bilinear filtering and mipmaps do not bleed the background into a chart's edge).
 
-Sizes: every passed-up atlas is ``px`` x ``px``; a parent's content packs its (up to four) children's
-atlases into a ``2 px`` square (:func:`pack_children`), so texels per metre halve at each level up, as the
-geometry's detail does.
+Sizes: a passed-up atlas is sized for about ``TEXELS_PER_FACE`` texels per face of its mesh, at most
+``lod_texture_px`` square (:func:`atlas_side`); a parent's content packs its (up to four) children's atlases
+into a square twice that side (:func:`pack_children`), so texels per metre fall with each level up, as the
+geometry's detail does, and no atlas exceeds (2 x lod_texture_px)^2.
 """
 
 from __future__ import annotations
@@ -20,11 +21,25 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from storage.formats.images import decode_rgb, encode_rgb, resize_rgb
+from storage.formats.images import decode_rgb, encode_rgb
+from tasks.export.charts import parameterize
 from tasks.export.lod import LodMesh, _scene, concat_lods
 
 DILATE_RINGS = 8  # rings of empty texels around the charts filled from their neighbours
 CHART_PADDING_PX = 2
+TEXELS_PER_FACE = 8  # an atlas is sized for about this many texels per face (fewer: texels coarser than vertices)
+PACK_EFFICIENCY = 0.35  # share of a box-chart atlas that charts cover (measured: 0.31-0.41 on decimated demo tiles)
+
+
+def atlas_side(n_faces: int, max_px: int) -> int:
+    """The side (px, a multiple of 4, 64 to ``max_px``) of an atlas for a mesh of ``n_faces``: about
+    ``TEXELS_PER_FACE`` covered texels per face.
+
+    >>> atlas_side(1_000_000, 1024), atlas_side(20_000, 1024), atlas_side(10, 1024)
+    (1024, 680, 64)
+    """
+    want = np.sqrt(TEXELS_PER_FACE * n_faces / PACK_EFFICIENCY)
+    return int(min(max_px, max(64, 4 * np.ceil(want / 4))))
 
 
 @dataclass(frozen=True, eq=False)
@@ -58,23 +73,6 @@ def decode_image(image) -> np.ndarray:
 def encode_jpeg(pixels: np.ndarray, quality: int) -> bytes:
     """JPEG bytes of (H, W, 3) uint8 pixels."""
     return encode_rgb(pixels, "JPEG", quality)
-
-
-def parameterize(positions: np.ndarray, faces: np.ndarray, px: int) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """Charts of the mesh packed into one atlas (xatlas). Returns (vmap (n',) int64: the input vertex of
-    each output vertex, faces (m, 3) int32 over the output vertices (same order as the input faces),
-    uv (n', 2) float32 in [0, 1])."""
-    import xatlas
-
-    atlas = xatlas.Atlas()
-    atlas.add_mesh(np.ascontiguousarray(positions, np.float32), np.ascontiguousarray(faces, np.uint32))
-    charts = xatlas.ChartOptions()
-    charts.max_iterations = 1  # one pass of chart growing: ~2x faster, charts a little less round
-    pack = xatlas.PackOptions()
-    pack.resolution, pack.padding = int(px), CHART_PADDING_PX
-    atlas.generate(charts, pack)
-    vmap, new_faces, uv = atlas[0]
-    return vmap.astype(np.int64), new_faces.astype(np.int32), uv.astype(np.float32)
 
 
 def rasterize(uv: np.ndarray, faces: np.ndarray, size: int, chunk_faces: int = 65_536
@@ -183,14 +181,29 @@ def dilate(image: np.ndarray, filled: np.ndarray, rings: int = DILATE_RINGS) -> 
     return np.clip(np.rint(img), 0, 255).astype(np.uint8)
 
 
-def bake_lod(mesh: LodMesh, source: BakeSource, px: int) -> LodMesh:
-    """``mesh`` (welded, ENU) re-parameterised into a ``px`` x ``px`` atlas painted from ``source``:
-    the same faces and provenance, vertices split at chart seams (their colours follow), uv and atlas set."""
+def bake_lod(mesh: LodMesh, source: BakeSource, max_px: int) -> LodMesh:
+    """``mesh`` (welded, ENU) re-parameterised into a square atlas (:func:`atlas_side`, at most ``max_px``)
+    painted from ``source``: the same faces and provenance, vertices split at chart seams (their colours
+    follow), uv and atlas set."""
     if mesh.n_faces == 0:
         return mesh
-    vmap, faces, uv = parameterize(mesh.positions, mesh.faces, px)
+    px = atlas_side(mesh.n_faces, max_px)
+    vmap, faces, uv = parameterize(mesh.positions, mesh.faces, px, CHART_PADDING_PX)
     positions = mesh.positions[vmap]
     face, texel, bary = rasterize(uv, faces, px)
+    # faces no texel centre falls in (one-texel charts, slivers): the texel under their uv centroid, painted
+    # at their centroid, where no face covers it
+    missed = np.ones(len(faces), bool)
+    missed[face] = False
+    missed = np.flatnonzero(missed)
+    xy = np.clip((uv[faces[missed]].mean(axis=1) * px).astype(np.int64), 0, px - 1)
+    extra = xy[:, 1] * px + xy[:, 0]
+    covered = np.zeros(px * px, bool)
+    covered[texel] = True
+    take = ~covered[extra]
+    face = np.concatenate([face, missed[take]])
+    texel = np.concatenate([texel, extra[take]])
+    bary = np.concatenate([bary, np.full((int(take.sum()), 3), 1 / 3, np.float32)])
     corners = positions[faces[face]].astype(np.float64)  # (k, 3, 3)
     points = np.einsum("kj,kjc->kc", bary.astype(np.float64), corners)
     image = np.zeros((px * px, 3), np.uint8)
@@ -202,27 +215,23 @@ def bake_lod(mesh: LodMesh, source: BakeSource, px: int) -> LodMesh:
 
 
 def pack_children(parts: list[LodMesh]) -> LodMesh:
-    """Up to four textured LodMeshes (each a px x px atlas) as one: faces concatenated (not welded, so
-    each vertex keeps its uv), atlases side by side in a (2 px, 2 px) atlas, uvs moved to their quadrant."""
+    """Up to four textured LodMeshes (square atlases, side at most q) as one: faces concatenated (not
+    welded, so each vertex keeps its uv), atlases side by side in a (2 q, 2 q) atlas, each in its quadrant's
+    corner as it is (no resampling), uvs moved there; what no atlas fills takes the mean colour (so the
+    atlas compresses and mipmaps cleanly)."""
     if not 1 <= len(parts) <= 4 or any(p.atlas is None or p.uv is None for p in parts):
         raise ValueError("pack_children: one to four textured meshes")
-    px = max(p.atlas.shape[0] for p in parts)
-    atlas = np.zeros((2 * px, 2 * px, 3), np.uint8)
+    q = max(p.atlas.shape[0] for p in parts)
+    mean = np.concatenate([p.atlas.reshape(-1, 3) for p in parts]).mean(axis=0)
+    atlas = np.empty((2 * q, 2 * q, 3), np.uint8)
+    atlas[:] = np.rint(mean).astype(np.uint8)
     uvs = []
     for i, p in enumerate(parts):
         qy, qx = divmod(i, 2)
-        a = p.atlas if p.atlas.shape[0] == px else _resize(p.atlas, px)
-        atlas[qy * px:(qy + 1) * px, qx * px:(qx + 1) * px] = a
-        uvs.append((p.uv + np.array([qx, qy], np.float32)) / np.float32(2))
+        s = p.atlas.shape[0]
+        atlas[qy * q:qy * q + s, qx * q:qx * q + s] = p.atlas
+        uvs.append((p.uv * np.float32(s) + np.array([qx * q, qy * q], np.float32)) / np.float32(2 * q))
     merged = concat_lods(parts)
-    if len(parts) < 4:  # empty quadrants: the mean colour, so the atlas compresses and mipmaps cleanly
-        mean = np.concatenate([p.atlas.reshape(-1, 3) for p in parts]).mean(axis=0).astype(np.uint8)
-        for i in range(len(parts), 4):
-            qy, qx = divmod(i, 2)
-            atlas[qy * px:(qy + 1) * px, qx * px:(qx + 1) * px] = mean
     return LodMesh(merged.positions, merged.faces, merged.colors, merged.grade, merged.source, merged.region,
                    uv=np.concatenate(uvs).astype(np.float32), atlas=atlas)
 
-
-def _resize(image: np.ndarray, px: int) -> np.ndarray:
-    return resize_rgb(image, px, px)
