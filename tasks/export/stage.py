@@ -119,14 +119,16 @@ def _build_tree(tree: QuadTree, tiles_dir: Path, template: NodeJob, old: dict[st
     return nodes, built, reused
 
 
-def _write_tileset(out: Path, doc: dict, georef: GeoRef, nodes: dict[str, dict]) -> Path:
-    """tileset.json (rewritten only when its bytes change), georef.json and tileset.fingerprints.json."""
+def _write_tileset(out: Path, doc: dict, georef: GeoRef, nodes: dict[str, dict], overview: str | None = None) -> Path:
+    """tileset.json (rewritten only when its bytes change), georef.json and tileset.fingerprints.json (with
+    the fingerprint of the root the overview was built from)."""
     text = (json.dumps(doc, indent=1) + "\n").encode()
     tileset = out / "tileset.json"
     if not tileset.exists() or tileset.read_bytes() != text:
         write_bytes_atomic(tileset, text)
     write_json_atomic(out / "georef.json", georef.to_json())
-    write_json_atomic(out / "tileset.fingerprints.json", {"version": EXPORT_VERSION, "nodes": nodes})
+    state = {"version": EXPORT_VERSION, "nodes": nodes} | ({"overview": overview} if overview else {})
+    write_json_atomic(out / "tileset.fingerprints.json", state)
     return tileset
 
 
@@ -247,16 +249,17 @@ def run_export(work_dir: str | Path, config: ExportConfig | None = None, tiles: 
                          frame.vertical_datum, cfg.geoid_grid)
     base = content_hash(EXPORT_VERSION, cfg.model_dump(mode="json", exclude=NOT_CONTENT), georef.to_json())
     state_path = out / "tileset.fingerprints.json"
-    old = json.loads(state_path.read_text()).get("nodes", {}) if state_path.exists() else {}
+    old_state = json.loads(state_path.read_text()) if state_path.exists() else {}
+    old = old_state.get("nodes", {})
     run = map_jobs if map_jobs is not None else partial(_run_jobs, workers=workers)
     nodes, built, reused = _build_tree(tree, wd.root / "tiles", NodeJob(tree.root, base, out, cache, georef, cfg),
                                        old, run)
     root = tree.root
-    if root.key in built or not recorded.is_file(out / "overview.glb"):
-        run([NodeJob(OVERVIEW, nodes[root.key]["fingerprint"], out, cache, georef, cfg,
-                     children=(("root", {"key": root.key}),))])
+    overview = nodes[root.key]["fingerprint"]  # a new root may be a reused node: the overview follows the root
+    if root.key in built or old_state.get("overview") != overview or not recorded.is_file(out / "overview.glb"):
+        run([NodeJob(OVERVIEW, overview, out, cache, georef, cfg, children=(("root", {"key": root.key}),))])
     doc, nodes = _tileset_doc(out, tree, nodes, georef, cfg, _tile_grid(campus, frame.origin_array))
-    tileset = _write_tileset(out, doc, georef, nodes)
+    tileset = _write_tileset(out, doc, georef, nodes, overview)
     _remove_stale(out, cache, nodes)
     grades_mode = (campus.get("config") or {}).get("repair", {}).get("grades", "auto")  # what repair acted on
     points = write_points_overlay(wd.root / "tiles", out / "points", list(tiles), georef, grades_mode=grades_mode,

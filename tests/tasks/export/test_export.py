@@ -221,6 +221,25 @@ def test_rerun_rewrites_only_the_changed_tile_and_its_ancestors(tiny_export, tmp
     assert check_tileset(out) == []
 
 
+def test_overview_is_rebuilt_when_it_was_not_built_from_the_current_root(tiny_export, tmp_path):
+    """An overview left from another root (an export stopped between a root and its overview, or a root
+    that is a reused node) is rebuilt although every node is reused."""
+    work0, _ = tiny_export
+    work = tmp_path / "work"
+    shutil.copytree(work0, work)
+    state_path, overview = work / "output" / "tileset.fingerprints.json", work / "output" / "overview.glb"
+    state = json.loads(state_path.read_text())
+    assert state["overview"] == state["nodes"]["L2_0_0"]["fingerprint"]
+    state_path.write_text(json.dumps(state | {"overview": "another root"}))
+    mtime = overview.stat().st_mtime_ns
+    again = run_export(work)
+    assert again["built"] == [] and overview.stat().st_mtime_ns != mtime
+    assert json.loads(state_path.read_text())["overview"] == state["overview"]
+    mtime = overview.stat().st_mtime_ns
+    run_export(work)
+    assert overview.stat().st_mtime_ns == mtime
+
+
 def test_draco_export_validates_and_is_smaller(tiny_merged, tiny_export, tmp_path):
     pytest.importorskip("DracoPy", reason="DracoPy not installed (pip install DracoPy)")
     work = tmp_path / "work"
