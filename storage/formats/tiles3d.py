@@ -10,7 +10,7 @@ references (``<content.glb>#imageK``, resolved on demand by :mod:`storage.format
 memory holds the geometry and one content's pixels at a time.
 
 Refused with one line naming the file: a JSON that is not a tileset, point-cloud / instanced / composite
-content (``.pnts``, ``.i3dm``, ``.cmpt``), implicit tiling, a content file that is missing or not a GLB /
+content (``.pnts``, ``.i3dm``, ``.cmpt``), implicit tiling other than QUADTREE, a content file that is missing or not a GLB /
 b3dm, and a tileset with no content. Draco-compressed glb (``KHR_draco_mesh_compression``) is decoded by the
 glTF reader only where trimesh can; otherwise it is refused naming the file.
 """
@@ -76,7 +76,7 @@ def _leaves(path: Path, doc: dict, parent: np.ndarray, depth: int, out: list) ->
     while stack:
         tile, m_parent = stack.pop()
         if "implicitTiling" in tile:
-            raise InputError(path, "implicit tiling is not read; export the tileset with explicit tiles")
+            tile = _expanded(path, tile)
         m = m_parent @ _matrix(tile, path)
         children = tile.get("children") or []
         for uri in _contents(tile):
@@ -89,6 +89,26 @@ def _leaves(path: Path, doc: dict, parent: np.ndarray, depth: int, out: list) ->
                 out.append((target, m))
         for child in children:
             stack.append((child, m))
+
+
+def _expanded(path: Path, tile: dict) -> dict:
+    """An implicit tile (QUADTREE) as explicit tiles: its subtrees read next to ``path``."""
+    from storage.formats.implicit_tiling import expand_implicit
+
+    def read(name: str) -> bytes:
+        try:
+            return (path.parent / name).read_bytes()
+        except OSError as e:
+            raise InputError(path, f"subtree {name} not readable ({e.strerror or e})") from None
+
+    try:
+        return expand_implicit({"root": tile}, read)["root"]
+    except InputError as e:  # a subtree's problem names the subtree (relative to the tileset) or the tileset
+        if e.path is not None and Path(e.path).is_absolute():
+            raise
+        raise InputError(path.parent / e.path if e.path else path, e.problem) from None
+    except (KeyError, TypeError, ValueError) as e:
+        raise InputError(path, f"implicit tiling not understood ({type(e).__name__}: {e})") from None
 
 
 def _b3dm_glb(path: Path) -> tuple[bytes, np.ndarray]:

@@ -1,6 +1,7 @@
 """The export quadtree as 3D Tiles 1.1 implicit tiling (``export.tiling: implicit``): node coordinates, content
 and subtree paths, the subtrees, the tileset document, and back (an implicit tileset expanded into explicit
-tiles, for the checks). Pure: the stage moves the glbs and writes the files.
+tiles, for the checks: :mod:`storage.formats.implicit_tiling`, re-exported here). Pure: the stage moves the
+glbs and writes the files.
 
 Coordinates. :mod:`tasks.export.tree` counts levels up from the leaves (h = 0) and anchors the quadtree at the
 minimum ground tile; implicit tiling counts down from the root (level 0). Node (h, x, y) of a tree of height H
@@ -29,8 +30,8 @@ from collections.abc import Callable
 
 import numpy as np
 
-from storage.errors import InputError
-from storage.formats.subtree import Subtree, decode_subtree, encode_subtree, level_offset, morton2, tile_bits
+from storage.formats.implicit_tiling import Coord, derived_box, expand_implicit, local_index, template  # noqa: F401 (re-exported)
+from storage.formats.subtree import Subtree, encode_subtree, level_offset, tile_bits
 from tasks.export.georef import GeoRef
 from tasks.export.tree import EXPORT_VERSION, QuadNode, QuadTree
 
@@ -42,12 +43,6 @@ SCHEMA = {"id": "ms3d_implicit", "classes": {TILE_CLASS: {"properties": {
                     "semantic": "TILE_BOUNDING_BOX"},
     "geometricError": {"type": "SCALAR", "componentType": "FLOAT64", "semantic": "TILE_GEOMETRIC_ERROR"},
 }}}}  # fmt: skip
-Coord = tuple[int, int, int]  # (level, x, y), level 0 = the root
-
-
-def template(uri: str, c: Coord) -> str:
-    """``uri`` with ``{level}``, ``{x}``, ``{y}`` of tile ``c`` filled in."""
-    return uri.replace("{level}", str(c[0])).replace("{x}", str(c[1])).replace("{y}", str(c[2]))
 
 
 def implicit_coords(tree: QuadTree) -> dict[QuadNode, Coord]:
@@ -110,17 +105,6 @@ def subtree_root(c: Coord, subtree_levels: int) -> Coord:
     return level0, c[1] >> d, c[2] >> d
 
 
-def local_index(c: Coord, origin: Coord) -> tuple[int, int]:
-    """(depth below ``origin``, Morton index relative to it) of tile ``c`` in the subtree rooted at ``origin``;
-    its tile availability bit is ``level_offset(depth) + index``.
-
-    >>> local_index((3, 5, 2), (2, 2, 1))
-    (1, 1)
-    """
-    d = c[0] - origin[0]
-    return d, int(morton2(c[1] - (origin[1] << d), c[2] - (origin[2] << d)))
-
-
 def build_subtrees(tree: QuadTree, nodes: dict[str, dict], subtree_levels: int) -> dict[Coord, Subtree]:
     """Subtree root -> its :class:`Subtree`: every node available with content, each node's measured box
     (nodes[key]["box"], 12 floats) and geometricError as tile metadata. One pass over the nodes."""
@@ -176,82 +160,3 @@ def implicit_files(tree: QuadTree, nodes: dict[str, dict], georef: GeoRef, corne
     levels = doc["root"]["implicitTiling"]["subtreeLevels"]
     return doc, {template(SUBTREE_URI, c): encode_subtree(sub, TILE_CLASS)
                  for c, sub in build_subtrees(tree, nodes, levels).items()}
-
-
-def derived_box(root_box, c: Coord) -> list[float]:
-    """The box implicit tiling derives for tile ``c`` from the root's (quadtree: x and y halved per level).
-
-    >>> derived_box([0, 0, 5, 4, 0, 0, 0, 4, 0, 0, 0, 1], (1, 1, 0))
-    [2.0, -2.0, 5.0, 2.0, 0.0, 0.0, 0.0, 2.0, 0.0, 0.0, 0.0, 1.0]
-    """
-    b = np.asarray(root_box, np.float64)
-    n = 2.0 ** c[0]
-    ax, ay = b[3:6] / n, b[6:9] / n
-    centre = b[:3] + ax * (2 * c[1] + 1 - n) + ay * (2 * c[2] + 1 - n)
-    return [float(v) for v in (*centre, *ax, *ay, *b[9:12])]
-
-
-def expand_implicit(doc: dict, read: Callable[[str], bytes]) -> dict:
-    """An implicit tileset (its root's ``implicitTiling``, QUADTREE) as explicit tiles, for checks: each tile
-    gets the box and geometricError of its tile metadata (else the derived ones), its content uri, children,
-    and ``"implicit": {"coord", "box"}`` (the derived box). ``read(path)``: a subtree file's bytes by its path
-    relative to the tileset. Raises InputError (naming the subtree) on an unreadable subtree or availability
-    that breaks the rules (content without its tile, a tile without its parent)."""
-    root = doc["root"]
-    imp = root["implicitTiling"]
-    if imp.get("subdivisionScheme") != "QUADTREE" or "box" not in root["boundingVolume"]:
-        raise InputError(None, "only QUADTREE implicit tiling with a root box is expanded")
-    s, available, box0 = int(imp["subtreeLevels"]), int(imp["availableLevels"]), root["boundingVolume"]["box"]
-
-    def tile(c: Coord, sub: Subtree, origin: Coord, props: dict[int, dict]) -> dict:
-        d, index = local_index(c, origin)
-        bit = level_offset(d) + index
-        meta = props.get(bit, {})
-        out = {"boundingVolume": {"box": meta.get("box", derived_box(box0, c))},
-               "geometricError": meta.get("geometricError", root["geometricError"] / 2 ** c[0]),
-               "refine": root["refine"], "implicit": {"coord": c, "box": derived_box(box0, c)}}
-        if sub.content[bit]:
-            out["content"] = {"uri": template(root["content"]["uri"], c)}
-        kids = []
-        for j in (0, 1):
-            for i in (0, 1):
-                k = (c[0] + 1, 2 * c[1] + i, 2 * c[2] + j)
-                if k[0] >= available:
-                    continue
-                kd, kindex = local_index(k, origin)
-                if kd < s and sub.tiles[level_offset(kd) + kindex]:
-                    kids.append(tile(k, sub, origin, props))
-                elif kd == s and sub.children[kindex]:
-                    kids.append(load(k))
-        if kids:
-            out["children"] = kids
-        return out
-
-    def load(c: Coord) -> dict:
-        name = template(imp["subtrees"]["uri"], c)
-        sub = decode_subtree(read(name), s, name)
-        bits = np.flatnonzero(sub.tiles)
-        if (sub.content & ~sub.tiles).any():
-            raise InputError(name, "content available where its tile is not")
-        props = {int(b): {"box": [float(v) for v in sub.properties["boundingBox"][i]],
-                          "geometricError": float(sub.properties["geometricError"][i])}
-                 for i, b in enumerate(bits)} if "boundingBox" in sub.properties else {}
-        out = tile(c, sub, c, props)
-        reached = sum(1 for _ in _walk(out, lambda t: t["implicit"]["coord"][0] < c[0] + s))
-        if reached != len(bits):
-            raise InputError(name, f"{len(bits) - reached} available tiles have no available parent")
-        return out
-
-    top = load((0, 0, 0))
-    top["transform"] = root.get("transform")
-    if top["transform"] is None:
-        del top["transform"]
-    return {**{k: v for k, v in doc.items() if k != "root"}, "root": top}
-
-
-def _walk(t: dict, keep: Callable[[dict], bool]):
-    """The tiles of ``t``'s tree for which ``keep`` holds, not descending below a tile that fails it."""
-    if keep(t):
-        yield t
-        for c in t.get("children", []):
-            yield from _walk(c, keep)

@@ -53,6 +53,28 @@ def test_own_export_reads_back_onto_the_merged_model(tiny_export):
     assert got_area == pytest.approx(area, rel=1e-5)
 
 
+def test_implicit_export_reads_back_like_the_explicit_one(tiny_merged, tiny_export, tmp_path):
+    import shutil
+
+    from tasks.config import ExportConfig
+    from tasks.export import run_export
+
+    work = tmp_path / "work"
+    shutil.copytree(tiny_merged, work)
+    run_export(work, ExportConfig(tiling="implicit", subtree_levels=2))
+    implicit = read_mesh(work / "output" / "tileset.json")
+    explicit = read_mesh(tiny_export[0] / "output" / "tileset.json")
+    assert implicit.n_faces == explicit.n_faces == tiny_export[1]["leaf_faces"]
+    a = np.sort(implicit.vertices[implicit.faces].reshape(-1, 3), axis=0)
+    b = np.sort(explicit.vertices[explicit.faces].reshape(-1, 3), axis=0)
+    assert np.abs(a - b).max() < 1e-6 * np.abs(b).max()
+    sub = sorted((work / "output" / "subtrees").rglob("*.subtree"))[-1]
+    sub.write_bytes(sub.read_bytes()[:20])  # truncated: one line naming the subtree
+    with pytest.raises(InputError, match="subtree") as e:
+        read_mesh(work / "output" / "tileset.json")
+    assert str(sub) in str(e.value) and "\n" not in str(e.value)
+
+
 def _glb_triangle() -> bytes:
     """A minimal glb: one triangle (0,0,0), (1,0,0), (0,0,-1) in glTF Y-up = east, north in Z-up."""
     pos = np.array([[0, 0, 0], [1, 0, 0], [0, 0, -1]], np.float32).tobytes()
