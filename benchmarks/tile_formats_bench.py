@@ -6,7 +6,10 @@ viewer downloads to show that level) and gzipped (with HTTP compression), textur
 (JPEG / PNG: RGBA8 with mipmaps, 4 x 4/3 bytes per pixel; KTX2: the transcoded block format, ETC1S -> BC1 /
 ETC1 at 0.5 byte per pixel, UASTC -> BC7 / ASTC 4x4 at 1 byte per pixel, with its mipmaps), the export's wall
 time, and the viewer's time to show the whole campus (headless chromium, software WebGL: page load until
-every tile is loaded and settled, ``errorTarget=0``) with the per-face grades it decoded.
+every tile is loaded and settled, ``errorTarget=0``) with the per-face grades it decoded. ``none+jpeg+vc`` is
+``none+jpeg`` with vertex-coloured parents (``export.lod_texture_px: 0``, the export before textured parents);
+``--shots DIR`` saves each variant's parents as the viewer shows them from its own framing (a large
+screen-space error target, so the coarse levels stay on screen), for the same distance side by side.
 
     .venv/bin/python benchmarks/tile_formats_bench.py --merged WORKDIR [--max-texture-px 1024] [--variants ...]
         [--tiling implicit] [--archive]
@@ -36,8 +39,10 @@ sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 from benchmarks._common import machine
 from benchmarks.export_bench import copy_merged
 
-VARIANTS = {"none+jpeg": ("none", "jpeg"), "draco+jpeg": ("draco", "jpeg"), "meshopt+jpeg": ("meshopt", "jpeg"),
-            "meshopt+ktx2": ("meshopt", "ktx2")}
+# name: (compression, texture, parents' largest atlas side in px: None the default (textured), 0 vertex-coloured)
+VARIANTS = {"none+jpeg": ("none", "jpeg", None), "draco+jpeg": ("draco", "jpeg", None),
+            "meshopt+jpeg": ("meshopt", "jpeg", None), "meshopt+ktx2": ("meshopt", "ktx2", None),
+            "none+jpeg+vc": ("none", "jpeg", 0)}
 
 
 def _glb_json(data: bytes) -> dict:
@@ -107,7 +112,9 @@ def measure(out: Path) -> dict:
     return levels
 
 
-def viewer_time(work: Path) -> tuple[float, dict]:
+def viewer_time(work: Path, query: str = "&errorTarget=0", shot: Path | None = None) -> tuple[float, dict]:
+    """Seconds until the viewer (headless chromium) has loaded and settled the tileset with ``query`` added
+    to its URL, and the per-grade faces it decoded; the screenshot goes to ``shot`` when given."""
     from flows.view import VIEWER_DIR, start_viewer
 
     node = shutil.which("node")
@@ -117,8 +124,8 @@ def viewer_time(work: Path) -> tuple[float, dict]:
     try:
         with tempfile.TemporaryDirectory() as tmp:
             t0 = time.perf_counter()
-            run = subprocess.run([node, str(VIEWER_DIR / "screenshot.mjs"), server.url + "&errorTarget=0",
-                                  str(Path(tmp) / "shot.png"), "1024", "700", "600000"], capture_output=True,
+            run = subprocess.run([node, str(VIEWER_DIR / "screenshot.mjs"), server.url + query,
+                                  str(shot or Path(tmp) / "shot.png"), "1024", "700", "600000"], capture_output=True,
                                  text=True, check=False, timeout=900)
             wall = time.perf_counter() - t0
     finally:
@@ -138,6 +145,9 @@ def main(argv=None) -> None:
     ap.add_argument("--work", type=Path, help="where the copies go (default: a temporary folder)")
     ap.add_argument("--tiling", choices=["explicit", "implicit"], default="explicit")
     ap.add_argument("--archive", action="store_true", help="also pack output/tileset.3tz and print its size")
+    ap.add_argument("--shots", type=Path, help="save each variant's view of its parents here ({variant}.png: the "
+                    "photo textures, the viewer's own framing, a screen-space error target of --shot-error px)")
+    ap.add_argument("--shot-error", type=float, default=2000.0)
     a = ap.parse_args(argv)
     from functools import partial
 
@@ -152,15 +162,19 @@ def main(argv=None) -> None:
     print(f"machine: {machine()}; merged tiles of {a.merged}; atlases capped at {a.max_texture_px} px")
     rows = {}
     for name in a.variants:
-        compression, texture = VARIANTS[name]
+        compression, texture, parents_px = VARIANTS[name]
         work = root / name
         if work.exists():
             shutil.rmtree(work)
         copy_merged(a.merged, work, 0.0)  # texture paths made absolute: the copies read the source's textures
         t0 = time.perf_counter()
-        run_export(work, ExportConfig(compression=compression, texture=texture, max_texture_px=a.max_texture_px))
+        run_export(work, ExportConfig(compression=compression, texture=texture, max_texture_px=a.max_texture_px,
+                                      **({} if parents_px is None else {"lod_texture_px": parents_px})))
         export_s = time.perf_counter() - t0
         view_s, faces = viewer_time(work)
+        if a.shots:
+            a.shots.mkdir(parents=True, exist_ok=True)
+            viewer_time(work, f"&errorTarget={a.shot_error:g}&mode=texture", a.shots / f"{name}.png")
         rows[name] = {"export_s": export_s, "viewer_s": view_s, "faces": faces, "levels": measure(work / "output")}
     print(f"\n{'variant':<14} {'level':<9} {'files':>5} {'MB on disk':>10} {'MB gzip':>8} {'MB textures':>11} "
           f"{'MB GPU tex':>10}")
