@@ -76,14 +76,16 @@ class NodeJob:
 
 def _build_leaf(job: NodeJob) -> dict:
     """Leaf: full-resolution content glb, and the decimated mesh it passes up (cached), with its atlas
-    painted from the leaf's textures when ``lod_texture_px`` > 0."""
+    painted from the leaf's textures when ``lod_texture_px`` > 0 and the leaf has textures."""
     tm = read_tile_mesh(job.tile_dir)
     gltf, lod = leaf_content(tm, EnuProjector(job.georef), job.cfg)
     uri = f"content/tiles/{tm.tile}.glb"
     nbytes = _write_glb(job.out, uri, gltf, job.cfg.compression, job.cfg.texture, leaf=True)
     texture_bytes = sum(len(im.data) for im in gltf.images)
     tile, n_faces = tm.tile, tm.n_faces
-    source = bake_source(gltf) if job.cfg.lod_texture_px else None
+    # a leaf without textures passes up vertex colours: an atlas would add nothing and lose the shading
+    # (textured primitives are unlit)
+    source = bake_source(gltf) if job.cfg.lod_texture_px and gltf.images else None
     del gltf, tm  # the decimation below needs only the LodMesh (and the bake its source)
     dec = decimate(lod, math.ceil(lod.n_faces / job.cfg.lod_reduction), job.cfg.hausdorff_samples, _backend(job.cfg))
     passed = bake_lod(dec.mesh, source, job.cfg.lod_texture_px) if source is not None else dec.mesh

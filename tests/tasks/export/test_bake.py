@@ -154,3 +154,26 @@ def test_export_parents_are_textured_and_keep_provenance(tiny_merged, tmp_path):
     run_export(plain, ExportConfig(lod_texture_px=0))
     for glb in sorted((plain / "output" / "content").glob("lod*/*.glb")):
         assert "images" not in read_glb(glb.read_bytes())[0]
+
+
+def test_untextured_leaves_keep_vertex_coloured_lit_parents(tiny_merged, tmp_path):
+    """An atlas painted from vertex colours adds nothing and loses the shading (textured primitives are
+    unlit): a campus without textures keeps vertex-coloured parents."""
+    from dataclasses import replace
+
+    from storage.contracts.tile_mesh import read_tile_mesh, write_tile_mesh
+    from tasks.config import ExportConfig
+    from tasks.export import run_export
+    from tasks.export.gltf import read_glb
+
+    work = tmp_path / "work"
+    shutil.copytree(tiny_merged, work)
+    for d in sorted((work / "tiles").glob("*/merged.json")):
+        tm = read_tile_mesh(d.parent)
+        write_tile_mesh(d.parent, replace(tm, textures=[], face_texture=np.full(tm.n_faces, -1, tm.face_texture.dtype)))
+    run_export(work, ExportConfig(lod_texture_px=128))
+    parents = sorted((work / "output" / "content").glob("lod*/*.glb"))
+    assert parents
+    for glb in parents + [work / "output" / "overview.glb"]:
+        doc, _ = read_glb(glb.read_bytes())
+        assert "images" not in doc and all("COLOR_0" in p["attributes"] for p in doc["meshes"][0]["primitives"])
