@@ -12,6 +12,7 @@ every tile is loaded and settled, ``errorTarget=0``) with the per-face grades it
 screen-space error target, so the coarse levels stay on screen), for the same distance side by side.
 
     .venv/bin/python benchmarks/tile_formats_bench.py --merged WORKDIR [--max-texture-px 1024] [--variants ...]
+    .venv/bin/python benchmarks/tile_formats_bench.py --mesh root.3mxb --tile-size 8 --variants none+jpeg none+jpeg+vc
         [--tiling implicit] [--archive]
 
 ``--tiling implicit`` exports every variant as implicit tiling (levels from the implicit paths, the subtrees
@@ -137,9 +138,32 @@ def viewer_time(work: Path, query: str = "&errorTarget=0", shot: Path | None = N
     return (wall if res.get("ready") else float("nan")), res.get("state", {}).get("faces", {})
 
 
+def _merged_from_mesh(mesh_path: Path, out: Path, tile_size_m: float) -> Path:
+    """A work dir of merged tiles cut from a mesh file (fake provenance), at UTM 31N (500 km E, 5,400 km N)."""
+    from dataclasses import replace
+
+    import numpy as np
+
+    from storage.formats.meshes import read_mesh
+    from storage.frame import CampusFrame
+    from synth.tile_meshes import fake_merged_workdir
+
+    origin = (500_000.0, 5_400_000.0, 100.0)
+    mesh = read_mesh(str(mesh_path))
+    mesh = replace(mesh, vertices=mesh.vertices + np.array(origin))
+    frame = CampusFrame(origin=origin, crs="EPSG:32631", vertical_datum="ellipsoidal (WGS 84), arbitrary")
+    shutil.rmtree(out, ignore_errors=True)
+    return fake_merged_workdir(mesh, frame, out, tile_size_m=tile_size_m).root
+
+
 def main(argv=None) -> None:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    ap.add_argument("--merged", type=Path, required=True, help="a processed work dir (its tiles/*/merged.*)")
+    src = ap.add_mutually_exclusive_group(required=True)
+    src.add_argument("--merged", type=Path, help="a processed work dir (its tiles/*/merged.*)")
+    src.add_argument("--mesh", type=Path, help="a mesh file (OBJ, PLY, 3MX/3MXB, glb, ...) cut into --tile-size tiles "
+                     "with fake provenance (synth.tile_meshes), placed at an arbitrary UTM origin: a real "
+                     "production's textures without running the pipeline")
+    ap.add_argument("--tile-size", type=float, default=8.0)
     ap.add_argument("--max-texture-px", type=int, default=1024)
     ap.add_argument("--variants", nargs="+", default=list(VARIANTS), choices=list(VARIANTS))
     ap.add_argument("--work", type=Path, help="where the copies go (default: a temporary folder)")
@@ -159,6 +183,8 @@ def main(argv=None) -> None:
 
     tmp = tempfile.TemporaryDirectory(prefix="ms3d-formats-")
     root = a.work or Path(tmp.name)
+    if a.mesh:
+        a.merged = _merged_from_mesh(a.mesh, root / "_merged", a.tile_size)
     print(f"machine: {machine()}; merged tiles of {a.merged}; atlases capped at {a.max_texture_px} px")
     rows = {}
     for name in a.variants:
