@@ -280,7 +280,7 @@ class ExportConfig(_Model):
     hausdorff_samples: int = Field(20_000, ge=1000, description="points sampled per direction to measure a decimation's deviation")
     decimator: Literal["auto", "fqmr", "pymeshlab"] = Field("auto", description="quadric decimation: pyfqmr (Fast Quadric Mesh Simplification, ~6x faster) or pymeshlab (GPL: the optional gpl extra, pip install 'ms3d[gpl]'); auto = fqmr")
     overview_max_faces: int = Field(300_000, ge=1000, description="faces of output/overview.glb (whole campus, decimated)")
-    # --- tiling layout and packaging (issue 40, item 4; tasks/export/implicit.py, storage/formats/threetz.py) ---
+    # tiling layout and packaging (tasks/export/implicit.py, storage/formats/threetz.py)
     tiling: Literal["explicit", "implicit"] = Field("explicit", description="tileset layout: explicit (every tile listed in tileset.json) or implicit (3D Tiles 1.1 implicit QUADTREE tiling: one root tile, content at content/{level}/{x}/{y}.glb, availability in binary subtrees/{level}/{x}/{y}.subtree; each tile's measured box and geometric error kept as TILE_BOUNDING_BOX / TILE_GEOMETRIC_ERROR tile metadata; the same glbs, moved, so switching rebuilds nothing)")
     subtree_levels: int = Field(4, ge=1, le=10, description="levels per implicit subtree file (tiling: implicit): 4 = up to 85 tiles per .subtree; capped at the quadtree's levels")
     archive: Literal["none", "3tz"] = Field("none", description="also pack output/tileset.3tz after the export: a 3D Tiles archive (the 3TZ format: one ZIP with an @3dtilesIndex1@ hash index) of tileset.json, content, subtrees, overview.glb, georef.json, points/ and before/; `ms3d view` serves it; rewritten only when those files change")
