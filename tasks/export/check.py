@@ -189,10 +189,20 @@ def validate_glbs(paths: list[str | Path], batch: int = 64) -> list[dict]:
     return reports
 
 
-def ecef_round_trip_error_m(work_dir: str | Path, tile: str) -> float:
-    """Max distance (metres) between the vertices of a leaf glb taken through the tileset's transforms
-    (glTF y-up -> z-up, root ENU->ECEF) and their ECEF positions computed by pyproj straight from the
-    projected world coordinates of the tile's merged mesh (matched by nearest neighbour)."""
+def leaf_glbs(out: Path) -> dict[str, Path]:
+    """{ground tile: its leaf glb} of an export (explicit or implicit: from the export's node records)."""
+    state = out / "tileset.fingerprints.json"
+    if state.exists():
+        nodes = json.loads(state.read_text()).get("nodes", {})
+        return {r["tile"]: out / r["uri"] for r in nodes.values() if r.get("tile")}
+    return {p.stem: p for p in sorted((out / "content" / "tiles").glob("*.glb"))}
+
+
+def ecef_round_trip_error_m(work_dir: str | Path, tile: str, glb: Path | None = None) -> float:
+    """Max distance (metres) between the vertices of a leaf glb (default ``content/tiles/{tile}.glb``) taken
+    through the tileset's transforms (glTF y-up -> z-up, root ENU->ECEF) and their ECEF positions computed by
+    pyproj straight from the projected world coordinates of the tile's merged mesh (matched by nearest
+    neighbour)."""
     from pyproj import CRS, Transformer
     from scipy.spatial import cKDTree
 
@@ -203,7 +213,8 @@ def ecef_round_trip_error_m(work_dir: str | Path, tile: str) -> float:
     frame = CampusFrame.from_json(json.loads((root / "campus.json").read_text())["frame"])
     doc = json.loads((root / "output" / "tileset.json").read_text())
     m = np.asarray(doc["root"]["transform"], np.float64).reshape(4, 4).T
-    via = gltf_to_enu(glb_positions((root / "output" / "content" / "tiles" / f"{tile}.glb").read_bytes()))
+    glb = glb or root / "output" / "content" / "tiles" / f"{tile}.glb"
+    via = gltf_to_enu(glb_positions(glb.read_bytes()))
     via = via @ m[:3, :3].T + m[:3, 3]
     src = CRS(frame.crs)
     src = src if src.is_compound else src.to_3d()
@@ -224,8 +235,7 @@ def main(argv: list[str] | None = None) -> int:
                         and (p := check_mesh_features(g.read_bytes()))}
     node, reason = node_tools()
     reports = validate_glbs(glbs) if node else []
-    tiles = sorted(p.stem for p in (out / "content" / "tiles").glob("*.glb"))
-    errors_m = [ecef_round_trip_error_m(work, t) for t in tiles]
+    errors_m = [ecef_round_trip_error_m(work, t, g) for t, g in sorted(leaf_glbs(out).items())]
     print(json.dumps({
         "tileset_problems": problems, "glbs": len(glbs), "mesh_feature_problems": feature_problems,
         "validator": ({"errors": sum(r["errors"] for r in reports), "warnings": sum(r["warnings"] for r in reports),

@@ -251,3 +251,15 @@ def test_moving_content_onto_each_others_paths_loses_nothing(tmp_path):
     back = _place_content(tmp_path, placed, None)  # explicit: back where the builds wrote them
     assert back == {"a": {"uri": "content/lod1/0_0.glb"}, "b": {"uri": "content/tiles/0_0.glb"}}
     assert (tmp_path / "content/lod1/0_0.glb").read_bytes() == b"A" and not (tmp_path / "content/2/0/0.glb").exists()
+
+
+def test_export_check_finds_the_implicit_leaves_for_the_ecef_round_trip(implicit_export, capsys):
+    from tasks.export.check import leaf_glbs, main
+
+    work, summary = implicit_export
+    leaves = leaf_glbs(work / "output")
+    assert sorted(leaves) == _tiles(work) and all(p.exists() and "tiles" not in p.parts for p in leaves.values())
+    code = main([str(work)])
+    report = json.loads(capsys.readouterr().out)
+    assert report["ecef_round_trip_max_mm"] is not None and report["ecef_round_trip_max_mm"] < 1.0
+    assert report["tileset_problems"] == [] and code == 0
