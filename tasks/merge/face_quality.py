@@ -40,11 +40,13 @@ def face_patch_scores(face_patch: np.ndarray, patch_keys: np.ndarray, scores: np
 
 
 def with_face_quality(mesh: TileMesh, points: np.ndarray, patch_keys: np.ndarray, scores: np.ndarray | None,
-                      grid: PatchGrid, origin) -> tuple[TileMesh, dict]:
+                      grid: PatchGrid, origin, thinned_by: int = 1) -> tuple[TileMesh, dict]:
     """``mesh`` with ``face_deviation`` and ``face_score``, and a summary of them.
 
-    points: (k, 3) float32 campus-local MLS points of the tile; patch_keys, scores: the tile's patch keys
-    (sorted) and their grades' scores (None without grades); grid, origin: the campus grid, (3,) float64 world.
+    points: (k, 3) float32 campus-local MLS points of the tile (already every ``thinned_by``-th, or all:
+    more than ``DEVIATION_MAX_POINTS`` are thinned here by a fixed stride); patch_keys, scores: the tile's patch
+    keys (sorted) and their grades' scores (None without grades); grid, origin: the campus grid, (3,) float64
+    world.
     """
     v = mesh.vertices.astype(np.float64)
     step = max(1, -(-len(points) // DEVIATION_MAX_POINTS))
@@ -54,7 +56,7 @@ def with_face_quality(mesh: TileMesh, points: np.ndarray, patch_keys: np.ndarray
         if mesh.n_faces else np.zeros(0, np.int64)
     score = face_patch_scores(face_patch, patch_keys, scores)
     seen = np.isfinite(dev)
-    stats = {"deviation_faces": int(seen.sum()), "deviation_points": int(n.sum()), "deviation_stride": step,
+    stats = {"deviation_faces": int(seen.sum()), "deviation_points": int(n.sum()), "deviation_stride": step * thinned_by,
              "deviation_p50_m": float(np.median(np.abs(dev[seen]))) if seen.any() else None}
     return replace(mesh, face_deviation=dev, face_score=score), stats
 

@@ -59,7 +59,7 @@ from storage.patches.schema import FACES_FILE, PATCHES_FILE, POINTS_FILE, side_t
 from storage.patches.state import grades_identity, patch_grades
 from storage.workdir.layout import STALE_FILE, WorkDir, campus_frame, read_campus
 from storage.workdir.manifest import combine_fingerprints
-from tasks.merge.face_quality import with_face_quality
+from tasks.merge.face_quality import DEVIATION_MAX_POINTS, with_face_quality
 from tasks.merge.soup import FaceSoup, concat_soups
 from tasks.merge.tile import STORE_FACE_COLUMNS, rebuilt_parts, retained_soup, weld_tile
 from tasks.units import Done, run_unit
@@ -148,10 +148,28 @@ def _load_regions(root: Path, tile: TileId) -> list[RegionMesh]:
 def _face_quality(store: PatchStore, mesh: TileMesh, grid, origin) -> tuple[TileMesh, dict]:
     """The merged mesh with its per-face scan-to-model distance and grader score
     (:func:`tasks.merge.face_quality.with_face_quality`), from the tile's points and ``grades.parquet``."""
-    points = store.read_all_stacked("points", ["x", "y", "z"]) if store.n_points else np.zeros((0, 3), np.float32)
+    points, stride = thinned_points(store)
     grades = store.side("grades")
     keys = store.patches()["patch"]
-    return with_face_quality(mesh, points, keys, None if grades is None else grades["score"], grid, origin)
+    return with_face_quality(mesh, points, keys, None if grades is None else grades["score"], grid, origin, stride)
+
+
+def thinned_points(store: PatchStore, max_points: int = DEVIATION_MAX_POINTS, window: int = 4_000_000
+                   ) -> tuple[np.ndarray, int]:
+    """(every ``stride``-th point of the tile (k, 3) float32, at most ``max_points``; stride), read ``window``
+    rows at a time: memory is bounded by the window, not the tile (a 70 M-point tile read whole took 2.7 GB)."""
+    n = int(store.n_points)
+    if n == 0:
+        return np.zeros((0, 3), np.float32), 1
+    stride = max(1, -(-n // max_points))
+    if stride == 1:
+        return store.read_all_stacked("points", ["x", "y", "z"]), 1
+    parts = []
+    for lo in range(0, n, window):
+        block = store.read_rows_stacked("points", ["x", "y", "z"], lo, min(lo + window, n))
+        parts.append(block[(-lo) % stride::stride].copy())  # global rows 0, stride, 2 stride, ...
+        del block
+    return np.concatenate(parts), stride
 
 
 def _merge_work(tile: TileId, cfg, wd: WorkDir, frame_json: dict, regions: Sequence[RegionMesh] | None) -> Done:

@@ -495,3 +495,21 @@ def test_a_merged_model_the_repair_left_alone_scores_exactly_the_input_mesh(tiny
     for name in ("precision", "recall", "fscore", "uncovered_fraction", "chamfer_m"):
         assert merged[name] == given[name], name
     assert merged["per_class"] == given["per_class"]
+
+
+def test_thinned_points_read_in_windows_equal_the_whole_tile_strided(tiny_work):
+    """The face-quality points of a tile: every stride-th row, read a window at a time (bounded memory), the
+    same rows as reading the whole table and striding it."""
+    from storage.patches.read import PatchStore
+    from tasks.merge.stage import thinned_points
+
+    _, wd = tiny_work
+    tile_dir = max((p.parent for p in (wd.root / "tiles").glob("*/points.parquet")),
+                   key=lambda d: PatchStore(d).n_points)
+    store = PatchStore(tile_dir)
+    whole = store.read_all_stacked("points", ["x", "y", "z"])
+    assert len(whole) > 5000
+    for max_points, window in ((1000, 777), (len(whole) // 3, 4096), (len(whole), 100)):
+        got, stride = thinned_points(store, max_points, window)
+        assert stride == max(1, -(-len(whole) // max_points)) and len(got) <= max_points
+        np.testing.assert_array_equal(got, whole[::stride])
