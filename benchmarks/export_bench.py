@@ -16,12 +16,17 @@ tiles of a processed work dir (``tiles/*/merged.*`` and the textures they name; 
 instead of the fake merge; ``--code DIR`` runs the export of another checkout (e.g. ``git archive HEAD``
 unpacked) for a side-by-side before/after; ``--quick`` skips the Draco and 2-process runs.
 
+``export_bench.py formats ...`` runs :mod:`benchmarks.tile_formats_bench` instead (the same arguments): bytes on
+disk and gzipped per level, texture and GPU texture bytes, export and viewer time, for geometry none / Draco /
+meshopt, textures JPEG / KTX2, textured vs vertex-coloured parents, with the viewer's images of each.
+
 Target: >= 40 k triangles/s for merge + export on this 2-core machine; this script measures
 export (merge comes later); peak RSS < 2 GB. Always exits 0: it reports.
 
     .venv/bin/python benchmarks/export_bench.py                     # ms3d-work/demo-input (made if missing)
     .venv/bin/python benchmarks/export_bench.py --input ms3d-work/tiny-input --tile-size 25 --work /tmp/eb
     .venv/bin/python benchmarks/export_bench.py --merged /tmp/demo-work --quick --work /tmp/eb [--code /tmp/old]
+    .venv/bin/python benchmarks/export_bench.py formats --merged /tmp/demo-work --shots docs/  # formats, LOD textures
 """
 
 from __future__ import annotations
@@ -205,6 +210,12 @@ def _residue_run(base: Path, work: Path, code: Path, residue_mb: int) -> dict:
 
 
 def main(argv: list[str] | None = None) -> dict:
+    args = sys.argv[1:] if argv is None else list(argv)
+    if args[:1] == ["formats"]:  # the output formats side by side: benchmarks/tile_formats_bench.py
+        from benchmarks.tile_formats_bench import main as formats_main
+
+        formats_main(args[1:])
+        return {}
     p = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     p.add_argument("--input", type=Path, default=REPO / "ms3d-work" / "demo-input")
     p.add_argument("--work", type=Path, default=REPO / "ms3d-work" / "export-bench")
