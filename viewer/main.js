@@ -45,6 +45,10 @@ tiles.registerPlugin(new GLTFExtensionsPlugin({ metadata: true, dracoLoader: dra
 tiles.registerPlugin(new ImplicitTilingPlugin());  // export.tiling: implicit (subtrees; not a default plugin)
 tiles.registerPlugin(new ReorientationPlugin({ recenter: true }));
 tiles.errorTarget = Number(params.get('errorTarget') || 8);  // pixels of screen-space error
+// GPU bytes of loaded tiles kept (3d-tiles-renderer's default is 0.4 GB): textured LOD parents and photo
+// leaves outgrow it on a street (0.5 GB of leaf textures for one production), ?cacheMB= to change it
+tiles.lruCache.maxBytesSize = Number(params.get('cacheMB') || 1024) * 2 ** 20;
+tiles.lruCache.minBytesSize = Math.min(tiles.lruCache.minBytesSize, tiles.lruCache.maxBytesSize * 0.75);
 tiles.setCamera(camera);
 tiles.setResolutionFromRenderer(camera, renderer);
 scene.add(tiles.group);
