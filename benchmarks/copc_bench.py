@@ -32,10 +32,10 @@ import numpy as np
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
-from storage.formats.copc import CopcReadStats, iter_copc  # noqa: E402
-from storage.formats.point_chunk import PointChunk  # noqa: E402
-from storage.formats.points import iter_points  # noqa: E402
-from synth.copc import write_copc  # noqa: E402
+from storage.formats.copc import CopcReadStats, iter_copc
+from storage.formats.point_chunk import PointChunk
+from storage.formats.points import iter_points
+from synth.copc import write_copc
 
 
 def cloud(n: int, side_m: float, seed: int = 0) -> PointChunk:

@@ -41,7 +41,7 @@ def _gradient_source() -> BakeSource:
 
 def test_rasterize_covers_a_square_atlas_once_per_texel():
     uv = np.array([[0, 0], [1, 0], [0, 1], [1, 1]], np.float32)
-    face, texel, bary = rasterize(uv, np.array([[0, 1, 2], [1, 3, 2]]), 8)
+    _, texel, bary = rasterize(uv, np.array([[0, 1, 2], [1, 3, 2]]), 8)
     assert sorted(set(texel.tolist())) == list(range(64))
     assert len(texel) == 64 + 8  # the 8 texel centres on the shared diagonal fall in both triangles
     np.testing.assert_allclose(bary.sum(axis=1), 1.0, atol=1e-6)

@@ -256,7 +256,7 @@ def test_moving_content_onto_each_others_paths_loses_nothing(tmp_path):
 def test_export_check_finds_the_implicit_leaves_for_the_ecef_round_trip(implicit_export, capsys):
     from tasks.export.check import leaf_glbs, main
 
-    work, summary = implicit_export
+    work, _ = implicit_export
     leaves = leaf_glbs(work / "output")
     assert sorted(leaves) == _tiles(work) and all(p.exists() and "tiles" not in p.parts for p in leaves.values())
     code = main([str(work)])
