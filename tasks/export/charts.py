@@ -158,6 +158,7 @@ def parameterize(positions: np.ndarray, faces: np.ndarray, px: int, padding: int
             scale *= min(0.97, np.sqrt(px / used))
         else:
             scale *= 0.97 * (px - 1 - 2 * padding) / (sizes.max() - 1 - 2 * padding)
-    texel = off[chart] + np.where(point[chart], 0, padding)[:, None] + 0.5 + (plane - lo[chart]) * scale
+    on_point = point[chart][:, None]  # a one-texel chart's vertices all sit at its texel's centre
+    texel = off[chart] + 0.5 + np.where(on_point, 0.0, padding + (plane - lo[chart]) * scale)
     uv = (texel / px).astype(np.float32)
     return vmap.astype(np.int64), inverse.reshape(m, 3).astype(np.int32), uv

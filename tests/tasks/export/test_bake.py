@@ -98,6 +98,24 @@ def test_box_charts_do_not_overlap_and_keep_walls_whole():
     assert area > 0.3  # the charts cover a fair share of the atlas
 
 
+def test_charts_stay_inside_the_atlas_and_one_texel_charts_collapse_to_their_texel():
+    """A wall with a few stray faces turned another way (charts of fewer than MIN_CHART_FACES faces): every
+    uv inside [0, 1], each one-texel chart's corners on one texel centre."""
+    from tasks.export.charts import MIN_CHART_FACES, chart_faces
+
+    pos, faces = _plane(8, 8.0)  # a floor, +U
+    tilted = np.array([[20, 0, 0], [20.5, 0, 0.1], [20, 0, 3]], np.float32)  # a lone face facing -N
+    pos = np.concatenate([pos, tilted])
+    faces = np.concatenate([faces, [[len(pos) - 3, len(pos) - 2, len(pos) - 1]]]).astype(np.int32)
+    label, _ = chart_faces(pos, faces)
+    sizes = np.bincount(label)
+    assert (sizes < MIN_CHART_FACES).sum() == 1 and sizes[label[-1]] == 1
+    vmap, new_faces, uv = parameterize(pos, faces, 64)
+    assert uv.min() >= 0 and uv.max() <= 1
+    lone = uv[new_faces[-1]] * 64
+    assert np.ptp(lone, axis=0).max() == 0 and np.allclose(lone[0] % 1, 0.5)
+
+
 def test_pack_children_keeps_each_childs_colours_at_its_uvs():
     rng = np.random.default_rng(2)
     parts = []
