@@ -21,6 +21,7 @@ from storage.formats.points import (
     write_points,
 )
 from synth.copc import write_copc
+from tests.storage.formats.test_points import lattice_chunk
 
 N = 12_000
 BOX = np.array([[500_010.0, 4_000_005.0], [500_030.0, 4_000_020.0]])  # about 1/7 of the x/y extent
@@ -28,15 +29,7 @@ BOX = np.array([[500_010.0, 4_000_005.0], [500_030.0, 4_000_020.0]])  # about 1/
 
 def make_chunk(n: int = N, seed: int = 0) -> PointChunk:
     """A 60 m x 40 m x 8 m cloud on a 1 mm lattice near (500000, 4000000, 50), every LAS field set."""
-    rng = np.random.default_rng(seed)
-    mm = rng.integers(0, [60_000, 40_000, 8_000], size=(n, 3))
-    return PointChunk(
-        xyz=np.array([500_000.0, 4_000_000.0, 50.0]) + mm / 1000.0,
-        rgb=rng.integers(0, 65536, size=(n, 3)).astype(np.uint16),
-        intensity=rng.integers(0, 65536, size=n).astype(np.uint16),
-        gps_time=np.sort(rng.uniform(3.0e5, 3.1e5, size=n)),
-        classification=rng.integers(0, 20, size=n).astype(np.uint8),
-    )
+    return lattice_chunk(n, seed, (0, 0, 0), (60_000, 40_000, 8_000))
 
 
 def assert_identical(a: PointChunk, b: PointChunk) -> None:

@@ -19,19 +19,23 @@ from storage.formats.points import (
 N = 30_000
 
 
-def make_chunk(n: int = N, seed: int = 0) -> PointChunk:
-    """UTM-like coordinates (500000, 4000000, 50) +- 1 km on a 1 mm lattice, with every field."""
+def lattice_chunk(n: int, seed: int, lo_mm, hi_mm) -> PointChunk:
+    """n points on a 1 mm lattice at (500000, 4000000, 50) + [lo_mm, hi_mm) millimetres per axis, with every
+    LAS field set (random colours, intensities, classes; increasing GPS times)."""
     rng = np.random.default_rng(seed)
-    mm = rng.integers(-1_000_000, 1_000_000, size=(n, 3))
-    mm[:, 2] = rng.integers(-20_000, 20_000, size=n)
-    xyz = np.array([500_000.0, 4_000_000.0, 50.0]) + mm / 1000.0
+    mm = rng.integers(lo_mm, hi_mm, size=(n, 3))
     return PointChunk(
-        xyz=xyz,
+        xyz=np.array([500_000.0, 4_000_000.0, 50.0]) + mm / 1000.0,
         rgb=rng.integers(0, 65536, size=(n, 3)).astype(np.uint16),
         intensity=rng.integers(0, 65536, size=n).astype(np.uint16),
         gps_time=np.sort(rng.uniform(3.0e5, 3.1e5, size=n)),
         classification=rng.integers(0, 20, size=n).astype(np.uint8),
     )
+
+
+def make_chunk(n: int = N, seed: int = 0) -> PointChunk:
+    """UTM-like coordinates (500000, 4000000, 50) +- 1 km (+- 20 m in z), with every field."""
+    return lattice_chunk(n, seed, (-1_000_000, -1_000_000, -20_000), (1_000_000, 1_000_000, 20_000))
 
 
 def assert_same_points(a: PointChunk, b: PointChunk) -> None:
