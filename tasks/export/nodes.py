@@ -98,12 +98,17 @@ def _build_leaf(job: NodeJob) -> dict:
 
 
 def _build_parent(job: NodeJob) -> dict:
-    """Parent: its children's passed-up meshes (content: their atlases packed 2 x 2 when textured, else
-    welded), and its own decimation passed up (its atlas painted from the content).
+    """Parent: its children's passed-up meshes (content: their atlases packed 2 x 2 when any child is
+    textured, else welded), and its own decimation passed up (its atlas painted from the content). So one
+    untextured tile does not take the textures from every level above it; a campus without textures keeps
+    lit vertex-coloured parents.
     geometricError = max over children of (child decimation's measured deviation + child's error)."""
     n, kids = job.node, dict(job.children)
     parts = [load_lod(job.cache / f"{k}.npz") for k in kids]
-    textured = bool(job.cfg.lod_texture_px) and all(p.atlas is not None for p in parts)
+    textured = bool(job.cfg.lod_texture_px) and any(p.atlas is not None for p in parts)
+    if textured:  # an untextured child beside textured ones: its vertex colours painted into an atlas of its own
+        parts = [p if p.atlas is not None else bake_lod(p, BakeSource.of_lod(p), job.cfg.lod_texture_px)
+                 for p in parts]
     content = pack_children(parts) if textured else weld(concat_lods(parts))
     del parts
     uri = f"content/lod{n.h}/{n.x}_{n.y}.glb"

@@ -195,3 +195,26 @@ def test_untextured_leaves_keep_vertex_coloured_lit_parents(tiny_merged, tmp_pat
     for glb in parents + [work / "output" / "overview.glb"]:
         doc, _ = read_glb(glb.read_bytes())
         assert "images" not in doc and all("COLOR_0" in p["attributes"] for p in doc["meshes"][0]["primitives"])
+
+
+def test_one_untextured_tile_keeps_its_ancestors_textured(tiny_merged, tmp_path):
+    """A tile without textures among textured ones (a tile all rebuilt, a tile from another source): its
+    vertex colours are painted into the parents' atlases, which stay textured up to the overview."""
+    from dataclasses import replace
+
+    from storage.contracts.tile_mesh import read_tile_mesh, write_tile_mesh
+    from tasks.config import ExportConfig
+    from tasks.export import run_export
+    from tasks.export.gltf import read_glb
+
+    work = tmp_path / "work"
+    shutil.copytree(tiny_merged, work)
+    tile = work / "tiles" / "0_0"
+    tm = read_tile_mesh(tile)
+    write_tile_mesh(tile, replace(tm, textures=[], face_texture=np.full(tm.n_faces, -1, tm.face_texture.dtype)))
+    run_export(work, ExportConfig(lod_texture_px=128))
+    assert "images" not in read_glb((work / "output" / "content" / "tiles" / "0_0.glb").read_bytes())[0]
+    parents = sorted((work / "output" / "content").glob("lod*/*.glb"))
+    assert parents
+    for glb in parents + [work / "output" / "overview.glb"]:
+        assert len(read_glb(glb.read_bytes())[0]["images"]) == 1, glb
