@@ -157,13 +157,17 @@ def _inputs(run: _Run) -> dict:
     """Scan, register (once, while the meshes are routed: mesh ingest needs the frame only), ingest the
     points; then note the bad inputs and prune whatever the plan no longer names."""
     from tasks.ingest import blocked_tiles, plan_units
-    from tasks.scan import points_box
+    from tasks.scan import files_outside_box, points_box
 
     cfg, wd, ex = run.cfg, run.wd, run.ex
     records, frame, found, ids, scans = scan_inputs(cfg, wd, ex)
     rec_json = [r.to_json() for r in records]
-    reg_future = submit_pending(wd, ex, register_task, rec_json, frame.to_json(), run.cfg_json)
     box = points_box(records, cfg.inputs.points_bounds, cfg.grid())  # inputs.points_bounds; None: every point
+    left_out = files_outside_box(records, box)  # a box that misses every point file: one line, before registering
+    if left_out:
+        log.warning("inputs.points_bounds: %d point file(s) outside the box, not ingested: %s", len(left_out),
+                    ", ".join(left_out[:5]) + (" ..." if len(left_out) > 5 else ""))
+    reg_future = submit_pending(wd, ex, register_task, rec_json, frame.to_json(), run.cfg_json)
     units = plan_units(records, cfg.tiling.chunk_points, box)
     ingest_consts = {"cfg_json": run.cfg_json, "frame_json": frame.to_json()}
     mesh_units = [u for u in units if u.kind == "mesh"]

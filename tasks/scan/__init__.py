@@ -26,13 +26,13 @@ STAGE = StageSpec("scan", "file", scan_task_batches, reads=("manifest.d/scan/", 
 # the names below load on first use (tasks.stages.lazy_exports): importing the package for its STAGE costs
 # nothing, and a worker loads only the modules its tasks run
 __getattr__ = lazy_exports(__name__, {
-    "tasks.scan.extent": "Box clip_point_records outside_box points_box",
+    "tasks.scan.extent": "Box clip_point_records files_outside_box outside_box points_box",
     "tasks.scan.frame": "campus_frame",
     "tasks.scan.placement": "MeshPlacement mesh_placement place_mesh",
     "tasks.scan.plan": "file_size scan_batches scan_files scan_task_batches scanned_records",
     "tasks.scan.stage": "run_scan_file",
 })
 
-__all__ = ["STAGE", "Box", "MeshPlacement", "campus_frame", "clip_point_records", "file_size", "mesh_placement", "outside_box", "place_mesh",
+__all__ = ["STAGE", "Box", "MeshPlacement", "campus_frame", "clip_point_records", "file_size", "files_outside_box", "mesh_placement", "outside_box", "place_mesh",
            "points_box", "run_scan_file", "scan_batches", "scan_files",
            "scanned_records"]

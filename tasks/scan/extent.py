@@ -14,6 +14,7 @@ from dataclasses import replace
 
 import numpy as np
 
+from storage.errors import InputError
 from storage.grid import PatchGrid
 from storage.inputs.identity import InputFile
 
@@ -65,4 +66,24 @@ def clip_point_records(records: list[InputFile], box: Box | None) -> list[InputF
     return out
 
 
-__all__ = ["Box", "clip_point_records", "outside_box", "points_box"]
+def files_outside_box(records: list[InputFile], box: Box | None) -> list[str]:
+    """The paths of the readable point files that ``box`` leaves out entirely (the run says so). Raises
+    InputError when it leaves out every one of them: a box in another CRS or unit, not a campus without a
+    scan.
+
+    >>> a = InputFile(0, "a.laz", "points", "f", lo=[0.0, 0.0, 0.0], hi=[10.0, 10.0, 5.0])
+    >>> b = InputFile(1, "b.laz", "points", "g", lo=[500.0, 0.0, 0.0], hi=[510.0, 10.0, 5.0])
+    >>> files_outside_box([a, b], (0.0, 0.0, 100.0, 100.0))
+    ['b.laz']
+    """
+    points = [r for r in records if r.kind == "points" and not r.error]
+    out = [r.path for r in points if outside_box(r, box)]
+    if points and len(out) == len(points):
+        lo = np.min([r.lo[:2] for r in points if r.bounded], axis=0)
+        hi = np.max([r.hi[:2] for r in points if r.bounded], axis=0)
+        raise InputError(None, f"inputs.points_bounds {list(box)} overlaps no MLS point file (theirs span x "
+                               f"{lo[0]:.1f}..{hi[0]:.1f}, y {lo[1]:.1f}..{hi[1]:.1f}): a box in another CRS or unit?")
+    return out
+
+
+__all__ = ["Box", "clip_point_records", "files_outside_box", "outside_box", "points_box"]

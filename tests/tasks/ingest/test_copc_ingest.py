@@ -111,3 +111,17 @@ def test_registration_samples_a_copc_from_its_coarse_levels_in_the_box(tmp_path)
     assert (got[:, 0] >= box[0]).all() and (got[:, 0] <= box[2]).all()
     mm = np.round(np.concatenate([got, inside]) * 1000).astype(np.int64)
     assert len(np.unique(mm, axis=0)) == len(inside)  # real points of the box
+
+
+def test_a_points_box_missing_every_point_file_is_one_line_naming_their_extent():
+    from storage.errors import InputError
+    from storage.inputs.identity import InputFile
+    from tasks.scan import files_outside_box
+
+    a = InputFile(0, "a.laz", "points", "f", lo=[500_000.0, 4_000_000.0, 0.0], hi=[500_100.0, 4_000_050.0, 9.0])
+    m = InputFile(1, "m.obj", "mesh", "g", lo=[0.0, 0.0, 0.0], hi=[10.0, 10.0, 5.0])
+    assert files_outside_box([a, m], (499_900.0, 3_999_900.0, 500_200.0, 4_000_200.0)) == []
+    assert files_outside_box([a, m], None) == []
+    with pytest.raises(InputError, match=r"overlaps no MLS point file .*x 500000.0\.\.500100.0") as e:
+        files_outside_box([a, m], (0.0, 0.0, 100.0, 100.0))  # a box in local metres for a UTM scan
+    assert "\n" not in str(e.value)
