@@ -164,15 +164,15 @@ def input_vs_merged(work: Path) -> dict:
     return out
 
 
-def bench_defect_case(case: Path, work_root: Path, name: str, force: bool) -> dict:
+def bench_defect_case(case: Path, work_root: Path, name: str, force: bool, extra: tuple[str, ...] = ()) -> dict:
     """One checkpoint on one defect case: the shipped grades against the labels, input vs merged quality."""
-    work = work_root / f"work-{case.name}-{name}"
+    work = work_root / (f"work-{case.name}-{name}" + "".join(f"-{kv.replace('=', '_')}" for kv in extra))
     if force and work.exists():
         shutil.rmtree(work)
     work_root.mkdir(parents=True, exist_ok=True)
-    seconds = run_pipeline(case, work, MODELS[name], work.with_suffix(".log"))
-    return {"case": case.name, "checkpoint": name, **labelled_grades(work), **input_vs_merged(work),
-            **areas(work), "run_s": seconds}
+    seconds = run_pipeline(case, work, MODELS[name], work.with_suffix(".log"), extra)
+    return {"case": case.name, "checkpoint": name, "sets": list(extra), **labelled_grades(work),
+            **input_vs_merged(work), **areas(work), "run_s": seconds}
 
 
 def print_defect_table(rows: list[dict]) -> None:
@@ -258,7 +258,8 @@ def main(argv: list[str] | None = None) -> None:
         src_defects = []
         for seed in [int(x) for x in a.defect_seeds.split(",") if x.strip()]:
             dcase = build_defect_case(case, case.parent / f"{case.name.replace('-zero', '')}-defects-{seed}", seed)
-            src_defects += [bench_defect_case(dcase, root, name, a.force) | {"source": src} for name in names]
+            src_defects += [bench_defect_case(dcase, root, name, a.force, tuple(a.sets)) | {"source": src}
+                            for name in names]
         if src_defects:
             print_defect_table(src_defects)
         defect_rows += src_defects

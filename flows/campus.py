@@ -119,13 +119,18 @@ class _Run:
     def n_workers(self) -> int:
         return max(self.cfg.cluster.n_workers, 1)
 
-    def batches(self, tsk, units: list, weights: dict | None = None) -> list[list]:
-        """``units`` of ``tsk``'s stage as task batches, by the rule its declaration names."""
-        return self.batcher(tsk, weights)(units)
+    def cluster_slots(self) -> int:
+        """The task slots the cluster has now (its workers' threads), else ``cluster.n_workers``."""
+        return max(getattr(self.ex, "slots", lambda: 0)() or self.n_workers, 1)
 
-    def batcher(self, tsk, weights: dict | None = None):
+    def batches(self, tsk, units: list, weights: dict | None = None, workers: int | None = None) -> list[list]:
+        """``units`` of ``tsk``'s stage as task batches, by the rule its declaration names; workers: the
+        worker count the rule sizes for (default ``cluster.n_workers``)."""
+        return self.batcher(tsk, weights, workers)(units)
+
+    def batcher(self, tsk, weights: dict | None = None, workers: int | None = None):
         """units -> batches for ``tsk``'s stage (``tsk.spec.batch``) in this run's context."""
-        return batcher(tsk, BatchContext(self.n_workers, self.cfg.cluster.tiles_per_task, weights or {}))
+        return batcher(tsk, BatchContext(workers or self.n_workers, self.cfg.cluster.tiles_per_task, weights or {}))
 
     def note(self, label: str, results: list[dict], per_unit: bool = True) -> list[dict]:
         """Note every failed summary of ``results`` as "<label> <unit>" (or ``label`` alone for a
@@ -230,7 +235,8 @@ def _tiles(run: _Run, inputs: dict) -> dict:
     plan = submit_pending(wd, ex, regions_task, cj).result()
     run.note("regions", [plan], per_unit=False)
     todo, unchanged = pending_regions(plan["regions"], local_view(cfg, "cameras"), wd)  # one read of the plan, records
-    region_batches = run.batches(repair_task, todo, dict(zip(plan["regions"], plan["weights"])))
+    region_batches = run.batches(repair_task, todo, dict(zip(plan["regions"], plan["weights"])),
+                                 workers=run.cluster_slots())  # an external cluster's real size
     repairs = run.note("region", unchanged + ex.map(repair_task, region_batches, "repair", cfg_json=cj).results())
     if not cfg.cluster.address:  # our own workers: what classify and repair left must not count against merge
         rec = ex.recycle_workers(RECYCLE_OVER * cfg.partition.memory_budget_mb)

@@ -38,10 +38,7 @@ class PrefectExecutor:
         """Restart the flow's Dask workers (between stages, nothing running) when one of them holds more than
         ``over_mb`` of RSS: what earlier stages left (torch, Arrow and glibc pools) then no longer counts
         against a later stage's peak. Returns {"restarted": number of workers, "largest_mb": RSS before}."""
-        from prefect.context import FlowRunContext
-
-        runner = getattr(FlowRunContext.get(), "task_runner", None)
-        client = getattr(runner, "_client", None)  # None until a task ran (a no-op rerun starts no cluster)
+        client = _flow_client()
         if client is None:
             return {"restarted": 0, "largest_mb": 0.0}
         try:
@@ -57,6 +54,27 @@ class PrefectExecutor:
             log.warning("could not restart the workers before merge: %s", f"{type(e).__name__}: {e}".splitlines()[0])
             return {"restarted": 0, "largest_mb": largest}
         return {"restarted": len(rss), "largest_mb": largest}
+
+
+    def slots(self) -> int:
+        """Task slots (threads) of the Dask workers connected now: what an external cluster really has, not
+        what ``cluster.n_workers`` says; 0 when unknown (no cluster started yet, not a Dask runner)."""
+        client = _flow_client()
+        if client is None:
+            return 0
+        try:
+            return int(sum(client.nthreads().values()))
+        except Exception:  # noqa: BLE001 - no scheduler to ask: the caller falls back to the config
+            return 0
+
+
+def _flow_client():
+    """The Dask client of the running flow's task runner; None until a task ran (a no-op rerun starts no
+    cluster) or outside a Dask runner."""
+    from prefect.context import FlowRunContext
+
+    runner = getattr(FlowRunContext.get(), "task_runner", None)
+    return getattr(runner, "_client", None)
 
 
 def _priority(tsk):
@@ -90,6 +108,9 @@ class InlineExecutor:
 
     def recycle_workers(self, over_mb: float) -> dict:
         return {"restarted": 0, "largest_mb": 0.0}  # no worker processes
+
+    def slots(self) -> int:
+        return 0  # no cluster: the config's worker count decides
 
 
 class _Done:

@@ -233,6 +233,9 @@ class SyncExecutor:
     def task_runs(self) -> int:
         return getattr(self.inner, "task_runs", 0)
 
+    def slots(self) -> int:
+        return getattr(self.inner, "slots", lambda: 0)()
+
     def map(self, tsk, batches: list, label: str, **consts):
         _check_lease(self.mirror)
         if getattr(tsk, "name", "") in self.RELATIVE_TASKS:

@@ -21,7 +21,7 @@ from __future__ import annotations
 from collections.abc import Callable
 from dataclasses import dataclass, field
 
-from tasks.batches import balanced_batches, fixed_batches
+from tasks.batches import fixed_batches
 
 
 @dataclass(frozen=True)
@@ -46,8 +46,31 @@ def largest_first_tile_batches(units: list, ctx: BatchContext) -> list[list]:
 
 
 def balanced_region_batches(units: list, ctx: BatchContext) -> list[list]:
-    """``4 * n_workers`` batches of about equal weight (the regions' bytes), heaviest first."""
-    return balanced_batches(units, [ctx.weights.get(k, 1.0) for k in units], 4 * ctx.n_workers)
+    """``4 * n_workers`` batches of about equal weight (the regions' bytes), heaviest first, each a run of
+    regions adjacent along a Hilbert curve through their first patch's cell (:func:`region_cell`): a batch's regions share
+    tiles, so a worker reads each tile's stores for several of its regions, not each region's from
+    another corner of the campus. n_workers: the cluster's task slots when the flow knows them. Units
+    that are no region keys keep their order."""
+    from tasks.batches import contiguous_batches, hilbert_index
+
+    cells = {k: region_cell(k) for k in units}
+    order = sorted(units, key=lambda k: (hilbert_index(*cells[k]) if cells[k] else -1))
+    return contiguous_batches(order, [ctx.weights.get(k, 1.0) for k in order], 4 * ctx.n_workers)
+
+
+def region_cell(key) -> tuple[int, int] | None:
+    """(i, j) >= 0: the biased grid cell of a region key's first patch ("r" + 16 hex digits of its smallest
+    patch key, :func:`tasks.regions.plan.region_key`); None for another unit."""
+    if not (isinstance(key, str) and len(key) == 17 and key[0] == "r"):
+        return None
+    try:
+        v = int(key[1:], 16)
+    except ValueError:
+        return None
+    from storage.grid import PatchGrid
+
+    i, j, _ = PatchGrid.unpack([v - (1 << 64) if v >= 1 << 63 else v])[0]
+    return int(i) + (1 << 24), int(j) + (1 << 25)
 
 
 def one_per_task(units: list, ctx: BatchContext) -> list[list]:

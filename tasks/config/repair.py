@@ -140,6 +140,13 @@ class MeshConfig(_Section):
                                     "rebuilt, then pieces to rebuild this small are kept (unless the whole rebuild is one "
                                     "such piece without an overhead face), so the zone is not cut into specks "
                                     "(tasks.repair.keep.tidy_keep); 0: as found")
+    keep_agreeing_m: float = Field(0.05, ge=0, description="MLS points farther than this from every face of a "
+                                   "region (in clusters: 3 within 3 x fusion.mls_spacing_m) are surface the mesh does "
+                                   "not explain; zone faces farther than agree_band_m from all of them stay as they "
+                                   "are, the rest is rebuilt (tasks.repair.agree): open edges, slivers, seams and hidden "
+                                   "layers the scan agrees with are never rebuilt; 0: the whole zone is rebuilt")
+    agree_band_m: float = Field(0.5, ge=0, description="zone faces within this distance of surface the mesh does not "
+                                "explain are rebuilt (keep_agreeing_m): the ring the rebuild stitches into")
     retained_point_m: float = Field(0.1, ge=0, description="an MLS point of the zone within this distance of a "
                                     "retained (context or kept) face, straight along its normal, and farther by this "
                                     "from every face to rebuild is explained by the retained face and not fused into the "

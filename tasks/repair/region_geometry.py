@@ -17,6 +17,7 @@ from scipy.spatial import cKDTree
 
 from storage.vertex_ids import local_ids
 from tasks.geometry.triangles import face_areas, vertex_normals
+from tasks.repair.agree import agreeing_faces
 from tasks.repair.chart import zone_charts
 from tasks.repair.coarsen import coarsen_flat, thin_with_detail
 from tasks.repair.defect_types import DefectEvidence, classify_evidence, repair_plan
@@ -247,8 +248,9 @@ def _finish_stats(stats: dict, data: RegionInput, mesh: RebuiltMesh, replaced: n
 def repair_region_geometry(data: RegionInput, cfg) -> RegionGeometry:
     """Fuse, classify the defect, triangulate and stitch one region. cfg: ``RepairConfig``.
 
-    Zone faces the MLS did not see (``mesh.keep_unseen_m``, :mod:`tasks.repair.keep`) join the retained
-    mesh first; the rest is rebuilt and stitched to them. ``replaced`` is over all zone faces."""
+    Zone faces the MLS did not see (``mesh.keep_unseen_m``, :mod:`tasks.repair.keep`) and those it agrees
+    with (``mesh.keep_agreeing_m``, :mod:`tasks.repair.agree`) join the retained mesh first; the rest is
+    rebuilt and stitched to them. ``replaced`` is over all zone faces."""
     t0 = time.perf_counter()
     fc, mc = cfg.fusion, cfg.mesh
     vn = vertex_normals(data.xyz, np.concatenate([data.zone_faces, data.context_faces]),
@@ -269,13 +271,24 @@ def repair_region_geometry(data: RegionInput, cfg) -> RegionGeometry:
         keep = tidy_keep(data.xyz, data.zone_faces, keep, oh, mc.keep_min_area_m2)
         if keep.all() and not (keep & oh).any():  # all unseen: the typed plan leaves it
             keep = np.zeros(len(keep), bool)
+    n_unseen = int(keep.sum())
+    agree_stats: dict = {}
+    if mc.keep_agreeing_m > 0 and len(data.zone_faces) and len(thinned[2]):
+        keep = keep | agreeing_faces(data.xyz, data.zone_faces, data.context_faces, thinned[2],
+                                     gap_m=mc.keep_agreeing_m, band_m=mc.agree_band_m,
+                                     cluster_m=3 * fc.mls_spacing_m, min_area_m2=mc.keep_min_area_m2,
+                                     stats=agree_stats)
     prep = time.perf_counter() - t0
     geo = _repair(keep_faces(data, keep), cfg, vn, thinned)
-    geo.stats["kept_unseen_faces"] = int(keep.sum())
+    geo.stats["kept_unseen_faces"] = n_unseen
+    if agree_stats:
+        geo.stats["agreeing"] = agree_stats["agreeing"] | {"kept_faces": int(keep.sum()) - n_unseen}
     sec = geo.stats.setdefault("seconds", {})  # thinning, PCA normals and the unseen faces, before the steps
     geo.stats["seconds"] = {"prepare": prep, **sec, "total": prep + sec.get("total", 0.0)}
     if len(keep) and keep.all():  # nothing of the zone left to rebuild: the plan of an empty zone says nothing
-        geo.stats["plan"] = "unseen by the MLS (overhead or clear of its points): the input mesh kept" \
+        why = "unseen by the MLS (overhead or clear of its points)" if n_unseen == len(keep) else \
+            "the scan agrees with it or does not see it"
+        geo.stats["plan"] = f"{why}: the input mesh kept" \
             + (f", {geo.mesh.n_faces} free-surface faces added" if geo.mesh.n_faces else "")
     return replace(geo, replaced=expand_replaced(geo.replaced, keep)) if keep.any() else geo
 

@@ -33,9 +33,10 @@ def rss() -> float:
 def _stages(over_mb: float, hold_mb: int) -> dict:
     ex = PrefectExecutor(progress=False)
     before = max(hold.submit(hold_mb).result(), hold.submit(hold_mb).result())
+    slots = ex.slots()  # what the cluster has: the repair's batches are sized by it
     rec = ex.recycle_workers(over_mb)
     after = max(rss.submit().result(), rss.submit().result())
-    return {"before": before, "after": after, **rec}
+    return {"before": before, "after": after, "slots": slots, **rec}
 
 
 @pytest.mark.parametrize("hold_mb, over_mb, restarted", [(400, 300, True), (0, 2048, False)])
@@ -48,6 +49,7 @@ def test_workers_holding_more_than_the_threshold_restart(prefect_api, tmp_path, 
     with embedded_prefect(tmp_path, prefect_api):  # the session's server, as run_campus uses it
         out = _stages.with_options(task_runner=runner)(over_mb, hold_mb)
     assert (out["restarted"] > 0) == restarted, out
+    assert out["slots"] == 2, out  # 2 workers of 1 thread
     if restarted:  # the leftovers are gone: a fresh worker holds far less than the one that held them
         assert out["largest_mb"] > over_mb and out["after"] < out["before"] - 300, out
     else:
@@ -56,6 +58,29 @@ def test_workers_holding_more_than_the_threshold_restart(prefect_api, tmp_path, 
 
 def test_inline_runs_have_no_workers_to_restart():
     assert InlineExecutor().recycle_workers(0.0)["restarted"] == 0
+    assert InlineExecutor().slots() == 0  # the config's worker count decides
+
+
+def test_repair_batches_follow_the_cluster_not_the_config():
+    """An external cluster of 6 slots gets 4 x 6 repair batches though the config says 2 workers."""
+    from flows.campus import _Run
+    from tasks.config import CampusConfig
+    from tasks.repair import STAGE
+
+    class Six(InlineExecutor):
+        def slots(self) -> int:
+            return 6
+
+    cfg = CampusConfig.model_validate({"work_dir": "w"})
+    assert cfg.cluster.n_workers == 2
+    keys = [f"r{k:016x}" for k in range(100)]
+
+    class T:
+        spec = STAGE
+
+    for ex, n in ((Six(), 24), (InlineExecutor(), 8)):
+        run = _Run(cfg, {}, None, ex)
+        assert len(run.batches(T, keys, workers=run.cluster_slots())) == n
 
 
 def _malloc_env() -> dict:

@@ -49,8 +49,30 @@ def test_the_flow_tasks_carry_their_stage_declarations():
 def test_batching_rules():
     ctx = BatchContext(2, tiles_per_task=2, weights={"a": 1.0, "b": 5.0, "c": 3.0})
     assert one_per_task(["a", "b"], ctx) == [["a"], ["b"]]
-    assert balanced_region_batches(["a", "b", "c"], ctx) == [["b"], ["c"], ["a"]]
+    assert balanced_region_batches(["a", "b", "c"], ctx) == [["b"], ["c"], ["a"]]  # one each, heaviest first
     get = lazy_exports("pkg", {"os.path": "join sep=sep"})
     assert get("join")("a", "b") == "a/b" and get("sep") == "/"
     with pytest.raises(AttributeError, match="no attribute 'other'"):
         get("other")
+
+
+def test_region_batches_are_spatially_coherent_and_sized_by_the_workers():
+    """Regions on a 12 x 12 cell grid, given in shuffled order: each batch is a compact block of cells (its
+    regions share tiles), the batches are about equal in weight, and their count follows the workers."""
+    import numpy as np
+
+    from storage.grid import PatchGrid
+    from tasks.regions.plan import region_key
+
+    cells = [(i, j, 0) for i in range(12) for j in range(12)]
+    keys = [region_key(PatchGrid.pack(np.array([c]))) for c in cells]
+    rng = np.random.default_rng(0)
+    order = [keys[i] for i in rng.permutation(len(keys))]
+    for workers in (2, 4):
+        batches = balanced_region_batches(order, BatchContext(workers))
+        assert len(batches) == 4 * workers and sorted(sum(batches, [])) == sorted(keys)
+        assert max(map(len, batches)) - min(map(len, batches)) <= 1
+        where = {k: c for k, c in zip(keys, cells)}
+        for b in batches:  # a Hilbert run of n cells spans about sqrt(n) cells each way, never the campus
+            ij = np.array([where[k][:2] for k in b])
+            assert np.ptp(ij, axis=0).max() <= 2 * np.ceil(np.sqrt(len(b))), b

@@ -131,7 +131,8 @@ def test_unseen_part_keeps_the_input_and_unsupported_rebuilds_fall_back():
     from tasks.repair.region_geometry import repair_region_geometry
 
     data = _half_seen_region()
-    cfg = RepairConfig.model_validate({"mesh": {"keep_unseen_m": 0}})  # the fill path: every zone face rebuilt
+    cfg = RepairConfig.model_validate({"mesh": {"keep_unseen_m": 0, "keep_agreeing_m": 0}})  # the fill path: every
+    # zone face rebuilt
     geo = repair_region_geometry(data, cfg)
     m = geo.mesh
     assert m.n_faces and geo.replaced.all()
@@ -143,7 +144,8 @@ def test_unseen_part_keeps_the_input_and_unsupported_rebuilds_fall_back():
     share = geo.stats["unsupported_share"]
     assert 0 < share < 0.3  # only the step between the two halves rests on neither
     strict = repair_region_geometry(data, RepairConfig.model_validate({"mesh": {"max_unsupported_share": share / 2,
-                                                                                "keep_unseen_m": 0}}))
+                                                                                "keep_unseen_m": 0,
+                                                                                "keep_agreeing_m": 0}}))
     assert strict.mesh.n_faces == 0 and not strict.replaced.any()
     assert strict.stats["plan"].startswith("fallback")
 
@@ -182,10 +184,15 @@ def test_unseen_zone_faces_stay_verbatim_and_the_rebuild_stitches_to_them():
     from tasks.repair.region_geometry import repair_region_geometry
 
     data = _half_seen_region()
-    geo = repair_region_geometry(data, EDGE_IS_MESH_EDGE)
+    unseen_only = EDGE_IS_MESH_EDGE.model_copy(update={"mesh": EDGE_IS_MESH_EDGE.mesh.model_copy(
+        update={"keep_agreeing_m": 0.0})})
+    geo = repair_region_geometry(data, unseen_only)
     c_in = data.xyz[data.zone_faces].mean(axis=1)
     kept = ~geo.replaced
     assert geo.stats["kept_unseen_faces"] == kept.sum() > 0
+    default = repair_region_geometry(data, EDGE_IS_MESH_EDGE)  # faces the scan says nothing against stay too
+    assert (~default.replaced >= kept).all() and c_in[default.replaced, 0].max() < 5.0 + 0.5 + 0.5
+    assert default.stats["agreeing"]["unexplained_points"] > 0
     assert c_in[kept, 0].min() > 5.0 and (c_in[:, 0] > 6.0).sum() <= kept.sum()  # only, and all of, the far half
     m = geo.mesh
     c = m.xyz[m.faces].mean(axis=1)
@@ -257,7 +264,7 @@ def test_front_rule_runs_and_cuts_only_what_stands_in_front():
     from tasks.repair.region_geometry import repair_region_geometry
 
     data = _half_seen_region()  # the mesh (normal towards -y, the street) stands 0.5 m in front of the scan
-    cfg = RepairConfig.model_validate({"typed": {"front_m": 0.3}, "mesh": {"keep_unseen_m": 0}})
+    cfg = RepairConfig.model_validate({"typed": {"front_m": 0.3}, "mesh": {"keep_unseen_m": 0, "keep_agreeing_m": 0}})
     geo = repair_region_geometry(data, cfg)
     assert geo.stats["in_front"] > 0 and geo.mesh.n_faces
     behind = replace(data, mls_xyz=data.mls_xyz * [1, -1, 1])  # the same scan 0.5 m on the street side

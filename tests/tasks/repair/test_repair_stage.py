@@ -78,7 +78,8 @@ def test_region_spanning_a_tile_corner_is_repaired_as_one_piece(corner):
     owned = [faces_in_tile(p[0].vertices[p[0].faces], cfg.grid(), origin, TileId.from_key(t))[0]
              for t, p in pieces.items()]
     assert (np.sum(owned, axis=0) == 1).all()
-    assert sum(len(p[0].replaced_rows) for p in pieces.values()) == r["replaced_faces"] == r["zone_faces"]
+    assert sum(len(p[0].replaced_rows) for p in pieces.values()) == r["replaced_faces"]
+    assert 0.5 * r["zone_faces"] < r["replaced_faces"] <= r["zone_faces"]  # zone faces the scan agrees with stay
     # the protrusion is cut back: new vertices lie on the true walls (a 4 x 4 m box around CENTRE)
     one = pieces[TILES[0]][0]
     v = one.vertices[one.vertex_ids < 0].astype(np.float64)
