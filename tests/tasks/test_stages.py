@@ -70,7 +70,7 @@ def test_region_batches_are_spatially_coherent_and_sized_by_the_workers():
     order = [keys[i] for i in rng.permutation(len(keys))]
     for workers in (2, 4):
         batches = balanced_region_batches(order, BatchContext(workers))
-        assert len(batches) == 4 * workers and sorted(sum(batches, [])) == sorted(keys)
+        assert len(batches) == 4 * workers and sorted(k for b in batches for k in b) == sorted(keys)
         assert max(map(len, batches)) - min(map(len, batches)) <= 1
         where = {k: c for k, c in zip(keys, cells)}
         for b in batches:  # a Hilbert run of n cells spans about sqrt(n) cells each way, never the campus
