@@ -165,6 +165,13 @@ class MeshConfig(_Section):
     max_unsupported_share: float = Field(0.3, ge=0, le=1, description="a region whose rebuilt surface lies more than "
                                          "this area share off both the MLS points and the input surface "
                                          "(tasks.repair.support) falls back to the input mesh; 1: never")
+    drop_unsupported_m: float = Field(0.05, ge=0, description="rebuilt faces with most of their samples farther "
+                                      "than this from both the MLS surface (the tangent plane of an MLS point within "
+                                      "drop_unsupported_reach_m) and the input zone surface are dropped: chords of the "
+                                      "chart triangulation across a scan gap, a corner or a recess (tasks.repair."
+                                      "support.unsupported_faces); the surface is left open there; 0: kept")
+    drop_unsupported_reach_m: float = Field(0.3, gt=0, description="an MLS point farther than this from a sample "
+                                            "of a rebuilt face does not support it (drop_unsupported_m)")
     stitch_tolerance_m: float = Field(0.01, gt=0, description="largest border gap accepted between the rebuilt "
                                       "mesh and the retained mesh")
     max_hole_loop_m: float = Field(40.0, gt=0, description="open boundary loops of the mesh shorter than this "

@@ -50,7 +50,7 @@ from tasks.repair.mesh import (
     poisson_surface,
     rebuild_charts,
 )
-from tasks.repair.support import unsupported_share
+from tasks.repair.support import unsupported_faces, unsupported_share
 
 
 @dataclass(frozen=True)
@@ -224,6 +224,18 @@ def _free_part(data: RegionInput, mls: np.ndarray, mc, fc, stats: dict) -> tuple
     return v, f
 
 
+def without_faces(mesh: RebuiltMesh, drop: np.ndarray) -> RebuiltMesh:
+    """``mesh`` without the faces ``drop`` (m,) bool and the vertices no face uses any more."""
+    if not drop.any():
+        return mesh
+    faces = mesh.faces[~drop]
+    used = np.zeros(len(mesh.xyz), bool)
+    used[faces.ravel()] = True
+    new = np.cumsum(used) - 1
+    return RebuiltMesh(mesh.xyz[used], mesh.vertex_id[used], new[faces], mesh.source[used], mesh.chart[~drop],
+                       mesh.stats)
+
+
 def with_free(mesh: RebuiltMesh, v: np.ndarray, f: np.ndarray) -> RebuiltMesh:
     """``mesh`` plus free-surface vertices (new, local ids; source 1: from MLS points) and faces (chart -1)."""
     if not len(f):
@@ -363,6 +375,13 @@ def _repair(data: RegionInput, cfg, vn: np.ndarray, thinned: tuple) -> RegionGeo
     if stats["unsupported_share"] > mc.max_unsupported_share:  # invented geometry: the input mesh stays
         stats["plan"] = f"fallback: {stats['unsupported_share']:.0%} of the rebuilt surface unsupported"
         mesh, replaced = empty_mesh(), np.zeros(mz, bool)
+    elif mc.drop_unsupported_m > 0 and mesh.n_faces:  # chords across a scan gap, a corner, a recess: left open
+        off = unsupported_faces(mesh.xyz, mesh.faces, both, nrm, data.xyz, data.zone_faces,
+                                offset_m=mc.drop_unsupported_m, reach_m=mc.drop_unsupported_reach_m, tree=tree)
+        bord_ids = data.vertex_id[border_edges(data.zone_faces, data.context_faces, len(data.xyz)).ravel()]
+        off &= np.isin(mesh.vertex_id[mesh.faces], bord_ids).sum(axis=1) < 2  # the weld to what stays is kept
+        stats["unsupported_faces_dropped"] = int(off.sum())
+        mesh = without_faces(mesh, off)
     mesh = with_free(mesh, *free)
     t4 = time.perf_counter()
     _finish_stats(stats, data, mesh, replaced, zone_area)

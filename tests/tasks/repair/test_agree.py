@@ -77,3 +77,29 @@ def test_a_hole_is_rebuilt_with_its_ring_and_the_rest_stays_verbatim():
     filled = a[(np.abs(mc[:, 0] - 5.0) < 0.6) & (np.abs(mc[:, 2] - 1.5) < 0.6)].sum()
     assert filled > 0.8 * 1.2 * 1.2  # the hole is covered by the rebuild
     assert np.abs(mc[:, 1]).max() < 0.05  # on the wall
+
+
+def test_no_chord_spans_what_neither_the_scan_nor_the_input_shows():
+    """A hole whose upper part the scanner never saw (occluded): the rebuild fills the seen part; faces
+    across the unseen part rest on no surface the evidence shows (no scan point within 30 cm, no input
+    face: tasks.repair.support.unsupported_faces), so it is left open; without the rule it is spanned."""
+    v, f = _wall(0, 10, 50)
+    c = v[f].mean(axis=1)
+    hole = (np.abs(c[:, 0] - 5.0) < 1.0) & (np.abs(c[:, 2] - 1.5) < 1.0)
+    f = f[~hole]
+    pts = _scan(np.random.default_rng(3))
+    gap = (np.abs(pts[:, 0] - 5.0) < 1.0) & (pts[:, 2] > 1.2) & (pts[:, 2] < 2.5)
+    pts = pts[~gap]
+    data = _region(v, f, pts)
+    for drop, most in ((0.05, 0.2), (0.0, None)):  # 0.2: a weld face to the border above stays
+        geo = repair_region_geometry(data, RepairConfig.model_validate({"mesh": EDGE | {"drop_unsupported_m": drop}}))
+        m = geo.mesh
+        mc = m.xyz[m.faces].mean(axis=1)
+        a = face_areas(m.xyz, m.faces, np.float64)
+        in_gap = (np.abs(mc[:, 0] - 5.0) < 0.6) & (mc[:, 2] > 1.6) & (mc[:, 2] < 2.1)  # >= 0.4 m from the scan
+        seen = (np.abs(mc[:, 0] - 5.0) < 0.8) & (mc[:, 2] > 0.6) & (mc[:, 2] < 1.1)
+        assert a[seen].sum() > 0.8 * 1.6 * 0.5  # the seen part of the hole is filled either way
+        if most is not None:
+            assert a[in_gap].sum() < most and geo.stats["unsupported_faces_dropped"] > 0
+        else:
+            assert a[in_gap].sum() > 0.3  # the chords: what the rule removes

@@ -236,8 +236,11 @@ def test_points_on_a_kept_roofs_top_are_not_folded_into_the_soffit_under_it():
     assert not geo.replaced[top].any() and geo.stats["on_retained"] > 1000
     assert _slab_area(geo) < 1.0
     assert geo.replaced[~top].mean() > 0.5  # the wall and soffit are still rebuilt
-    off = repair_region_geometry(data, RepairConfig.model_validate({"mesh": {"retained_point_m": 0}}))
+    off = repair_region_geometry(data, RepairConfig.model_validate({"mesh": {"retained_point_m": 0,
+                                                                             "drop_unsupported_m": 0}}))
     assert _slab_area(off) > 5.0
+    dropped = repair_region_geometry(data, RepairConfig.model_validate({"mesh": {"retained_point_m": 0}}))
+    assert _slab_area(dropped) < 0.5 * _slab_area(off)  # most of that zigzag rests on no surface: dropped
     none = repair_region_geometry(_slab_region(with_top_points=False)[0], RepairConfig())
     assert none.stats["on_retained"] == 0 and _slab_area(none) < 1.0  # no top points: nothing to explain
 
