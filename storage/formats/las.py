@@ -224,30 +224,56 @@ def _variable_size_chunks(h: laspy.LasHeader) -> bool:
 def iter_las(path: Path, chunk_points: int, start: int = 0, stop: int | None = None) -> Iterator[PointChunk]:
     """Points ``[start, stop)`` of a LAS/LAZ file in chunks of at most ``chunk_points``."""
     with _open_las(path, selective=True) as reader:
-        h = reader.header
-        n = int(h.point_count)
-        _check_las_complete(path, h)
-        stop = n if stop is None else min(stop, n)
-        if start >= stop:
-            return
-        if start and _variable_size_chunks(h):  # lazrs (0.8) seeks wrongly there: decode the points before
-            for a in range(0, start, chunk_points):
-                reader.read_points(min(chunk_points, start - a))
-        elif start:
-            reader.seek(start)
-        pos = start
-        while pos < stop:
-            m = min(chunk_points, stop - pos)
-            try:
-                record = reader.read_points(m)
-            except Exception as err:
-                raise InputError(path, f"truncated or corrupt after {pos:,} of {n:,} points ({err})") from err
-            if len(record) < m:
-                raise InputError(path, f"truncated after {pos + len(record):,} of {n:,} points")
-            chunk = chunk_from_las_record(record, h)
-            check_finite_points(path, chunk.xyz)
-            yield chunk
-            pos += m
+        _check_las_complete(path, reader.header)
+        yield from _read_range(reader, path, chunk_points, start, stop)
+
+
+def iter_las_object(f, name: str, chunk_points: int, start: int = 0, stop: int | None = None
+                    ) -> Iterator[PointChunk]:
+    """Points ``[start, stop)`` of a LAS/LAZ file given as a seekable binary file object ``f`` (a
+    :class:`storage.inputs.rangefile.RangeFile` over an object by URL: only the header, the chunk table and
+    the chunks of the range are fetched); ``name`` names the file in errors. The file's completeness is
+    the scan's to check (it read the whole header and the point count); a truncated range fails here."""
+    f.seek(0)
+    signature = f.read(4)
+    f.seek(0)
+    if signature != b"LASF":
+        raise InputError(name, f"not a LAS/LAZ file (signature {signature!r}, expected b'LASF')")
+    try:
+        reader = laspy.open(f, closefd=False, decompression_selection=DECOMPRESS)
+    except Exception as err:  # one line naming the object
+        raise InputError(name, f"unreadable LAS header ({err})") from err
+    with reader:
+        if reader.header.point_count == 0:
+            raise InputError(name, "no points (the header's point count is 0)")
+        yield from _read_range(reader, name, chunk_points, start, stop)
+
+
+def _read_range(reader, path, chunk_points: int, start: int, stop: int | None) -> Iterator[PointChunk]:
+    """Points ``[start, stop)`` of an open laspy reader in chunks of at most ``chunk_points``."""
+    h = reader.header
+    n = int(h.point_count)
+    stop = n if stop is None else min(stop, n)
+    if start >= stop:
+        return
+    if start and _variable_size_chunks(h):  # lazrs (0.8) seeks wrongly there: decode the points before
+        for a in range(0, start, chunk_points):
+            reader.read_points(min(chunk_points, start - a))
+    elif start:
+        reader.seek(start)
+    pos = start
+    while pos < stop:
+        m = min(chunk_points, stop - pos)
+        try:
+            record = reader.read_points(m)
+        except Exception as err:
+            raise InputError(path, f"truncated or corrupt after {pos:,} of {n:,} points ({err})") from err
+        if len(record) < m:
+            raise InputError(path, f"truncated after {pos + len(record):,} of {n:,} points")
+        chunk = chunk_from_las_record(record, h)
+        check_finite_points(path, chunk.xyz)
+        yield chunk
+        pos += m
 
 
 # --- LAS 1.4 / LAZ writer --------------------------------------------------------------------------
@@ -395,5 +421,5 @@ def write_points(path: str | Path, chunk: PointChunk, crs: str | None = None, **
     return Path(path)
 
 
-__all__ = ["LAS_INT32_MAX", "LasChunkWriter", "choose_offset", "chunk_from_las_record", "iter_las", "las_header_bounds",
-           "las_info", "write_points"]
+__all__ = ["LAS_INT32_MAX", "LasChunkWriter", "choose_offset", "chunk_from_las_record", "iter_las", "iter_las_object",
+           "las_header_bounds", "las_info", "write_points"]

@@ -14,7 +14,8 @@ The pure algorithm is in :mod:`tasks.register.align` (coarse, fine, target, chec
 
 from tasks.stages import StageSpec, lazy_exports
 
-STAGE = StageSpec("register", "campus")
+# it reads the scan's surface samples and its own record, never the tiles, stores or regions of earlier runs
+STAGE = StageSpec("register", "campus", reads=("manifest.d/register/", "scan/", "registration.json"))
 
 # the names below load on first use (tasks.stages.lazy_exports): importing the package for its STAGE costs
 # nothing, and a worker loads only the modules its tasks run

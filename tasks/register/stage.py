@@ -35,7 +35,7 @@ from storage.formats.copc import copc_level_counts, is_copc, iter_copc
 from storage.formats.points import iter_points, iter_points_range
 from storage.frame import CampusFrame
 from storage.inputs.identity import InputFile
-from storage.inputs.remote import local_input
+from storage.inputs.remote import is_url, local_input, redact, split_url
 from storage.workdir.layout import WorkDir
 from storage.workdir.manifest import combine_fingerprints
 from tasks.config import CampusConfig
@@ -65,15 +65,17 @@ def sample_points_for_registration(rec: InputFile, n_target: int, cfg: CampusCon
     strided pass (other formats); with a points ``box`` ([xmin, ymin, xmax, ymax], ``inputs.points_bounds``)
     only points inside it, a COPC file's from its coarse octree levels over the box. A file that breaks
     part-way ends its sample early (logged)."""
-    path = Path(local_input(rec.path))  # an input by URL is read from a staged copy
     bounds = None if box is None else [list(box[:2]), list(box[2:])]
+    if bounds is None and is_url(rec.path) and Path(split_url(rec.path)[1]).suffix.lower() in (".las", ".laz") \
+            and rec.count > n_target:  # its ranges by range GETs: the header, the chunk table, a few chunks
+        return _remote_ranges(rec, n_target, cfg, n_ranges)
+    path = Path(local_input(rec.path))  # any other input by URL is read from a staged copy
     out = []
     try:
         if bounds is not None and is_copc(path):
             out = _copc_sample(path, n_target, bounds, cfg)
         elif path.suffix.lower() in (".las", ".laz") and rec.count > n_target:
-            per = max(n_target // n_ranges, 1)
-            starts = np.linspace(0, max(rec.count - per, 0), n_ranges).astype(np.int64)
+            per, starts = _range_starts(rec.count, n_target, n_ranges)
             for a in starts:
                 for ch in iter_points_range(path, int(a), int(a) + per, per, cfg.inputs.units_scale, bounds):
                     out.append(ch.xyz)
@@ -83,6 +85,31 @@ def sample_points_for_registration(rec: InputFile, n_target: int, cfg: CampusCon
                 out.append(ch.xyz[::stride])
     except InputError as e:
         log.info("registration sample of %s ended early: %s", path, e)  # the file fails its own units
+    xyz = np.concatenate(out) if out else np.zeros((0, 3))
+    return xyz[np.isfinite(xyz).all(axis=1)]
+
+
+def _range_starts(count: int, n_target: int, n_ranges: int) -> tuple[int, np.ndarray]:
+    """(points per range, (n_ranges,) int64 first point of each): ranges spread evenly over ``count``."""
+    per = max(n_target // n_ranges, 1)
+    return per, np.linspace(0, max(count - per, 0), n_ranges).astype(np.int64)
+
+
+def _remote_ranges(rec: InputFile, n_target: int, cfg: CampusConfig, n_ranges: int) -> np.ndarray:
+    """:func:`sample_points_for_registration` of a LAS/LAZ object by URL, read through a RangeFile: the same
+    ranges, hence the same points, as from a staged copy."""
+    from storage.formats.las import iter_las_object
+    from storage.inputs.rangefile import open_range
+
+    per, starts = _range_starts(rec.count, n_target, n_ranges)
+    out = []
+    try:
+        with open_range(rec.path) as f:
+            for a in starts:
+                for ch in iter_las_object(f, redact(rec.path), per, int(a), int(a) + per):
+                    out.append(ch.xyz * cfg.inputs.units_scale if cfg.inputs.units_scale != 1.0 else ch.xyz)
+    except InputError as e:
+        log.info("registration sample of %s ended early: %s", redact(rec.path), e)
     xyz = np.concatenate(out) if out else np.zeros((0, 3))
     return xyz[np.isfinite(xyz).all(axis=1)]
 

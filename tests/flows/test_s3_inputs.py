@@ -125,3 +125,32 @@ def test_config_keeps_input_and_work_dir_urls_as_written(tmp_path):
     assert cfg.work_dir == "s3://b/work" and cfg.inputs.mesh == ["s3://b/c/mesh"]
     assert cfg.inputs.points == [str(tmp_path / "mls")]  # a relative path still joins the config's folder
     assert (cfg.inputs.labels, cfg.inputs.cameras) == ("s3://b/c/truth/defects.json", "s3://b/c/sparse/0")
+
+
+def test_registration_samples_a_laz_object_by_range_reads(s3, tmp_path):
+    """The registration sample of a LAZ object by URL is read through range GETs (header, chunk table, the
+    ranges' chunks), not by staging the file: the same points as from the local file, a part of its bytes,
+    and nothing in the input cache."""
+    from types import SimpleNamespace
+
+    import numpy as np
+
+    from storage.formats.las import write_points
+    from storage.formats.point_chunk import PointChunk
+    from tasks.config import CampusConfig
+    from tasks.register.stage import sample_points_for_registration
+
+    n = 1_600_000  # 32 LAZ chunks of 50,000 points
+    rng = np.random.default_rng(5)
+    xyz = np.array([500_000.0, 4_000_000.0, 50.0]) + np.cumsum(rng.normal(0, 0.01, (n, 3)), axis=0)
+    path = write_points(tmp_path / "strip.laz", PointChunk(xyz=xyz, gps_time=np.arange(n, dtype=np.float64)))
+    url = s3("inputs/strip.laz", path.read_bytes())
+    cfg = CampusConfig.model_validate({})
+    local = sample_points_for_registration(SimpleNamespace(path=str(path), count=n), 8_000, cfg, n_ranges=4)
+    store = _store_of(url)
+    before = store.stats.bytes_read
+    remote = sample_points_for_registration(SimpleNamespace(path=url, count=n), 8_000, cfg, n_ranges=4)
+    read = store.stats.bytes_read - before
+    assert len(local) == 8_000 and np.array_equal(remote, local)
+    assert read < 0.35 * path.stat().st_size, (read, path.stat().st_size)  # 4 ranges of 32 chunks
+    assert not (tmp_path / "cache" / "inputs").exists() or not any((tmp_path / "cache" / "inputs").rglob("*.laz"))
