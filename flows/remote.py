@@ -117,7 +117,7 @@ def _split_epoch(args: tuple, kwargs: dict) -> tuple[tuple, dict, int | None]:
 
 def synced(spec):
     """Decorate a stage's task function (``spec``: its ``tasks.stages.StageSpec``): with a work dir by URL,
-    pull what the declaration says the task reads (``spec.reads_for`` its batch, or all but ``spec.skips``)
+    pull what the declaration says the task reads (``spec.reads_for`` its batch, or :func:`campus_reads`)
     before, and push after (a task that raises pushes nothing: its units are not recorded and run again);
     a worker then deletes its mirror's unchanged copies (``Mirror.release``: they stay in its content cache
     and come back when a later task reads them), so its scratch holds one copy of what it read. The task
@@ -144,7 +144,7 @@ def synced(spec):
             try:
                 with TaskMeter(label) as meter:
                     meter.timed("pull", mirror.pull, (lambda rel: rel.startswith(reads)) if reads is not None else
-                                (lambda rel: not rel.startswith(skips)) if skips else None)
+                                campus_reads(mirror, skips))
                     with on_unit_recorded(lambda stage, unit: meter.timed("push", mirror.push,
                                                                           f"{label} {stage} {unit}")):
                         out = fn(*args, **kwargs)  # each unit is published as it is recorded
@@ -200,6 +200,19 @@ def driver_reads(mirror):
         return rel.startswith(DRIVER_PULLS) or rel.endswith(".json") or \
             mirror.files.get(rel, (0, 0))[0] <= DRIVER_PULL_MAX_BYTES
     return wanted
+
+
+CAMPUS_PULLS = ("report/",)  # a campus-wide task also pulls these folders whole (the report's figures)
+
+
+def campus_reads(mirror, skips: tuple[str, ...]):
+    """What a campus-wide task (no ``reads`` declared: regions, outliers, quality, held-out, report, renders)
+    pulls before it runs: what the driver pulls (:func:`driver_reads`: records, JSON documents, small files)
+    and ``CAMPUS_PULLS``, none under ``skips``. The tile stores, merged tiles, region meshes and LOD meshes
+    it opens come on demand (:func:`storage.recorded.ensure_local` where they are opened), so it downloads
+    the bytes it reads, not the work dir."""
+    small = driver_reads(mirror)
+    return lambda rel: not rel.startswith(skips) and (small(rel) or rel.startswith(CAMPUS_PULLS))
 
 
 def _driver_pull(mirror, label: str) -> None:
