@@ -305,7 +305,10 @@ class PatchTable:
     def __init__(self, tile_dir: str | Path):
         self.tile_dir = Path(tile_dir)
         recorded.ensure_local(self.tile_dir / PATCHES_FILE)
-        self._patches = table_columns(_patches_table(self.tile_dir)[0], PATCH_DTYPES, PATCH_DTYPES)
+        table, pmeta = _patches_table(self.tile_dir)
+        self._patches = table_columns(table, PATCH_DTYPES, PATCH_DTYPES)
+        self.meta = TileMeta(tile=pmeta["tile"], patch_size_m=tuple(pmeta["patch_size_m"]), crs=pmeta.get("crs"))
+        """The tile's identity as a side table records it (no texture list: that is the faces table's)."""
 
     def patches(self) -> dict[str, np.ndarray]:
         return dict(self._patches)

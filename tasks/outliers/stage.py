@@ -11,7 +11,7 @@ import time
 import numpy as np
 
 from storage.errors import InputError
-from storage.patches.read import PatchStore, read_side_table
+from storage.patches.read import PatchTable, read_side_table
 from storage.patches.schema import side_table_path
 from storage.patches.state import store_fingerprint
 from storage.patches.write import write_side_table
@@ -28,7 +28,7 @@ def run_outliers(cfg: CampusConfig, wd: WorkDir) -> dict:
     and save both histograms as PNG. Records nothing: :func:`run_outliers_unit` is the resumable unit."""
     t0 = time.perf_counter()
     tiles = wd.live_tiles()
-    stores = [(t, PatchStore(wd.tile_dir(t))) for t in tiles]
+    stores = [(t, PatchTable(wd.tile_dir(t))) for t in tiles]  # the patches tables only, never points or faces
     if not stores:
         return {"n_patches": 0, "tiles_rewritten": 0}
     tables = [(t, s, s.patches()) for t, s in stores]
