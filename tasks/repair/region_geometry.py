@@ -50,7 +50,8 @@ from tasks.repair.mesh import (
     poisson_surface,
     rebuild_charts,
 )
-from tasks.repair.support import unsupported_faces, unsupported_share
+from tasks.repair.rebuilt import drop_unsupported, with_free
+from tasks.repair.support import unsupported_share
 
 
 @dataclass(frozen=True)
@@ -224,28 +225,6 @@ def _free_part(data: RegionInput, mls: np.ndarray, mc, fc, stats: dict) -> tuple
     return v, f
 
 
-def without_faces(mesh: RebuiltMesh, drop: np.ndarray) -> RebuiltMesh:
-    """``mesh`` without the faces ``drop`` (m,) bool and the vertices no face uses any more."""
-    if not drop.any():
-        return mesh
-    faces = mesh.faces[~drop]
-    used = np.zeros(len(mesh.xyz), bool)
-    used[faces.ravel()] = True
-    new = np.cumsum(used) - 1
-    return RebuiltMesh(mesh.xyz[used], mesh.vertex_id[used], new[faces], mesh.source[used], mesh.chart[~drop],
-                       mesh.stats)
-
-
-def with_free(mesh: RebuiltMesh, v: np.ndarray, f: np.ndarray) -> RebuiltMesh:
-    """``mesh`` plus free-surface vertices (new, local ids; source 1: from MLS points) and faces (chart -1)."""
-    if not len(f):
-        return mesh
-    n = len(mesh.xyz)
-    return RebuiltMesh(np.concatenate([mesh.xyz, v]), np.r_[mesh.vertex_id, local_ids(np.arange(len(v)), "free")],
-                       np.concatenate([mesh.faces, f + n]), np.r_[mesh.source, np.ones(len(v), np.int8)],
-                       np.r_[mesh.chart, np.full(len(f), -1, np.int32)], mesh.stats)
-
-
 def _finish_stats(stats: dict, data: RegionInput, mesh: RebuiltMesh, replaced: np.ndarray, zone_area: float) -> None:
     """Add the border gap between the rebuilt charts and what stays (context faces and non-disc zone
     pieces left in place) and the rebuilt figures to ``stats``."""
@@ -376,12 +355,9 @@ def _repair(data: RegionInput, cfg, vn: np.ndarray, thinned: tuple) -> RegionGeo
         stats["plan"] = f"fallback: {stats['unsupported_share']:.0%} of the rebuilt surface unsupported"
         mesh, replaced = empty_mesh(), np.zeros(mz, bool)
     elif mc.drop_unsupported_m > 0 and mesh.n_faces:  # chords across a scan gap, a corner, a recess: left open
-        off = unsupported_faces(mesh.xyz, mesh.faces, both, nrm, data.xyz, data.zone_faces,
-                                offset_m=mc.drop_unsupported_m, reach_m=mc.drop_unsupported_reach_m, tree=tree)
         bord_ids = data.vertex_id[border_edges(data.zone_faces, data.context_faces, len(data.xyz)).ravel()]
-        off &= np.isin(mesh.vertex_id[mesh.faces], bord_ids).sum(axis=1) < 2  # the weld to what stays is kept
-        stats["unsupported_faces_dropped"] = int(off.sum())
-        mesh = without_faces(mesh, off)
+        mesh, stats["unsupported_faces_dropped"] = drop_unsupported(mesh, both, nrm, data.xyz, data.zone_faces,
+                                                                    bord_ids, mc, tree)
     mesh = with_free(mesh, *free)
     t4 = time.perf_counter()
     _finish_stats(stats, data, mesh, replaced, zone_area)
