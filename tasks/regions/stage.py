@@ -14,7 +14,7 @@ import numpy as np
 
 from storage.contracts.region_plan import REGIONS_DIR, Region, plan_path, read_plan, write_plan
 from storage.errors import InputError
-from storage.patches.read import PatchStore
+from storage.patches.read import PatchTable
 from storage.patches.state import GRADE_BAD, patch_grades, store_fingerprint
 from storage.workdir.housekeeping import drop_unplanned_records
 from storage.workdir.layout import WorkDir
@@ -29,7 +29,7 @@ def _campus_grades(cfg: CampusConfig, wd: WorkDir) -> tuple[np.ndarray, np.ndarr
     bad keys, {tile: grades source}, {tile: store fingerprint})."""
     keys, bad, cost, sources, tile_fp = [], [], [], {}, {}
     for t in wd.live_tiles():
-        store = PatchStore(wd.tile_dir(t))
+        store = PatchTable(wd.tile_dir(t))  # the patches and side tables: no point or face store is read
         k, g, src = patch_grades(store, cfg.repair.grades)
         p = store.patches()
         keys.append(k)
