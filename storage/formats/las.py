@@ -226,7 +226,7 @@ def iter_las(path: Path, chunk_points: int, start: int = 0, stop: int | None = N
 def iter_las_object(f, name: str, chunk_points: int, start: int = 0, stop: int | None = None
                     ) -> Iterator[PointChunk]:
     """Points ``[start, stop)`` of a LAS/LAZ file given as a seekable binary file object ``f`` (a
-    :class:`storage.inputs.rangefile.RangeFile` over an object by URL: only the header, the chunk table and
+    :func:`storage.patches.ranges.open_ranged` over an object by URL: only the header, the chunk table and
     the chunks of the range are fetched); ``name`` names the file in errors. The file's completeness is
     the scan's to check (it read the whole header and the point count); a truncated range fails here."""
     f.seek(0)

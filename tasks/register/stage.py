@@ -96,15 +96,16 @@ def _range_starts(count: int, n_target: int, n_ranges: int) -> tuple[int, np.nda
 
 
 def _remote_ranges(rec: InputFile, n_target: int, cfg: CampusConfig, n_ranges: int) -> np.ndarray:
-    """:func:`sample_points_for_registration` of a LAS/LAZ object by URL, read through a RangeFile: the same
-    ranges, hence the same points, as from a staged copy."""
+    """:func:`sample_points_for_registration` of a LAS/LAZ object by URL, read by ranged GETs
+    (:func:`storage.patches.ranges.open_ranged`): the same ranges, hence the same points, as from a staged copy."""
     from storage.formats.las import iter_las_object
-    from storage.inputs.rangefile import open_range
+    from storage.inputs.remote import bucket_store
+    from storage.patches.ranges import open_ranged
 
     per, starts = _range_starts(rec.count, n_target, n_ranges)
     out = []
     try:
-        with open_range(rec.path) as f:
+        with open_ranged(*bucket_store(rec.path), buffer_size=1 << 18) as f:  # 256 KiB per ranged GET
             for a in starts:
                 for ch in iter_las_object(f, redact(rec.path), per, int(a), int(a) + per):
                     out.append(ch.xyz * cfg.inputs.units_scale if cfg.inputs.units_scale != 1.0 else ch.xyz)
