@@ -74,9 +74,37 @@ def summarise(wd: WorkDir, wall_s: float, failed: dict, outliers: dict, since: f
                                                  "distance_before_m", "distance_after_m") if k in reg},
         "outliers": outliers,
         "grades": grades_summary(wd),
+        "repair": repair_summary(recs),
         "holdout": holdout_summary(wd),
         "input_warnings": input_warnings(wd),
     }
+
+
+REPAIR_COUNTS = ("zone_faces", "replaced_faces", "rebuilt_faces", "kept_agreeing_faces", "unsupported_faces_dropped",
+                 "input_faces_restored")
+
+
+def repair_summary(recs) -> dict:
+    """What the repair did over the current region records: {"regions": n done, and the sum of each of
+    REPAIR_COUNTS} (the faces of the graded-bad zones, those replaced, rebuilt, kept because the scan agrees
+    with them, rebuilt faces dropped as unsupported chords, input faces put back under them)."""
+    done = [r for r in recs if r.stage == "region" and r.status == "done"]
+    return {"regions": len(done), **{k: int(sum((r.summary or {}).get(k, 0) or 0 for r in done)) for k in REPAIR_COUNTS}}
+
+
+def repair_line(rep: dict | None) -> str:
+    """One line of the repair counts ("" when no region was repaired).
+
+    >>> repair_line({"regions": 2, "zone_faces": 90, "replaced_faces": 40, "rebuilt_faces": 55, "kept_agreeing_faces": 50,
+    ...              "unsupported_faces_dropped": 3, "input_faces_restored": 4})
+    'repair: 2 regions, 40 of their 90 faces replaced by 55 rebuilt (50 kept: the scan agrees with them); 3 unsupported rebuilt faces dropped, 4 input faces kept under them'
+    """
+    if not rep or not rep.get("regions"):
+        return ""
+    return (f"repair: {rep['regions']} regions, {rep['replaced_faces']} of their {rep['zone_faces']} faces replaced by "
+            f"{rep['rebuilt_faces']} rebuilt ({rep['kept_agreeing_faces']} kept: the scan agrees with them); "
+            f"{rep['unsupported_faces_dropped']} unsupported rebuilt faces dropped, {rep['input_faces_restored']} "
+            "input faces kept under them")
 
 
 def holdout_summary(wd: WorkDir) -> dict:
@@ -166,7 +194,8 @@ def format_summary(s: dict) -> str:
                      + ", ".join(f"{p.rsplit('/', 1)[-1]} ({why})" for p, why in s["skipped_files"][:5])
                      + (" ..." if len(s["skipped_files"]) > 5 else ""))
     lines += [f"warning: {w}" for w in s.get("input_warnings") or []]
-    lines += [w for w in [unknown_warning(s.get("grades")), holdout_line(s.get("holdout"))] if w]
+    lines += [w for w in [unknown_warning(s.get("grades")), repair_line(s.get("repair")),
+                          holdout_line(s.get("holdout"))] if w]
     lines.append(f"wall {s['wall_seconds']:.1f} s, sum of task times {s['task_seconds']:.1f} s")
     out = s.get("output") or {}
     if out.get("tileset"):

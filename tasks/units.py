@@ -24,10 +24,11 @@ from storage.errors import EmptyTileError, InputError
 from storage.workdir.layout import WorkDir
 from storage.workdir.manifest import (
     ManifestRecord,
-    is_done,
     params_hash,
+    read_record,
     read_stage_records,
     record_is_current,
+    redo_reason,
     write_record,
 )
 
@@ -259,9 +260,10 @@ def run_unit(wd: WorkDir, stage: str, unit: str, fingerprint: str, params: dict,
     plan = _PLANNING.get()
     if plan is not None:
         return skipped_summary(plan.current(stage, unit, fingerprint, ph))
-    rec = is_done(wd, stage, unit, fingerprint, ph)
-    if rec is not None:
-        return skipped_summary(rec)
+    old = read_record(wd, stage, unit)
+    if record_is_current(wd, old, fingerprint, ph):
+        return skipped_summary(old)
+    redo = redo_reason(wd, old, fingerprint, ph) if old is not None else ""
     step = _Step()
     try:
         out = work()
@@ -277,7 +279,7 @@ def run_unit(wd: WorkDir, stage: str, unit: str, fingerprint: str, params: dict,
         _recorded(stage, unit)
         return {"unit": unit, "status": "failed", "error": msg, "skipped": False, "seconds": secs}
     secs = step.seconds()
-    summary = {**out.summary, "unit": unit, "status": out.status, **step.summary()}
+    summary = {**out.summary, "unit": unit, "status": out.status, **step.summary(), **({"redo": redo} if redo else {})}
     write_record(wd, ManifestRecord(stage, unit, out.status, fingerprint, ph, seconds=secs,
                                     outputs=out.outputs, summary=summary))
     _recorded(stage, unit)

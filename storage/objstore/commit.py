@@ -23,6 +23,7 @@ from dataclasses import dataclass
 from pathlib import Path
 
 from storage.errors import InputError
+from storage.objstore.pool import first_error, io_map
 from storage.objstore.store import Store, check_key
 
 OBJECTS, RECORDS = "objects", "records"
@@ -98,18 +99,23 @@ def put_unit_outputs(store: Store, stage: str, unit: str, files: dict[str, bytes
     """
     rkey = record_key(stage, unit)
     token = uuid.uuid4().hex
-    refs = {}
-    for name, src in files.items():
+
+    def upload(item: tuple[str, bytes | str | Path]) -> OutputRef:
+        name, src = item
         key = f"{OBJECTS}/{stage}/{unit}/{token}/{check_key(name)}"
         if isinstance(src, (bytes, bytearray, memoryview)):
             data = bytes(src)
             etag = store.put(key, data)
-            digest, size = hashlib.sha256(data).hexdigest(), len(data)
-        else:
-            digest, size = _sha256_file(Path(src))
-            store.put_file(key, src)
-            etag = None
-        refs[name] = OutputRef(key, size, digest, etag)
+            return OutputRef(key, len(data), hashlib.sha256(data).hexdigest(), etag)
+        digest, size = _sha256_file(Path(src))
+        store.put_file(key, src)
+        return OutputRef(key, size, digest, None)
+
+    items = list(files.items())
+    done = io_map(upload, items, concurrent=not store.is_local)  # the objects in parallel, the record after all
+    if (err := first_error(done)) is not None:
+        raise err
+    refs = {name: ref for (name, _), ref in zip(items, done)}
     record = UnitRecord(stage, unit, token, refs, time.time(), dict(meta) if meta else None)
     store.put(rkey, json.dumps(record.to_json(), sort_keys=True).encode())
     return record

@@ -38,14 +38,14 @@ class ConditionalOps:
         """Create ``key`` only if no object has it (``If-None-Match: *``); returns the new ETag.
         Raises PreconditionFailed when it exists."""
         self._remote_only("put_if_absent")
-        self.stats.bytes_written += len(data)
+        self.stats.add(written=len(data))
         return self._put_object(key, data, IfNoneMatch="*")
 
     def put_if_match(self, key: str, data: bytes, etag: str) -> str:
         """Replace ``key`` only if its ETag is still ``etag`` (compare-and-swap); returns the new ETag.
         Raises PreconditionFailed when it changed (or vanished)."""
         self._remote_only("put_if_match")
-        self.stats.bytes_written += len(data)
+        self.stats.add(written=len(data))
         return self._put_object(key, data, IfMatch=etag)
 
     def _get_object(self, key: str, start: int | None = None, end: int | None = None) -> tuple[bytes, str]:
@@ -68,7 +68,7 @@ class ConditionalOps:
             raise
         except backend_errors() as exc:
             raise self._fail(key, "read", exc) from None
-        self.stats.bytes_read += len(data)
+        self.stats.add(read=len(data))
         return data, etag
 
     def get_with_etag(self, key: str) -> tuple[bytes, str] | None:

@@ -54,8 +54,10 @@ from storage.atomic import local_file_fingerprint
 from storage.errors import InputError, Ms3dError
 from storage.objstore.cas import content_cache
 from storage.objstore.commit import RECORDS, UnitRecord, put_unit_outputs
+from storage.objstore.download import download
 from storage.objstore.epoch import accepted, is_current, latest_epoch, parse_record_unit, record_unit
 from storage.objstore.folders import mirror_folder, sweep_stale_folders
+from storage.objstore.pool import first_error, io_map
 from storage.objstore.store import Store
 
 SYNC_STAGE = "sync"
@@ -165,15 +167,32 @@ class Mirror:
 
     def fetch(self, rels) -> int:
         """Download the recorded files ``rels`` that are not downloaded yet (no request for the records: what
-        the last :meth:`pull` folded). Returns the number of files downloaded."""
+        the last :meth:`pull` folded), :func:`storage.objstore.pool.io_threads` at a time. Returns the number
+        of files downloaded. A file that fails stays pending (a later read tries again); the first failure
+        is raised once every other file is in."""
         with self.lock:
-            n = 0
+            todo = []
             for rel in rels:
                 key = self._pending.pop(rel, None)
                 if key is not None:
                     self._pending_sorted = None
-                    n += self._fetch(rel, key)
+                    todo.append((rel, key, self.files[rel], self.refs.get(rel), rel in self.known))
+            got = io_map(lambda job: download(self.store, self.cas, self.root, self.lazy, job), todo,
+                         concurrent=not self.store.is_local)
+            n = 0
+            for (rel, key, *_), r in zip(todo, got):
+                if isinstance(r, BaseException):
+                    self._pending[rel] = key
+                    self._pending_sorted = None
+                    continue
+                downloaded, hit, state = r
+                if state is not None:
+                    self.known[rel] = state
+                n += downloaded
+                self.stats["cache_hits"] += hit
             self.stats["pulled_files"] += n
+            if (err := first_error(got)) is not None:
+                raise err
             return n
 
     # ------------------------------------------------------------------ what the records say (storage.recorded)
@@ -213,33 +232,6 @@ class Mirror:
                     self.refs.pop(rel, None)
                     self.fps.pop(rel, None)
                     self._forgotten.add(rel)
-
-    def _fetch(self, rel: str, key: str) -> int:
-        size, mtime_ns = self.files[rel]
-        local = self.root / rel
-        try:
-            st = local.stat()
-            if (st.st_size, st.st_mtime_ns) == (size, mtime_ns):
-                self.known[rel] = (size, mtime_ns)
-                return 0
-            if self.lazy and rel not in self.known:  # written here, not pushed yet (the folder starts empty):
-                return 0  # it supersedes the recorded version, and the next push publishes it
-        except OSError:
-            pass
-        ref = self.refs.get(rel)
-        try:
-            if self.cas is not None and ref is not None and ref.sha256:
-                hit = self.cas.materialise(ref.sha256, size, lambda tmp: self.store.get_file(key, tmp), local)
-                self.stats["cache_hits"] += int(hit)
-            else:
-                self.store.get_file(key, local)
-        except FileNotFoundError:
-            raise InputError(f"{self.store.describe()}: {key}", f"recorded object of {rel} is missing") from None
-        except ValueError as exc:
-            raise InputError(f"{self.store.describe()}: {key}", f"recorded object of {rel}: {exc}") from None
-        os.utime(local, ns=(mtime_ns, mtime_ns))
-        self.known[rel] = (size, mtime_ns)
-        return 1
 
     # ------------------------------------------------------------------ push
     def _scan(self) -> dict[str, tuple[int, int]]:

@@ -29,6 +29,7 @@ from __future__ import annotations
 
 import hashlib
 import os
+import threading
 import time
 from collections import Counter
 from dataclasses import dataclass, field
@@ -61,6 +62,15 @@ class StoreStats:
     requests: Counter = field(default_factory=Counter)
     bytes_read: int = 0
     bytes_written: int = 0
+    _lock: threading.Lock = field(default_factory=threading.Lock, repr=False, compare=False)
+
+    def add(self, op: str | None = None, n: int = 1, read: int = 0, written: int = 0) -> None:
+        """Count ``n`` requests of ``op`` and the bytes moved (safe from the threads of storage.objstore.pool)."""
+        with self._lock:
+            if op is not None:
+                self.requests[op] += n
+            self.bytes_read += read
+            self.bytes_written += written
 
     @property
     def n_requests(self) -> int:
@@ -119,11 +129,11 @@ class Store(ConditionalOps):
         return InputError(f"{self.describe()}: {key}", self.redact(f"cannot {what} ({type(exc).__name__}: {exc})"))
 
     def _count(self, op: str, n: int = 1) -> None:
-        self.stats.requests[op] += n
+        self.stats.add(op, n)
 
     def put(self, key: str, data: bytes) -> str | None:
         """Write ``data`` at ``key`` (atomically: rename locally, one PUT on S3). Returns the ETag (S3)."""
-        self.stats.bytes_written += len(data)
+        self.stats.add(written=len(data))
         if self.is_local:
             write_bytes_atomic(self.path(key), data)
             return None
@@ -133,7 +143,7 @@ class Store(ConditionalOps):
         """Upload (or atomically copy) a local file to ``key``; large files go as one multipart upload,
         which S3 also publishes atomically on completion."""
         size = Path(local_path).stat().st_size
-        self.stats.bytes_written += size
+        self.stats.add(written=size)
         if self.is_local:
             import shutil
 
@@ -163,7 +173,7 @@ class Store(ConditionalOps):
                     raise
                 except backend_errors() as exc:
                     raise self._fail(key, "download", exc) from None
-        self.stats.bytes_read += os.path.getsize(local_path)
+        self.stats.add(read=os.path.getsize(local_path))
         return Path(local_path)
 
     def get(self, key: str) -> bytes:
@@ -179,7 +189,7 @@ class Store(ConditionalOps):
         with open(self.path(key), "rb") as f:
             f.seek(start or 0)
             data = f.read() if end is None else f.read(end - (start or 0))
-        self.stats.bytes_read += len(data)
+        self.stats.add(read=len(data))
         return data
 
     def size(self, key: str) -> int:

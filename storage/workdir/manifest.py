@@ -99,6 +99,21 @@ def record_is_current(wd: WorkDir, rec: ManifestRecord | None, fingerprint: str,
     return all(recorded.exists(wd.root / o) for o in rec.outputs)  # on a bucket: recorded, maybe not downloaded
 
 
+def redo_reason(wd: WorkDir, rec: ManifestRecord | None, fingerprint: str, phash: str) -> str:
+    """Why a unit with record ``rec`` is not current (one phrase; "" when it is): shown in its new record's
+    summary (``redo``), so a rerun that redid a unit says what changed."""
+    if rec is None:
+        return "no record"
+    if rec.status not in ("done", "empty"):
+        return f"last run {rec.status}"
+    if rec.params_hash != phash:
+        return "parameters changed"
+    if rec.fingerprint != fingerprint:
+        return "inputs changed"
+    missing = [o for o in rec.outputs if not recorded.exists(wd.root / o)]
+    return f"output missing: {missing[0]}" if missing else ""
+
+
 def is_done(wd: WorkDir, stage: str, unit: str, fingerprint: str, phash: str) -> ManifestRecord | None:
     """The done record of a unit when it matches the fingerprints and its outputs exist, else None."""
     rec = read_record(wd, stage, unit)

@@ -172,6 +172,9 @@ class MeshConfig(_Section):
                                       "support.unsupported_faces); the surface is left open there; 0: kept")
     drop_unsupported_reach_m: float = Field(0.3, gt=0, description="an MLS point farther than this from a sample "
                                             "of a rebuilt face does not support it (drop_unsupported_m)")
+    restore_dropped_m: float = Field(1.0, ge=0, description="zone faces that only a dropped rebuilt face covered "
+                                     "(within this depth along their normal) and that no unexplained scan point "
+                                     "contradicts are kept as they were (tasks.repair.restore); 0: left open")
     stitch_tolerance_m: float = Field(0.01, gt=0, description="largest border gap accepted between the rebuilt "
                                       "mesh and the retained mesh")
     max_hole_loop_m: float = Field(40.0, gt=0, description="open boundary loops of the mesh shorter than this "

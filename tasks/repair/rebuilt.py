@@ -7,7 +7,7 @@ import numpy as np
 from scipy.spatial import cKDTree
 
 from storage.vertex_ids import local_ids
-from tasks.repair.mesh import RebuiltMesh
+from tasks.repair.mesh import RebuiltMesh, border_edges
 from tasks.repair.support import unsupported_faces
 
 
@@ -33,17 +33,36 @@ def with_free(mesh: RebuiltMesh, v: np.ndarray, f: np.ndarray) -> RebuiltMesh:
                        np.r_[mesh.chart, np.full(len(f), -1, np.int32)], mesh.stats)
 
 
-def drop_unsupported(mesh: RebuiltMesh, mls: np.ndarray, mls_n: np.ndarray, zone_xyz: np.ndarray,
-                     zone_faces: np.ndarray, border_ids: np.ndarray, mc, tree: cKDTree | None
-                     ) -> tuple[RebuiltMesh, int]:
+def drop_unsupported(mesh: RebuiltMesh, replaced: np.ndarray, data, mls: np.ndarray, mls_n: np.ndarray, mc,
+                     tree: cKDTree | None, cluster_m: float) -> tuple[RebuiltMesh, np.ndarray, dict]:
     """``mesh`` without the faces that rest on neither the MLS (p, 3) / normals (p, 3) nor the input zone
-    surface (:func:`tasks.repair.support.unsupported_faces` at ``mc.drop_unsupported_m``, reach
-    ``mc.drop_unsupported_reach_m``), but for the weld: a face with two vertices among ``border_ids`` (the
-    retained border's vertex ids) stays. Returns (the mesh, faces dropped)."""
-    off = unsupported_faces(mesh.xyz, mesh.faces, mls, mls_n, zone_xyz, zone_faces, offset_m=mc.drop_unsupported_m,
-                            reach_m=mc.drop_unsupported_reach_m, tree=tree)
+    surface of ``data`` (a RegionInput; :func:`tasks.repair.support.unsupported_faces` at
+    ``mc.drop_unsupported_m``, reach ``mc.drop_unsupported_reach_m``), but for the weld: a face with two
+    vertices on the retained border stays. The zone faces only a dropped face covered, and that no
+    unexplained scan point (gap ``mc.keep_agreeing_m``, clusters within ``cluster_m``) contradicts, are no
+    longer replaced (:mod:`tasks.repair.restore`, depth ``mc.restore_dropped_m``; 0: none).
+    replaced: (mz,) bool over the zone faces. Returns (the mesh, replaced, counts)."""
+    from tasks.repair.agree import unexplained_points
+    from tasks.repair.restore import restorable_faces
+
+    border_ids = data.vertex_id[border_edges(data.zone_faces, data.context_faces, len(data.xyz)).ravel()]
+    off = unsupported_faces(mesh.xyz, mesh.faces, mls, mls_n, data.xyz, data.zone_faces,
+                            offset_m=mc.drop_unsupported_m, reach_m=mc.drop_unsupported_reach_m, tree=tree)
     off &= np.isin(mesh.vertex_id[mesh.faces], border_ids).sum(axis=1) < 2
-    return without_faces(mesh, off), int(off.sum())
+    kept = without_faces(mesh, off)
+    counts = {"unsupported_faces_dropped": int(off.sum()), "input_faces_restored": 0}
+    if off.any() and mc.restore_dropped_m > 0:
+        mz = len(data.zone_faces)
+        bad, fid = unexplained_points(mls, data.xyz, np.concatenate([data.zone_faces, data.context_faces]),
+                                      gap_m=mc.keep_agreeing_m or mc.drop_unsupported_m, cluster_m=cluster_m,
+                                      min_points=3)
+        contradicted = np.zeros(mz, bool)
+        contradicted[fid[bad & (fid >= 0) & (fid < mz)]] = True
+        back = restorable_faces(data.xyz, data.zone_faces, (mesh.xyz, mesh.faces[off]), (kept.xyz, kept.faces),
+                                contradicted, depth_m=mc.restore_dropped_m) & replaced
+        replaced = replaced & ~back
+        counts["input_faces_restored"] = int(back.sum())
+    return kept, replaced, counts
 
 
 __all__ = ["drop_unsupported", "with_free", "without_faces"]

@@ -355,9 +355,8 @@ def _repair(data: RegionInput, cfg, vn: np.ndarray, thinned: tuple) -> RegionGeo
         stats["plan"] = f"fallback: {stats['unsupported_share']:.0%} of the rebuilt surface unsupported"
         mesh, replaced = empty_mesh(), np.zeros(mz, bool)
     elif mc.drop_unsupported_m > 0 and mesh.n_faces:  # chords across a scan gap, a corner, a recess: left open
-        bord_ids = data.vertex_id[border_edges(data.zone_faces, data.context_faces, len(data.xyz)).ravel()]
-        mesh, stats["unsupported_faces_dropped"] = drop_unsupported(mesh, both, nrm, data.xyz, data.zone_faces,
-                                                                    bord_ids, mc, tree)
+        mesh, replaced, dropped = drop_unsupported(mesh, replaced, data, both, nrm, mc, tree, 3 * fc.mls_spacing_m)
+        stats |= dropped
     mesh = with_free(mesh, *free)
     t4 = time.perf_counter()
     _finish_stats(stats, data, mesh, replaced, zone_area)

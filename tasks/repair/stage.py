@@ -148,6 +148,9 @@ def _summary(region: Region, rr: RegionRead, geo, status: str, t: tuple[float, f
             "tiles": list(region.tiles), "zone_faces": len(rr.input.zone_faces),
             "replaced_faces": int(geo.replaced.sum()), "rebuilt_faces": geo.mesh.n_faces,
             "max_border_gap_m": geo.stats.get("border", {}).get("max_gap_m", 0.0),
+            "kept_agreeing_faces": geo.stats.get("agreeing", {}).get("kept_faces", 0),
+            "unsupported_faces_dropped": geo.stats.get("unsupported_faces_dropped", 0),
+            "input_faces_restored": geo.stats.get("input_faces_restored", 0),
             "step_seconds": {"read": rr.seconds, **geo.stats.get("seconds", {}), "texture": t2 - t1, "total": t2 - t0}}
 
 

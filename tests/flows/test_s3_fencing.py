@@ -200,3 +200,32 @@ def test_an_epoch_is_taken_by_one_run_only(store):
         from storage.objstore.epoch import latest_epoch
 
         latest_epoch(store)
+
+
+def test_concurrent_downloads_count_exactly_and_a_missing_object_stays_pending(store, tmp_path, monkeypatch):
+    """A pull downloads its files several at a time (storage.objstore.pool): the same bytes and request counts as
+    one at a time; an object gone from the bucket fails alone, names itself, and is tried again by a later read."""
+    from storage.objstore.mirror import Mirror
+
+    writer = Mirror(store, tmp_path / "w")
+    for i in range(24):
+        _write(writer.root, f"tiles/{i}_0/points.parquet", bytes([i]) * (1000 + i))
+    rec = writer.push("writer")
+    counts = {}
+    for threads in ("1", "8"):
+        monkeypatch.setenv("MS3D_IO_THREADS", threads)
+        reader, before = Mirror(store, tmp_path / f"r{threads}"), store.stats.requests["GetObject"]
+        assert reader.pull() == 24
+        assert _files(reader.root) == _files(writer.root)
+        counts[threads] = store.stats.requests["GetObject"] - before
+    assert counts["1"] == counts["8"]
+
+    lost = rec.files["tiles/5_0/points.parquet"].key
+    store.delete([lost])
+    reader = Mirror(store, tmp_path / "r-lost")
+    with pytest.raises(InputError, match="5_0/points.parquet.*missing"):
+        reader.pull()
+    assert len(_files(reader.root)) == 23  # every other file came in
+    assert reader.pending_under("tiles/5_0") == ["tiles/5_0/points.parquet"]
+    with pytest.raises(InputError, match="missing"):
+        reader.fetch(["tiles/5_0/points.parquet"])

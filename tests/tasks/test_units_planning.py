@@ -53,5 +53,8 @@ def test_pending_units_skips_exactly_what_run_unit_skips(tmp_path):
     results = {u: _ran(wd, "region", u, fp, {"p": 1}, log) for u, fp in changed.items()}
     assert sorted(log) == todo
     assert {u for u, r in results.items() if r["skipped"]} == {"u0", "u4", "u5"}
+    # each redone unit's summary (and record) says why it ran again; a new unit says nothing
+    assert {u: results[u].get("redo") for u in todo} == {
+        "u1": "inputs changed", "u2": "output missing: u2.out", "u3": "last run failed", "u6": None}
     # other parameters: everything runs
     assert pending_units(wd, "region", changed, {"p": 2})[0] == list(changed)
