@@ -1,6 +1,6 @@
 """The no-shared-disk cluster: moto's S3 server on 127.0.0.1, the session's Prefect server, a ``dask
 scheduler`` and two ``dask worker`` processes, each in its own empty cwd with its own cache, sharing
-nothing but the S3 endpoint. The hand-made campus runs with inputs and work dir on S3 (``ms3d run CONFIG
+nothing but the S3 endpoint; the second worker runs two tasks at a time (two threads). The hand-made campus runs with inputs and work dir on S3 (``ms3d run CONFIG
 --work-dir s3://... --dask-address ...``); one worker is killed with SIGKILL mid-run, then the whole run;
 a rerun completes, and its outputs equal a local run's by content."""
 
@@ -72,7 +72,7 @@ def _child_env(cache: Path) -> dict:
 @pytest.fixture
 def dask_cluster(tmp_path, s3_env, prefect_api):
     """A scheduler and two workers (no nanny: SIGKILL ends a worker for good), each in its own empty cwd
-    with its own cache. Yields (address, {name: Popen})."""
+    with its own cache; worker0 has one thread, worker1 two. Yields (address, {name: Popen})."""
     port = _free_port()
     address = f"tcp://127.0.0.1:{port}"
     procs = {}
@@ -89,7 +89,8 @@ def dask_cluster(tmp_path, s3_env, prefect_api):
     procs["scheduler"] = start("scheduler", ["scheduler", "--host", "127.0.0.1", "--port", str(port),
                                              "--no-dashboard", "--no-show"])
     for i in range(2):
-        procs[f"worker{i}"] = start(f"worker{i}", ["worker", address, "--host", "127.0.0.1", "--nthreads", "1",
+        # worker1 runs two tasks at a time (two threads, one process): the stores must still equal the inline run's
+        procs[f"worker{i}"] = start(f"worker{i}", ["worker", address, "--host", "127.0.0.1", "--nthreads", str(1 + i),
                                                   "--no-nanny", "--no-dashboard", "--name", f"w{i}"])
     from distributed import Client
 
