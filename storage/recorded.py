@@ -189,6 +189,17 @@ def ensure_local(*paths: str | Path) -> int:
     return sum(view.fetch(rels) for view, rels in wanted.values())
 
 
+def remote_object(path: str | Path) -> tuple | None:
+    """(Store, object key, size in bytes) of the recorded file ``path`` while it is not downloaded here, for a
+    reader that fetches byte ranges of it; None for a local file (or one already downloaded)."""
+    own = owner(path)
+    if own is None:
+        return None
+    view, rel = own
+    object_of = getattr(view, "object_of", None)
+    return None if object_of is None else object_of(rel)
+
+
 def unlink(path: str | Path) -> None:
     """Delete the file ``path``, here and (by the next push of a mirror) in the records; no error when absent."""
     Path(path).unlink(missing_ok=True)

@@ -221,6 +221,13 @@ class Mirror:
                 j += 1
             return keys[i:j]
 
+    def object_of(self, rel: str):
+        """(store, object key, size) of the recorded file ``rel`` while it is not downloaded here, else None: for
+        readers that fetch byte ranges of it (:mod:`storage.patches.remote_read`)."""
+        with self.lock:
+            key = self._pending.get(rel)
+            return None if key is None else (self.store, key, self.files[rel][0])
+
     def forget(self, rels) -> None:
         """The recorded files ``rels`` were deleted here before they were downloaded: the next push publishes
         their deletion."""

@@ -161,17 +161,20 @@ class PatchStore:
     that do not belong together.
     """
 
-    def __init__(self, tile_dir: str | Path):
+    def __init__(self, tile_dir: str | Path, sources: dict | None = None):
+        """sources: {file name: seekable file object} to read the points or faces table from instead of the
+        tile folder (:func:`storage.patches.remote_read.open_for_patches`: byte ranges of a bucket's object)."""
         self.tile_dir = Path(tile_dir)
         self.stats = StoreStats()
-        recorded.ensure_local(*(self.tile_dir / n for n in (PATCHES_FILE, POINTS_FILE, FACES_FILE)))
+        sources = sources or {}
+        recorded.ensure_local(*(self.tile_dir / n for n in (PATCHES_FILE, POINTS_FILE, FACES_FILE) if n not in sources))
         table, pmeta = _patches_table(self.tile_dir)
         self._patches = table_columns(table, PATCH_DTYPES, PATCH_DTYPES)
         files = {}
         for table_name, file_name, rows_key in (("points", POINTS_FILE, "points_rows"),
                                                 ("faces", FACES_FILE, "faces_rows")):
             path = self.tile_dir / file_name
-            f, m = open_table(path, table_name)
+            f, m = open_table(path, table_name, sources.get(file_name))
             if m["n_rows"] != pmeta.get(rows_key) or m["tile"] != pmeta["tile"] \
                     or m["patch_size_m"] != pmeta["patch_size_m"]:
                 raise InputError(path, f"does not belong with {PATCHES_FILE} (rows/tile/patch size differ): "

@@ -126,12 +126,13 @@ def side_table_path(tile_dir: str | Path, name: str) -> Path:
 
 
 
-def open_table(path: Path, table: str) -> tuple[pq.ParquetFile, dict]:
-    """Open and validate one store file; every failure is an InputError naming the file."""
-    if not path.exists():
+def open_table(path: Path, table: str, source=None) -> tuple[pq.ParquetFile, dict]:
+    """Open and validate one store file; every failure is an InputError naming the file. ``source``: a
+    seekable file object to read it from instead of ``path`` (byte ranges of a recorded object)."""
+    if source is None and not path.exists():
         raise InputError(path, f"missing ({table} table of the patch store)")
     try:
-        pf = pq.ParquetFile(path)
+        pf = pq.ParquetFile(path) if source is None else pq.ParquetFile(source, pre_buffer=True)
         schema = pf.schema_arrow
     except (OSError, pa.ArrowException, ValueError) as exc:
         raise InputError(path, f"not a readable Parquet file ({exc})") from None

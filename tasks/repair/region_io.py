@@ -16,7 +16,7 @@ import numpy as np
 from storage.contracts.region_plan import Region
 from storage.grid import PatchGrid
 from storage.ids import TileId
-from storage.patches.read import PatchStore
+from storage.patches.remote_read import open_for_patches
 from storage.vertex_ids import MISSING, local_ids
 from tasks.geometry.holdout import Holdout
 from tasks.regions import dilate
@@ -69,7 +69,7 @@ def read_region(region: Region, grid: PatchGrid, tile_dir: Callable[[TileId], Pa
     zone_set = frozenset(region.patches.tolist())
     for ti, (ix, iy) in enumerate(np.unique(tiles, axis=0).tolist()):
         tile = TileId(ix, iy)
-        store = PatchStore(tile_dir(tile))
+        store = open_for_patches(tile_dir(tile))  # on a bucket: byte ranges of its tables
         tile_keys.append(tile.key)
         p = store.patches()
         sel = want[(tiles[:, 0] == ix) & (tiles[:, 1] == iy)]

@@ -229,3 +229,47 @@ def test_concurrent_downloads_count_exactly_and_a_missing_object_stays_pending(s
     assert reader.pending_under("tiles/5_0") == ["tiles/5_0/points.parquet"]
     with pytest.raises(InputError, match="missing"):
         reader.fetch(["tiles/5_0/points.parquet"])
+
+
+def test_a_region_reads_its_patches_by_byte_ranges_and_a_busy_tile_whole(store, tmp_path):
+    """On a bucket a repair region opens a tile's tables over ranged GETs (storage.patches.remote_read): the
+    patches equal a local read, far fewer bytes than the tables come over, nothing lands on scratch; once half a
+    table came by ranges, the next open downloads it whole instead."""
+    import numpy as np
+
+    from storage.objstore.mirror import Mirror
+    from storage.patches import remote_read
+    from storage.patches.read import PatchStore
+    from storage.patches.schema import POINTS_FILE
+    from storage.patches.write import write_tile_tables
+    from tests.storage.patches.test_patch_store import META, _tile
+
+    writer = Mirror(store, tmp_path / "w")
+    P, F, T = _tile(n=60_000, m=6_000, seed=3)
+    write_tile_tables(writer.root / "tiles" / "3_-2", P, F, T, META, row_group_size=2_000)
+    writer.push("partition")
+    local = PatchStore(writer.root / "tiles" / "3_-2")
+    keys = local.patches()["patch"]
+
+    reader = Mirror(store, tmp_path / "r")
+    reader.pull(only=lambda rel: False)  # the records only: nothing downloaded
+    from storage import recorded
+
+    recorded.register(reader)
+    try:
+        tile = reader.root / "tiles" / "3_-2"
+        size = (writer.root / "tiles" / "3_-2" / POINTS_FILE).stat().st_size
+        before = store.stats.bytes_read
+        ranged = remote_read.open_for_patches(tile)
+        got = ranged.read_patches(keys[:3].tolist())
+        want = local.read_patches(keys[:3].tolist())
+        assert all(np.array_equal(g.points["x"], w.points["x"]) and np.array_equal(g.faces["vid0"], w.faces["vid0"])
+                   for g, w in zip(got, want))
+        assert store.stats.bytes_read - before < 0.5 * size
+        assert not (tile / POINTS_FILE).exists()  # read in place, not downloaded
+        ranged.read_patches(keys.tolist())  # the whole tile by ranges: past half of it
+        assert remote_read.fetched_by_range(recorded.remote_object(tile / POINTS_FILE)[1]) >= 0.5 * size
+        remote_read.open_for_patches(tile).read_patches(keys[:1].tolist())
+        assert (tile / POINTS_FILE).exists()  # this time the table came whole (and is read locally)
+    finally:
+        recorded.unregister(reader.root)
