@@ -42,6 +42,10 @@ class ContentCache:
         self._added = 0  # bytes inserted since the last size check
         self.stats = {"hits": 0, "misses": 0, "bytes_fetched": 0, "evicted": 0}
 
+    def holds(self, sha256: str, size: int) -> bool:
+        """Whether the object ``sha256`` of ``size`` bytes is in the cache now (a copy costs no request)."""
+        return _valid(self.path_of(sha256), size)
+
     def path_of(self, sha256: str) -> Path:
         if len(sha256) != 64 or any(c not in "0123456789abcdef" for c in sha256):
             raise ValueError(f"not a sha256 hex digest: {sha256!r}")

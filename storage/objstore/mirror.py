@@ -222,11 +222,12 @@ class Mirror:
             return keys[i:j]
 
     def object_of(self, rel: str):
-        """(store, object key, size) of the recorded file ``rel`` while it is not downloaded here, else None: for
-        readers that fetch byte ranges of it (:mod:`storage.patches.remote_read`)."""
+        """(store, object key, size) of the recorded file ``rel`` while it is not downloaded here nor held by the
+        node's cache, else None: for readers that fetch byte ranges of it (:mod:`storage.patches.remote_read`)."""
         with self.lock:
-            key = self._pending.get(rel)
-            return None if key is None else (self.store, key, self.files[rel][0])
+            key, size, ref = self._pending.get(rel), self.files.get(rel, (0,))[0], self.refs.get(rel)
+            cached = self.cas is not None and ref is not None and ref.sha256 and self.cas.holds(ref.sha256, size)
+            return None if key is None or cached else (self.store, key, size)
 
     def forget(self, rels) -> None:
         """The recorded files ``rels`` were deleted here before they were downloaded: the next push publishes

@@ -273,3 +273,16 @@ def test_a_region_reads_its_patches_by_byte_ranges_and_a_busy_tile_whole(store, 
         assert (tile / POINTS_FILE).exists()  # this time the table came whole (and is read locally)
     finally:
         recorded.unregister(reader.root)
+    # a table the node's cache holds whole is copied from it, never fetched by ranges
+    from storage.objstore.cas import content_cache
+
+    node = Mirror(store, tmp_path / "r2")
+    node.cas = content_cache(tmp_path / "node" / "objects")
+    node.pull(only=lambda rel: False)
+    rel = "tiles/3_-2/" + POINTS_FILE
+    assert node.object_of(rel) is not None
+    node.fetch([rel])  # another task of this node read it whole: now in the cache
+    node2 = Mirror(store, tmp_path / "r3")
+    node2.cas = node.cas
+    node2.pull(only=lambda rel: False)
+    assert node2.object_of(rel) is None
