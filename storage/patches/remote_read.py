@@ -5,13 +5,15 @@ bucket (:mod:`storage.objstore.mirror`) :func:`open_for_patches` opens the tile'
 over ranged GETs of their recorded objects (the Parquet footer, then only the row groups the patches' rows
 lie in: :class:`storage.patches.read.PatchStore` reads by row groups), so nothing is downloaded whole and
 nothing is held on scratch. The regions of a repair batch share tiles; once this process has fetched
-``RANGED_MAX_SHARE`` of a table's bytes by ranges, later opens download it whole (through the node's cache)
-instead, so a tile costs at most about 1.5x its size however many regions read it. Locally (or for a file
-already downloaded) it is the ordinary store.
+:func:`ranged_max_share` of a table's bytes by ranges, later opens download it whole (through the node's
+cache) instead, so a tile costs at most (1 + that share) x its size however many regions read it. A table the
+node's cache holds whole is copied from it. Locally (or for a file already downloaded), and by default (the
+share is 0), it is the ordinary store.
 """
 
 from __future__ import annotations
 
+import os
 import threading
 from pathlib import Path
 
@@ -20,7 +22,17 @@ from storage.patches.ranges import RangeFile
 from storage.patches.read import PatchStore
 from storage.patches.schema import FACES_FILE, POINTS_FILE
 
-RANGED_MAX_SHARE = 0.5
+def ranged_max_share() -> float:
+    """``MS3D_RANGED_SHARE``: the share of a table's bytes a process fetches by ranges before it downloads the
+    table whole; default 0 (off): on the demo campus, whose repairs are dense (216 regions over 7 tiles), 0.5
+    made the S3 run 1.37x the local one against 1.21-1.25x without (docs/benchmarks.md). Worth it where
+    regions are few per tile (a good production with a few defects)."""
+    try:
+        return max(0.0, float(os.environ.get("MS3D_RANGED_SHARE", "0") or 0))
+    except ValueError:
+        return 0.0
+
+
 _FETCHED: dict[str, int] = {}  # object key -> bytes this process fetched of it by ranges
 _LOCK = threading.Lock()
 
@@ -50,9 +62,9 @@ def open_for_patches(tile_dir: str | Path) -> PatchStore:
         if obj is None:
             continue
         store, key, size = obj
-        if fetched_by_range(key) < RANGED_MAX_SHARE * size:
+        if fetched_by_range(key) < ranged_max_share() * size:
             sources[name] = _CountedRangeFile(store, key, size)
     return PatchStore(tile_dir, sources=sources)
 
 
-__all__ = ["RANGED_MAX_SHARE", "fetched_by_range", "open_for_patches"]
+__all__ = ["fetched_by_range", "open_for_patches", "ranged_max_share"]

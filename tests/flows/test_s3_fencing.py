@@ -231,7 +231,7 @@ def test_concurrent_downloads_count_exactly_and_a_missing_object_stays_pending(s
         reader.fetch(["tiles/5_0/points.parquet"])
 
 
-def test_a_region_reads_its_patches_by_byte_ranges_and_a_busy_tile_whole(store, tmp_path):
+def test_a_region_reads_its_patches_by_byte_ranges_and_a_busy_tile_whole(store, tmp_path, monkeypatch):
     """On a bucket a repair region opens a tile's tables over ranged GETs (storage.patches.remote_read): the
     patches equal a local read, far fewer bytes than the tables come over, nothing lands on scratch; once half a
     table came by ranges, the next open downloads it whole instead."""
@@ -244,6 +244,7 @@ def test_a_region_reads_its_patches_by_byte_ranges_and_a_busy_tile_whole(store, 
     from storage.patches.write import write_tile_tables
     from tests.storage.patches.test_patch_store import META, _tile
 
+    monkeypatch.setenv("MS3D_RANGED_SHARE", "0.5")  # off by default (docs/benchmarks.md)
     writer = Mirror(store, tmp_path / "w")
     P, F, T = _tile(n=60_000, m=6_000, seed=3)
     write_tile_tables(writer.root / "tiles" / "3_-2", P, F, T, META, row_group_size=2_000)
