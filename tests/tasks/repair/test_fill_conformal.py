@@ -131,8 +131,8 @@ def test_unseen_part_keeps_the_input_and_unsupported_rebuilds_fall_back():
     from tasks.repair.region_geometry import repair_region_geometry
 
     data = _half_seen_region()
-    cfg = RepairConfig.model_validate({"mesh": {"keep_unseen_m": 0, "keep_agreeing_m": 0}})  # the fill path: every
-    # zone face rebuilt
+    # the fill path: every zone face rebuilt (no input face kept as unseen, agreeing, or under a dropped chord)
+    cfg = RepairConfig.model_validate({"mesh": {"keep_unseen_m": 0, "keep_agreeing_m": 0, "restore_dropped_m": 0}})
     geo = repair_region_geometry(data, cfg)
     m = geo.mesh
     assert m.n_faces and geo.replaced.all()
