@@ -22,6 +22,7 @@ from storage.patches.ranges import RangeFile
 from storage.patches.read import PatchStore
 from storage.patches.schema import FACES_FILE, POINTS_FILE
 
+
 def ranged_max_share() -> float:
     """``MS3D_RANGED_SHARE``: the share of a table's bytes a process fetches by ranges before it downloads the
     table whole; default 0 (off): on the demo campus, whose repairs are dense (216 regions over 7 tiles), 0.5
@@ -55,14 +56,14 @@ def fetched_by_range(key: str) -> int:
 
 def open_for_patches(tile_dir: str | Path) -> PatchStore:
     """A :class:`PatchStore` of ``tile_dir`` for reading some of its patches (see the module docstring)."""
-    tile_dir = Path(tile_dir)
+    tile_dir, share = Path(tile_dir), ranged_max_share()
     sources = {}
-    for name in (POINTS_FILE, FACES_FILE):
+    for name in (POINTS_FILE, FACES_FILE) if share > 0 else ():
         obj = recorded.remote_object(tile_dir / name)
         if obj is None:
             continue
         store, key, size = obj
-        if fetched_by_range(key) < ranged_max_share() * size:
+        if fetched_by_range(key) < share * size:
             sources[name] = _CountedRangeFile(store, key, size)
     return PatchStore(tile_dir, sources=sources)
 

@@ -91,12 +91,9 @@ def read_stage_records(wd: WorkDir, stage: str) -> dict[str, ManifestRecord]:
 
 
 def record_is_current(wd: WorkDir, rec: ManifestRecord | None, fingerprint: str, phash: str) -> bool:
-    """Whether ``rec`` marks its unit done (or empty) for these fingerprints, with every output on disk."""
-    if rec is None or rec.status not in ("done", "empty"):
-        return False
-    if rec.fingerprint != fingerprint or rec.params_hash != phash:
-        return False
-    return all(recorded.exists(wd.root / o) for o in rec.outputs)  # on a bucket: recorded, maybe not downloaded
+    """Whether ``rec`` marks its unit done (or empty) for these fingerprints, with every output on disk (on a
+    bucket: recorded, maybe not downloaded)."""
+    return redo_reason(wd, rec, fingerprint, phash) == ""
 
 
 def redo_reason(wd: WorkDir, rec: ManifestRecord | None, fingerprint: str, phash: str) -> str:
