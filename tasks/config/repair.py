@@ -175,6 +175,11 @@ class MeshConfig(_Section):
     restore_dropped_m: float = Field(1.0, ge=0, description="zone faces that only a dropped rebuilt face covered "
                                      "(within this depth along their normal) and that no unexplained scan point "
                                      "contradicts are kept as they were (tasks.repair.restore); 0: left open")
+    restore_scope: Literal["dropped", "uncovered", "any"] = Field(
+        "uncovered", description="which replaced zone faces restore_dropped_m may keep: 'dropped', those a dropped "
+        "chord covered; 'uncovered', every one the final rebuild does not cover (a chord dropped, or never built "
+        "there), that continues the retained input and that no unexplained scan point contradicts; 'any', the "
+        "same without the last condition (where the scan shows the input wrong but gave nothing to replace it)")
     stitch_tolerance_m: float = Field(0.01, gt=0, description="largest border gap accepted between the rebuilt "
                                       "mesh and the retained mesh")
     max_hole_loop_m: float = Field(40.0, gt=0, description="open boundary loops of the mesh shorter than this "

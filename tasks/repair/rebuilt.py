@@ -38,12 +38,13 @@ def drop_unsupported(mesh: RebuiltMesh, replaced: np.ndarray, data, mls: np.ndar
     """``mesh`` without the faces that rest on neither the MLS (p, 3) / normals (p, 3) nor the input zone
     surface of ``data`` (a RegionInput; :func:`tasks.repair.support.unsupported_faces` at
     ``mc.drop_unsupported_m``, reach ``mc.drop_unsupported_reach_m``), but for the weld: a face with two
-    vertices on the retained border stays. The zone faces only a dropped face covered, and that no
+    vertices on the retained border stays. The zone faces the remaining rebuild does not cover, and that no
     unexplained scan point (gap ``mc.keep_agreeing_m``, clusters within ``cluster_m``) contradicts, are no
-    longer replaced (:mod:`tasks.repair.restore`, depth ``mc.restore_dropped_m``; 0: none).
+    longer replaced (:mod:`tasks.repair.restore`, depth ``mc.restore_dropped_m``, 0: none; which faces are
+    candidates: ``mc.restore_scope``).
     replaced: (mz,) bool over the zone faces. Returns (the mesh, replaced, counts)."""
     from tasks.repair.agree import unexplained_points
-    from tasks.repair.restore import restorable_faces
+    from tasks.repair.restore import attached, restorable_faces
 
     border_ids = data.vertex_id[border_edges(data.zone_faces, data.context_faces, len(data.xyz)).ravel()]
     off = unsupported_faces(mesh.xyz, mesh.faces, mls, mls_n, data.xyz, data.zone_faces,
@@ -51,15 +52,19 @@ def drop_unsupported(mesh: RebuiltMesh, replaced: np.ndarray, data, mls: np.ndar
     off &= np.isin(mesh.vertex_id[mesh.faces], border_ids).sum(axis=1) < 2
     kept = without_faces(mesh, off)
     counts = {"unsupported_faces_dropped": int(off.sum()), "input_faces_restored": 0}
-    if off.any() and mc.restore_dropped_m > 0:
+    scope_all = getattr(mc, "restore_scope", "dropped") in ("uncovered", "any")
+    if (off.any() or scope_all) and mc.restore_dropped_m > 0:
         mz = len(data.zone_faces)
         bad, fid = unexplained_points(mls, data.xyz, np.concatenate([data.zone_faces, data.context_faces]),
                                       gap_m=mc.keep_agreeing_m or mc.drop_unsupported_m, cluster_m=cluster_m,
                                       min_points=3)
         contradicted = np.zeros(mz, bool)
-        contradicted[fid[bad & (fid >= 0) & (fid < mz)]] = True
-        back = restorable_faces(data.xyz, data.zone_faces, (mesh.xyz, mesh.faces[off]), (kept.xyz, kept.faces),
-                                contradicted, depth_m=mc.restore_dropped_m) & replaced
+        if mc.restore_scope != "any":
+            contradicted[fid[bad & (fid >= 0) & (fid < mz)]] = True
+        back = restorable_faces(data.xyz, data.zone_faces, None if scope_all else (mesh.xyz, mesh.faces[off]),
+                                (kept.xyz, kept.faces), contradicted, depth_m=mc.restore_dropped_m) & replaced
+        if scope_all:  # only what continues the retained input: not an island inside the rebuild
+            back = attached(data.zone_faces, data.context_faces, back, len(data.xyz))
         replaced = replaced & ~back
         counts["input_faces_restored"] = int(back.sum())
     return kept, replaced, counts

@@ -1,6 +1,7 @@
 """Input faces put back under a dropped chord (tasks.repair.restore via tasks.repair.rebuilt.drop_unsupported):
 the roof the scan never saw stays when the chord that replaced it goes; a face the scan contradicts does not
-come back; with ``restore_dropped_m`` 0 the roof is lost as before."""
+come back; with ``restore_dropped_m`` 0 the roof is lost as before. The default scope ("uncovered") also keeps
+input the rebuild never reached, where it continues the retained input."""
 
 from __future__ import annotations
 
@@ -11,6 +12,8 @@ from tasks.config.repair import RepairConfig
 from tasks.repair.mesh import RebuiltMesh
 from tasks.repair.rebuilt import drop_unsupported
 from tasks.repair.region_geometry import RegionInput
+
+DROPPED = RepairConfig.model_validate({"mesh": {"restore_scope": "dropped"}}).mesh  # the chord rule alone
 
 
 def _grid(x0, x1, nx, a0, a1, na, plane):
@@ -50,13 +53,13 @@ def _case():
 def test_the_roof_under_a_dropped_chord_stays_and_the_offset_wall_is_still_replaced():
     data, mesh, pts, nrm, is_roof = _case()
     replaced = np.ones(len(data.zone_faces), bool)
-    out, rep, counts = drop_unsupported(mesh, replaced, data, pts, nrm, RepairConfig().mesh, cKDTree(pts), 0.06)
+    out, rep, counts = drop_unsupported(mesh, replaced, data, pts, nrm, DROPPED, cKDTree(pts), 0.06)
     assert counts["unsupported_faces_dropped"] == 2 and out.n_faces == 2  # the chord went, the wall stayed
     assert not rep[is_roof].any()  # every roof face under the chord is the input's again
     assert counts["input_faces_restored"] == int(is_roof.sum())
     assert rep[~is_roof].all()  # the wall, offset part and all, stays replaced: the rebuilt wall covers it
 
-    off = RepairConfig.model_validate({"mesh": {"restore_dropped_m": 0}}).mesh
+    off = RepairConfig.model_validate({"mesh": {"restore_dropped_m": 0, "restore_scope": "dropped"}}).mesh
     _, rep0, counts0 = drop_unsupported(mesh, replaced, data, pts, nrm, off, cKDTree(pts), 0.06)
     assert rep0.all() and counts0["input_faces_restored"] == 0  # the old behaviour: the roof is lost
 
@@ -70,8 +73,44 @@ def test_a_face_the_scan_contradicts_is_not_put_back():
     pts2 = np.concatenate([pts, above])
     nrm2 = np.concatenate([nrm, np.tile([0.0, 0.0, 1.0], (len(above), 1))])
     replaced = np.ones(len(data.zone_faces), bool)
-    _, rep, counts = drop_unsupported(mesh, replaced, data, pts2, nrm2, RepairConfig().mesh, cKDTree(pts2), 0.06)
+    _, rep, counts = drop_unsupported(mesh, replaced, data, pts2, nrm2, DROPPED, cKDTree(pts2), 0.06)
     c = data.xyz[data.zone_faces].mean(axis=1)
     under = is_roof & (c[:, 0] > 1.2) & (c[:, 0] < 2.8) & (c[:, 1] > 0.3) & (c[:, 1] < 0.7)
     assert under.any() and rep[under].all()
     assert 0 < counts["input_faces_restored"] < int(is_roof.sum())
+
+
+def test_a_roof_the_rebuild_never_reached_comes_back_with_the_uncovered_scope():
+    """No chord at all: the rebuild stops at the wall's top (the chart dropped what the scan did not show), so
+    the roof strip in the zone (y 0-1; the roof beyond, y 1-2, is retained) is replaced by nothing. Scope
+    "dropped" leaves it open (no chord was dropped); scope "uncovered" keeps the input roof, which continues
+    the retained roof, while the offset wall stays replaced (the rebuilt wall covers it). A piece of the zone
+    touching no retained face (an island inside the rebuild) is not put back."""
+    from dataclasses import replace
+
+    data, mesh, pts, nrm, is_roof = _case()
+    rv, rf = _grid(0, 4, 8, 0, 2, 4, "roof")
+    n_wall = int((~is_roof).sum())
+    wall_v = data.xyz[: len(data.xyz) - 27]
+    xyz = np.concatenate([wall_v, rv])
+    yc = rv[rf].mean(axis=1)[:, 1]
+    zone = np.concatenate([data.zone_faces[:n_wall], rf[yc < 1] + len(wall_v)])
+    ctx = rf[yc >= 1] + len(wall_v)
+    data = replace(data, xyz=xyz, vertex_id=np.arange(len(xyz)), zone_faces=zone, context_faces=ctx,
+                   near_zone=np.ones(len(xyz), bool))
+    is_roof = np.r_[np.zeros(n_wall, bool), np.ones(int((yc < 1).sum()), bool)]
+    wall_only = RebuiltMesh(mesh.xyz[:4], mesh.vertex_id[:4], mesh.faces[:2], mesh.source[:4], mesh.chart[:2])
+    replaced = np.ones(len(zone), bool)
+    dropped = RepairConfig.model_validate({"mesh": {"restore_scope": "dropped"}}).mesh
+    _, rep, counts = drop_unsupported(wall_only, replaced, data, pts, nrm, dropped, cKDTree(pts), 0.06)
+    assert rep.all() and counts["input_faces_restored"] == 0
+    uncovered = RepairConfig().mesh
+    assert uncovered.restore_scope == "uncovered"  # the default
+    out, rep, counts = drop_unsupported(wall_only, replaced, data, pts, nrm, uncovered, cKDTree(pts), 0.06)
+    assert out.n_faces == 2 and counts["unsupported_faces_dropped"] == 0
+    assert not rep[is_roof].any() and rep[~is_roof].all()
+    assert counts["input_faces_restored"] == int(is_roof.sum())
+
+    island = replace(data, context_faces=np.zeros((0, 3), np.int64))  # nothing retained around the zone
+    _, rep, counts = drop_unsupported(wall_only, replaced, island, pts, nrm, uncovered, cKDTree(pts), 0.06)
+    assert rep.all() and counts["input_faces_restored"] == 0
