@@ -97,14 +97,14 @@ def repair_line(rep: dict | None) -> str:
 
     >>> repair_line({"regions": 2, "zone_faces": 90, "replaced_faces": 40, "rebuilt_faces": 55, "kept_agreeing_faces": 50,
     ...              "unsupported_faces_dropped": 3, "input_faces_restored": 4})
-    'repair: 2 regions, 40 of their 90 faces replaced by 55 rebuilt (50 kept: the scan agrees with them); 3 unsupported rebuilt faces dropped, 4 input faces kept under them'
+    'repair: 2 regions, 40 of their 90 faces replaced by 55 rebuilt (50 kept: the scan agrees with them); 3 unsupported rebuilt faces dropped, 4 input faces kept where the rebuild left nothing'
     """
     if not rep or not rep.get("regions"):
         return ""
     return (f"repair: {rep['regions']} regions, {rep['replaced_faces']} of their {rep['zone_faces']} faces replaced by "
             f"{rep['rebuilt_faces']} rebuilt ({rep['kept_agreeing_faces']} kept: the scan agrees with them); "
             f"{rep['unsupported_faces_dropped']} unsupported rebuilt faces dropped, {rep['input_faces_restored']} "
-            "input faces kept under them")
+            "input faces kept where the rebuild left nothing")
 
 
 def holdout_summary(wd: WorkDir) -> dict:

@@ -179,7 +179,8 @@ class MeshConfig(_Section):
         "uncovered", description="which replaced zone faces restore_dropped_m may keep: 'dropped', those a dropped "
         "chord covered; 'uncovered', every one the final rebuild does not cover (a chord dropped, or never built "
         "there), that continues the retained input and that no unexplained scan point contradicts; 'any', the "
-        "same without the last condition (where the scan shows the input wrong but gave nothing to replace it)")
+        "same without the last condition (where the scan shows the input wrong but gave nothing to replace it). "
+        "Applied with the dropping of unsupported faces: with drop_unsupported_m 0 nothing is restored")
     stitch_tolerance_m: float = Field(0.01, gt=0, description="largest border gap accepted between the rebuilt "
                                       "mesh and the retained mesh")
     max_hole_loop_m: float = Field(40.0, gt=0, description="open boundary loops of the mesh shorter than this "

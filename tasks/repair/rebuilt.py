@@ -52,14 +52,14 @@ def drop_unsupported(mesh: RebuiltMesh, replaced: np.ndarray, data, mls: np.ndar
     off &= np.isin(mesh.vertex_id[mesh.faces], border_ids).sum(axis=1) < 2
     kept = without_faces(mesh, off)
     counts = {"unsupported_faces_dropped": int(off.sum()), "input_faces_restored": 0}
-    scope_all = getattr(mc, "restore_scope", "dropped") in ("uncovered", "any")
+    scope_all = mc.restore_scope in ("uncovered", "any")
     if (off.any() or scope_all) and mc.restore_dropped_m > 0:
         mz = len(data.zone_faces)
-        bad, fid = unexplained_points(mls, data.xyz, np.concatenate([data.zone_faces, data.context_faces]),
-                                      gap_m=mc.keep_agreeing_m or mc.drop_unsupported_m, cluster_m=cluster_m,
-                                      min_points=3)
         contradicted = np.zeros(mz, bool)
         if mc.restore_scope != "any":
+            bad, fid = unexplained_points(mls, data.xyz, np.concatenate([data.zone_faces, data.context_faces]),
+                                          gap_m=mc.keep_agreeing_m or mc.drop_unsupported_m, cluster_m=cluster_m,
+                                          min_points=3)
             contradicted[fid[bad & (fid >= 0) & (fid < mz)]] = True
         back = restorable_faces(data.xyz, data.zone_faces, None if scope_all else (mesh.xyz, mesh.faces[off]),
                                 (kept.xyz, kept.faces), contradicted, depth_m=mc.restore_dropped_m) & replaced
