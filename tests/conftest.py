@@ -2,9 +2,40 @@
 
 from __future__ import annotations
 
+import json
 import os
+from pathlib import Path
 
 import pytest
+
+
+def _built_once(tmp_path_factory, name: str, build) -> Path:
+    """The folder ``name`` built by ``build(folder)`` once per test run, shared by every xdist worker (the first
+    builds it under a file lock; the others wait and reuse it; a ``.built`` marker says it is complete). Without
+    xdist it is a plain per-session folder. Never to be changed: read it, or take :func:`_own_copy`."""
+    from filelock import FileLock
+
+    root = tmp_path_factory.getbasetemp()
+    if os.environ.get("PYTEST_XDIST_WORKER"):
+        root = root.parent  # the run's folder, above each worker's own basetemp
+    folder = root / f"shared-{name}"
+    with FileLock(str(folder) + ".lock"):
+        if not (folder / ".built").exists():
+            if folder.exists():
+                import shutil
+
+                shutil.rmtree(folder)  # a worker that died mid-build left it half made
+            folder.mkdir(parents=True)
+            build(folder)
+            (folder / ".built").touch()
+    return folder
+
+
+def _own_copy(tmp_path_factory, name: str, src: Path) -> Path:
+    """A copy of ``src`` in this worker's own temp folder: built once, but changed by no other worker."""
+    import shutil
+
+    return Path(shutil.copytree(src, tmp_path_factory.mktemp(name) / src.name, symlinks=True))
 
 
 @pytest.fixture(scope="session")
@@ -32,7 +63,7 @@ def tiny_campus(tmp_path_factory):
     """The synth 'tiny' campus (seed 1), generated once per test session. Read-only for tests."""
     from synth.generate import generate
 
-    return generate("tiny", seed=1, out=tmp_path_factory.mktemp("tiny") / "campus")
+    return _built_once(tmp_path_factory, "tiny", lambda d: generate("tiny", seed=1, out=d / "campus")) / "campus"
 
 
 @pytest.fixture(scope="session")
@@ -44,10 +75,13 @@ def tiny_merged(tiny_campus, tmp_path_factory):
     from storage.frame import CampusFrame
     from synth.tile_meshes import fake_merged_workdir, read_production
 
-    cfg = yaml.safe_load((tiny_campus / "campus.yaml").read_text())
-    mesh, origin = read_production(tiny_campus / "mesh")
-    frame = CampusFrame(origin=origin, crs=cfg["inputs"]["crs"], vertical_datum="ellipsoidal (WGS 84), synthetic")
-    return fake_merged_workdir(mesh, frame, tmp_path_factory.mktemp("merged") / "work", tile_size_m=25.0).root
+    def build(folder):
+        cfg = yaml.safe_load((tiny_campus / "campus.yaml").read_text())
+        mesh, origin = read_production(tiny_campus / "mesh")
+        frame = CampusFrame(origin=origin, crs=cfg["inputs"]["crs"], vertical_datum="ellipsoidal (WGS 84), synthetic")
+        fake_merged_workdir(mesh, frame, folder / "work", tile_size_m=25.0)
+
+    return _own_copy(tmp_path_factory, "merged", _built_once(tmp_path_factory, "merged", build) / "work")
 
 
 @pytest.fixture(scope="session")
@@ -57,9 +91,12 @@ def tiny_export(tiny_merged, tmp_path_factory):
 
     from tasks.export import run_export
 
-    work = tmp_path_factory.mktemp("export") / "work"
-    shutil.copytree(tiny_merged, work)
-    return work, run_export(work)
+    def build(folder):
+        shutil.copytree(tiny_merged, folder / "work")
+        (folder / "summary.json").write_text(json.dumps(run_export(folder / "work")))
+
+    folder = _built_once(tmp_path_factory, "export", build)
+    return _own_copy(tmp_path_factory, "export", folder / "work"), json.loads((folder / "summary.json").read_text())
 
 
 @pytest.fixture(scope="session")
@@ -70,11 +107,13 @@ def tiny_work(tiny_campus, tmp_path_factory):
     from storage.workdir.layout import WorkDir
     from tasks.config import CampusConfig
 
-    work = tmp_path_factory.mktemp("model-tiny") / "work"
-    cfg = CampusConfig.from_yaml(tiny_campus / "campus.yaml", {"work_dir": str(work), "runner": "inline",
-                                                              "classify": {"enabled": False}})
-    run_campus(cfg, progress=False)
-    return cfg, WorkDir(work)
+    def config(work):
+        return CampusConfig.from_yaml(tiny_campus / "campus.yaml", {"work_dir": str(work), "runner": "inline",
+                                                                   "classify": {"enabled": False}})
+
+    built = _built_once(tmp_path_factory, "model-tiny", lambda d: run_campus(config(d / "work"), progress=False))
+    work = _own_copy(tmp_path_factory, "model-tiny", built / "work")
+    return config(work), WorkDir(work)
 
 
 @pytest.fixture(scope="session")
