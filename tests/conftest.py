@@ -1,4 +1,5 @@
-"""Shared fixtures: one Prefect API server for the whole test session (never one per worker or test)."""
+"""Shared fixtures: one Prefect API server per test session (never one per test), and the tiny synth campus
+with its work dirs built once per run for every xdist worker."""
 
 from __future__ import annotations
 
@@ -60,7 +61,7 @@ def prefect_api(tmp_path_factory):
 
 @pytest.fixture(scope="session")
 def tiny_campus(tmp_path_factory):
-    """The synth 'tiny' campus (seed 1), generated once per test session. Read-only for tests."""
+    """The synth 'tiny' campus (seed 1), generated once per run and read by every worker. Read-only for tests."""
     from synth.generate import generate
 
     return _built_once(tmp_path_factory, "tiny", lambda d: generate("tiny", seed=1, out=d / "campus")) / "campus"
@@ -69,7 +70,8 @@ def tiny_campus(tmp_path_factory):
 @pytest.fixture(scope="session")
 def tiny_merged(tiny_campus, tmp_path_factory):
     """A work dir with campus.json and tiles/*/merged.* cut from the tiny synth mesh (25 m tiles, 3 x 2),
-    standing in for the merge stage's output. Read-only for tests (copy it to change it)."""
+    standing in for the merge stage's output; built once per run, each worker its own copy. Read-only for tests
+    (copy it to change it)."""
     import yaml
 
     from storage.frame import CampusFrame
@@ -101,8 +103,8 @@ def tiny_export(tiny_merged, tmp_path_factory):
 
 @pytest.fixture(scope="session")
 def tiny_work(tiny_campus, tmp_path_factory):
-    """The tiny synth campus processed once per session (inline, classify off): (config, WorkDir).
-    Read-only for tests."""
+    """The tiny synth campus processed once per run (inline, classify off), each worker its own copy:
+    (config, WorkDir). Read-only for tests."""
     from flows.campus import run_campus
     from storage.workdir.layout import WorkDir
     from tasks.config import CampusConfig
